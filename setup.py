@@ -1,0 +1,5 @@
+"""Setuptools entry point; metadata lives in setup.cfg (ament_python convention)."""
+
+from setuptools import setup
+
+setup()
