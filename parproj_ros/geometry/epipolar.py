@@ -134,16 +134,18 @@ def planar_rectification(epi: EpipolarConstraint) -> PlanarRectification:
     S^2 = |(G3, G4)| / |(G1, G2)| and dy = 1 / (S |(G1, G2)|) (the printed arctan forms are these
     up to the quadrant).
     """
-    g1, g2, g3, g4 = epi.G
+    # Work with g and k (G = g / k) so that k = 0 (dy = 0) needs no special case.
+    sgn = -1.0 if epi.k < 0 else 1.0
+    g1, g2, g3, g4 = sgn * epi.g
     n12, n34 = float(np.hypot(g1, g2)), float(np.hypot(g3, g4))
-    if n12 == 0.0 or n34 == 0.0:
+    if n12 < 1e-12 or n34 < 1e-12:
         raise DegenerateGeometryError(
-            "epipolar lines are undefined in one scene (G1=G2=0 or G3=G4=0)"
+            "epipolar lines are undefined in one scene (G1 = G2 = 0 or G3 = G4 = 0)"
         )
     theta = float(np.arctan2(-g1, g2))
     theta2 = float(np.arctan2(g3, -g4))
     big_s = float(np.sqrt(n34 / n12))
-    dy = 1.0 / (big_s * n12)
+    dy = abs(epi.k) / (big_s * n12)
     if abs(theta) > np.pi / 2:
         theta = float(theta - np.sign(theta) * np.pi)
         theta2 = float(theta2 - np.sign(theta2) * np.pi) if theta2 != 0 else float(np.pi)

@@ -27,6 +27,8 @@ FloatArray = NDArray[np.float64]
 
 #: Relative singular value below which a point set counts as coplanar / collinear.
 PLANARITY_TOLERANCE = 1e-6
+#: Gauss-Newton stops when a step moves the modelled y by less than this, pixels.
+CONVERGED_PX = 1e-9
 
 
 @dataclass(frozen=True)
@@ -43,7 +45,7 @@ class AffineEstimate:
             row/column is zero when psi was not estimated.
         residuals: (n, 2) measured minus modelled (x, y), metres.
         redundancy: 2 n - number of unknowns.
-        iterations: Gauss-Newton iterations used (0 for the linear cases).
+        iterations: Gauss-Newton iterations used.
 
     """
 
@@ -154,13 +156,15 @@ def estimate_affine(
     theta = np.concatenate([by, [np.tan(psi0)]])
     iterations = 0
     cond = 0.0
+    converged = False
+    change = np.inf
 
     def y_model(th: FloatArray) -> tuple[FloatArray, FloatArray]:
         q = design @ th[:4]
         den = 1.0 + th[4] * q / c
         return q / den, q
 
-    for iterations in range(1, max_iterations + 1):
+    for iterations in range(1, max_iterations + 1):  # noqa: B007 - reported after the loop
         ym, q = y_model(theta)
         den = 1.0 + theta[4] * q / c
         jac_q = (1.0 / den**2)[:, None] * design
@@ -179,12 +183,17 @@ def estimate_affine(
                 f"{cond:.3g}): spread the points along the scan line and in height"
             )
         step, *_ = np.linalg.lstsq(js, obs[:, 1] - ym, rcond=None)
+        change = float(np.abs(js @ step).max())  # largest model change of this step, metres
         step = step / col_norm
         theta[: len(step)] += step
-        if np.all(np.abs(step / np.maximum(np.abs(theta[: len(step)]), 1e-300)) < 1e-13) or (
-            not estimate_psi and iterations >= 3
-        ):
+        if change < CONVERGED_PX * pixel_size:
+            converged = True
             break
+    if not converged:
+        raise GeometryError(
+            f"Eq 8 did not converge in {max_iterations} iterations (last step moved the model "
+            f"by {change / pixel_size:.3g} px)"
+        )
     if estimate_psi and abs(theta[4]) > 1e6:
         raise DegeneratePointsError("roll estimate diverged: the GCP do not determine psi")
     ym, q = y_model(theta)
@@ -227,7 +236,7 @@ def estimate_affine(
         covariance=cov,
         residuals=np.column_stack([rx, ry]),
         redundancy=redundancy,
-        iterations=iterations if estimate_psi else 0,
+        iterations=iterations,
         principal_distance=c,
         pixel_size=float(pixel_size),
     )

@@ -29,14 +29,14 @@ class SceneObservation:
         xy: measured (x, y) per point, shape (n, 2), metres; y perspective unless ``psi`` is None.
         psi: roll (rad) used to PTP-correct y before intersecting; 0 = no correction; None = the
             y values are already parallel (y').
-        principal_distance: c (m), needed when psi is not None.
+        principal_distance: c (m), needed when psi is neither None nor 0.
 
     """
 
     affine: AffineModel
     xy: FloatArray
     psi: float | None = 0.0
-    principal_distance: float = 1.0
+    principal_distance: float | None = None
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,12 @@ def space_intersection(scenes: Sequence[SceneObservation]) -> Intersection:
         xy = np.asarray(sc.xy, dtype=float)
         if xy.shape != (n, 2):
             raise GeometryError(f"every scene needs (n, 2) observations, got {xy.shape}")
-        y = xy[:, 1] if sc.psi is None else ptp_forward(xy[:, 1], sc.principal_distance, sc.psi)
+        if sc.psi is None or sc.psi == 0.0:
+            y = xy[:, 1]
+        elif sc.principal_distance is None:
+            raise GeometryError("a roll psi was given without the principal distance")
+        else:
+            y = ptp_forward(xy[:, 1], sc.principal_distance, sc.psi)
         m = sc.affine.matrix
         rows.append(m[:, :3])
         rhs.append(np.stack([xy[:, 0] - m[0, 3], y - m[1, 3]], axis=0))

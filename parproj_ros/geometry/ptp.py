@@ -28,14 +28,22 @@ def ptp_forward(y: ArrayLike, c: float, psi: float) -> FloatArray:
     """Eq 7: perspective y (m) -> parallel y' (m), for principal distance c (m), roll psi (rad)."""
     _check(c, psi)
     yy = np.asarray(y, dtype=float)
-    return np.asarray(yy / (1.0 - yy * np.tan(psi) / c), dtype=float)
+    den = 1.0 - yy * np.tan(psi) / c
+    if np.any(den <= 0):
+        raise GeometryError("a coordinate lies beyond the horizon of Eq 7 (y tan(psi) >= c)")
+    return np.asarray(yy / den, dtype=float)
 
 
 def ptp_inverse(y_parallel: ArrayLike, c: float, psi: float) -> FloatArray:
     """Inverse of Eq 7: parallel y' (m) -> perspective y (m): ``y = y' / (1 + (y'/c) tan psi)``."""
     _check(c, psi)
     yp = np.asarray(y_parallel, dtype=float)
-    return np.asarray(yp / (1.0 + yp * np.tan(psi) / c), dtype=float)
+    den = 1.0 + yp * np.tan(psi) / c
+    if np.any(den <= 0):
+        raise GeometryError(
+            "a parallel coordinate has no perspective image (1 + y' tan(psi)/c <= 0)"
+        )
+    return np.asarray(yp / den, dtype=float)
 
 
 def roll_from_rotation(rot: ArrayLike) -> float:

@@ -47,18 +47,17 @@ def angles_from_rotation(rot: ArrayLike) -> tuple[float, float, float]:
     """Inverse of :func:`rotation_from_angles`: (omega, phi, kappa) in radians.
 
     phi is returned in [-pi/2, pi/2]; at phi = +-pi/2 (gimbal lock) kappa is set to 0 and the whole
-    rotation about the common axis is put in omega.
+    rotation about the common axis is put in omega. phi comes from atan2 (not asin, which loses
+    half the digits near +-pi/2) and omega from ``R Rz(kappa)^T = Rx(omega) Ry(phi)``, whose
+    second column is (0, cos omega, sin omega) whatever phi: accurate to rounding everywhere.
     """
     r = np.asarray(rot, dtype=float)
     check_rotation(r)
-    sphi = float(np.clip(r[0, 2], -1.0, 1.0))
-    phi = float(np.arcsin(sphi))
-    if np.hypot(r[0, 0], r[0, 1]) < 1e-12:
-        kappa = 0.0
-        omega = float(np.arctan2(r[2, 1], r[1, 1]))
-    else:
-        omega = float(np.arctan2(-r[1, 2], r[2, 2]))
-        kappa = float(np.arctan2(-r[0, 1], r[0, 0]))
+    cphi = float(np.hypot(r[0, 0], r[0, 1]))
+    phi = float(np.arctan2(r[0, 2], cphi))
+    kappa = 0.0 if cphi < 1e-15 else float(np.arctan2(-r[0, 1], r[0, 0]))
+    m = r @ rot_z(kappa).T
+    omega = float(np.arctan2(m[2, 1], m[1, 1]))
     return omega, phi, kappa
 
 
