@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 
@@ -105,6 +106,143 @@ def cmd_paper(args: argparse.Namespace) -> int:
     return 0 if result["tables23_vs_paper"]["all_match"] else 1
 
 
+def _bags_dir() -> Path:
+    return Path(__file__).resolve().parent.parent / "bags"
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """``parproj simulate``: render scenarios into bags."""
+    from .recording import record_scenario
+    from .scenarios import SCENARIOS
+
+    names = list(SCENARIOS) if args.scenario == ["all"] else args.scenario
+    for name in names:
+        if name not in SCENARIOS:
+            print(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}", file=sys.stderr)
+            return 2
+        out = Path(args.output) / name
+        if out.exists() and not args.force:
+            print(f"{out} exists (use --force to replace)", file=sys.stderr)
+            return 2
+        if out.exists():
+            import shutil
+
+            shutil.rmtree(out)
+        record_scenario(SCENARIOS[name](), out, progress=not args.quiet, noise_px=args.noise_px)
+    return 0
+
+
+def cmd_process(args: argparse.Namespace) -> int:
+    """``parproj process``: the pipeline over a bag without DDS."""
+    from .offline import process_bag
+
+    overrides = {
+        "z_avg": args.z_avg,
+        "height_range": args.height_range,
+        "gcp_roll": args.gcp_roll,
+        "interpolation": args.interpolation,
+    }
+    if args.no_gcp:
+        overrides["min_gcp"] = 10**9
+    summary = process_bag(
+        Path(args.bag), Path(args.output), overrides=overrides, progress=not args.quiet
+    )
+    for iss in summary.issues:
+        print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
+    rec = summary.recovery
+    lost = "" if rec is None or rec.complete else f"; input cut off: {rec.error}"
+    print(
+        f"{summary.messages_in} messages in, {summary.scenes} scenes, {summary.pairs} pairs "
+        f"-> {args.output}{lost}"
+    )
+    return 0 if summary.pairs > 0 else 1
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """``parproj replay``: publish a bag into the live graph."""
+    import rclpy
+
+    from .live import replay
+
+    rclpy.init()
+    node = rclpy.create_node("parproj_replay")
+    try:
+        res = replay(
+            node,
+            Path(args.bag),
+            rate=args.rate,
+            max_gap_s=args.max_gap,
+            wait_for=args.wait_for,
+            progress=not args.quiet,
+        )
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    rec = res["recovery"]
+    print(
+        f"published {res['sent']} messages in {res['seconds']:.1f} s"
+        + ("" if rec.complete else f"; bag cut off: {rec.error}")
+    )
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """``parproj evaluate``: y-parallax, x-parallax linearity and object errors of an output."""
+    from .evaluate import evaluate_bag
+
+    res = evaluate_bag(
+        Path(args.output_bag),
+        Path(args.truth) if args.truth else None,
+        plots=Path(args.plots) if args.plots else None,
+        matching=not args.no_matching,
+    )
+    if args.json:
+        json.dump(res, sys.stdout, indent=1, default=float)
+        sys.stdout.write("\n")
+    else:
+        _print_evaluation(res)
+    return 0 if res["pair_count"] > 0 else 1
+
+
+def _print_evaluation(res: dict[str, Any]) -> None:
+    print(f"{res['pair_count']} pairs, {res['truth_points']} truth points")
+    for p in res["pairs"]:
+        print(f"pair {p['pair_id']}: {p['width']} x {p['height']} px")
+        g = p.get("geometric")
+        if g:
+            y = g["y_parallax_px"]
+            print(
+                f"  geometric y-parallax ({g['points']} truth points): rms {y['rms']:.3f} px, "
+                f"mean |y| {y['mean_abs']:.3f}, max {y['max_abs']:.3f}"
+            )
+            print(
+                f"  x-parallax vs height: line rms {g['x_parallax_line_rms_px']:.3f} px, "
+                f"{g['disparity_px_per_m']:.4f} px/m (published {g['published_px_per_m']:.4f})"
+            )
+            h = g["height_from_disparity_error_m"]
+            print(f"  height from disparity: rms error {h['rms']:.3f} m")
+        o = p.get("object_space_error_m")
+        if o:
+            print(
+                f"  space intersection: xy {o['xy']['mean']:+.3f} +- {o['xy']['std']:.3f} m, "
+                f"z {o['z']['mean']:+.3f} +- {o['z']['std']:.3f} m"
+            )
+        m = p.get("matching")
+        if m and m["matches"]:
+            y = m["y_parallax_px"]
+            print(
+                f"  image matches ({m['matches']}): median |y| {y['median_abs']:.3f} px, "
+                f"rms {y['rms']:.3f} px"
+            )
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``parproj demo``: the default bag through the live node; pair, anaglyph and evaluation."""
+    from .demo import run_demo
+
+    return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     from .paper import SEED
@@ -121,6 +259,58 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seed", type=int, default=SEED, help=f"layout seed (default {SEED})")
     p.set_defaults(func=cmd_paper)
+
+    p = sub.add_parser("simulate", help="render simulated scenarios into bags (MCAP)")
+    p.add_argument("scenario", nargs="+", help="scenario names, or 'all'")
+    p.add_argument("-o", "--output", default=str(_bags_dir()), help="folder for the bags")
+    p.add_argument(
+        "--noise-px",
+        type=float,
+        default=None,
+        help="GCP measurement noise, px (default: the scenario's)",
+    )
+    p.add_argument("--force", action="store_true", help="replace existing bags")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_simulate)
+
+    p = sub.add_parser("process", help="run the pipeline over a bag offline, write outputs")
+    p.add_argument("bag")
+    p.add_argument("-o", "--output", required=True, help="output bag folder")
+    p.add_argument("--z-avg", type=float, default=0.0, help="average terrain height, m")
+    p.add_argument("--height-range", type=float, default=500.0, help="height half range, m")
+    p.add_argument("--gcp-roll", choices=["estimate", "navigation", "none"], default="estimate")
+    p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
+    p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_process)
+
+    p = sub.add_parser("replay", help="publish a bag into the live ROS 2 graph")
+    p.add_argument("bag")
+    p.add_argument("--rate", type=float, default=1.0, help="speed factor (0 = unpaced)")
+    p.add_argument(
+        "--max-gap",
+        type=float,
+        default=None,
+        help="shorten idle stretches longer than this many seconds",
+    )
+    p.add_argument("--wait-for", nargs="*", default=[], help="topics to wait subscribers on")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("evaluate", help="evaluate the normalized pairs of an output bag")
+    p.add_argument("output_bag")
+    p.add_argument("--truth", help="bag with truth/points (default: the output bag)")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--plots", help="folder for PNG plots and images")
+    p.add_argument("--no-matching", action="store_true", help="skip image matching")
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("demo", help="run the default bag through the live node")
+    p.add_argument("--bag", default=str(_bags_dir() / "ikonos_agile"))
+    p.add_argument("-o", "--output", default="out/demo")
+    p.add_argument("--rate", type=float, default=20.0, help="replay speed factor")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_demo)
     return parser
 
 

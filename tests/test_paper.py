@@ -42,7 +42,9 @@ def test_layout_is_the_documented_one() -> None:
     assert pts.shape == (25, 3) and gcp.sum() == 16
     assert np.allclose(pts[:, :2].mean(axis=0), 0.0, atol=1e-9)
     assert pts[:, 2].mean() == pytest.approx(-58.4, abs=1e-9)
-    assert np.ptp(pts[:, 0]) == pytest.approx(11000.0) and np.ptp(pts[:, 1]) == pytest.approx(11000.0)
+    assert np.ptp(pts[:, 0]) == pytest.approx(11000.0) and np.ptp(pts[:, 1]) == pytest.approx(
+        11000.0
+    )
 
 
 def test_table4_ptp_cuts_height_error_by_more_than_10x(result: dict) -> None:
@@ -69,7 +71,9 @@ def test_table5_sigma0_order_and_roll(result: dict) -> None:
         assert np.sign(t5["ptp_est"]["psi_deg"]) == np.sign(nominal)
         # A1..A4 are exact: the along-track coordinate is exactly parallel (constant motion).
         for mode in ("no_ptp", "ptp_true", "ptp_est"):
-            assert np.allclose(t5[mode]["A"][:4], result["table3"][side][:4], rtol=1e-6, atol=1e-12)
+            assert np.allclose(
+                t5[mode]["A"][:4], result["table3"][side][:4], rtol=1e-6, atol=1e-12
+            )
 
 
 def test_table6_gcp_unbiased_and_ptp_helps(result: dict) -> None:

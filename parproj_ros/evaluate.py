@@ -1,0 +1,270 @@
+"""``parproj evaluate``: how good the published normalized pairs are.
+
+For every StereoPair of an output bag it reports:
+
+* geometric y-parallax: truth points (exact object points with their exact image positions in
+  both scenes) mapped through the *published* transforms (scene frame, PTP roll, 2x3
+  normalization affine, output grid) to normalized pixel rows: row_left - row_right;
+* image y-parallax: SIFT matches between the two normalized images, each refined to sub-pixel by
+  normalized cross-correlation with a parabola fit; their row differences;
+* x-parallax against height: disparity (col_left - col_right) of the truth points against their
+  height: residual of a straight-line fit, and heights from the published relation;
+* object-space errors: least-squares space intersection with the published A1..A8 and roll.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .bag import BagReader
+from .conversions import image_to_array
+from .geometry import AffineModel, SceneObservation, space_intersection
+from .geometry.ptp import ptp_forward
+from .pipeline import GroundPoint
+from .preview import anaglyph, to_uint8
+from .recording import truth_from_bag
+
+FloatArray = NDArray[np.float64]
+
+
+def normalized_px(
+    params: Any,
+    to_norm: Any,
+    x_origin: float,
+    y_origin: float,
+    pixel: float,
+    line: FloatArray,
+    sample: FloatArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Image (line, sample) -> normalized (col, row), through the published transforms.
+
+    These are a ParallelProjection message's scene frame and roll, a 2x3 normalization affine
+    (6 numbers) and the output grid.
+    """
+    x = (np.asarray(line, dtype=float) - params.line_mid) * params.x_per_line
+    y = (np.asarray(sample, dtype=float) - params.principal_point) * params.pixel_size
+    yp = ptp_forward(y, params.principal_distance, params.roll_psi)
+    h = np.asarray(to_norm, dtype=float).reshape(2, 3)
+    xn = h[0, 0] * x + h[0, 1] * yp + h[0, 2]
+    yn = h[1, 0] * x + h[1, 1] * yp + h[1, 2]
+    return (xn - x_origin) / pixel, (yn - y_origin) / pixel
+
+
+def _stats(v: FloatArray) -> dict[str, float]:
+    if v.size == 0:
+        return {"n": 0}
+    a = np.abs(v)
+    return {
+        "n": int(v.size),
+        "mean_abs": float(a.mean()),
+        "median_abs": float(np.median(a)),
+        "rms": float(np.sqrt(np.mean(v**2))),
+        "p95_abs": float(np.percentile(a, 95)),
+        "max_abs": float(a.max()),
+        "mean": float(v.mean()),
+    }
+
+
+def match_y_parallax(
+    left: NDArray[np.generic],
+    right: NDArray[np.generic],
+    *,
+    nodata: float = 0.0,
+    max_matches: int = 400,
+    half: int = 10,
+    search: int = 3,
+    min_corr: float = 0.85,
+) -> dict[str, Any]:
+    """Row differences of SIFT matches refined by NCC (pixels of the normalized images)."""
+    l8, r8 = to_uint8(left, nodata), to_uint8(right, nodata)
+    sift = cv2.SIFT_create(nfeatures=4000)
+    kl, dl = sift.detectAndCompute(l8, (l8 > 0).astype(np.uint8))
+    kr, dr = sift.detectAndCompute(r8, (r8 > 0).astype(np.uint8))
+    if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:
+        return {"matches": 0, "y_parallax_px": _stats(np.zeros(0))}
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dl, dr, k=2)
+    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
+    good.sort(key=lambda m: m.distance)
+    lf, rf = left.astype(np.float32), right.astype(np.float32)
+    ys, xs = [], []
+    for m in good[: 4 * max_matches]:
+        xl, yl = kl[m.queryIdx].pt
+        xr, yr = kr[m.trainIdx].pt
+        cl, rl = round(xl), round(yl)
+        cr, rr = round(xr), round(yr)
+        if (
+            min(cl, rl, cr, rr) < half + search
+            or rl + half + search >= lf.shape[0]
+            or rr + half + search >= rf.shape[0]
+            or cl + half + search >= lf.shape[1]
+            or cr + half + search >= rf.shape[1]
+        ):
+            continue
+        tpl = lf[rl - half : rl + half + 1, cl - half : cl + half + 1]
+        win = rf[
+            rr - half - search : rr + half + search + 1,
+            cr - half - search : cr + half + search + 1,
+        ]
+        if (tpl == nodata).any() or (win == nodata).any() or tpl.std() == 0:
+            continue
+        res = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
+        _, peak, _, (px, py) = cv2.minMaxLoc(res)
+        if peak < min_corr or px in (0, res.shape[1] - 1) or py in (0, res.shape[0] - 1):
+            continue
+
+        def sub(a: float, b: float, c: float) -> float:
+            d = a - 2 * b + c
+            return 0.0 if d == 0 else 0.5 * (a - c) / d
+
+        dy = sub(res[py - 1, px], res[py, px], res[py + 1, px])
+        dx = sub(res[py, px - 1], res[py, px], res[py, px + 1])
+        y_right = rr - search + py + dy
+        x_right = cr - search + px + dx
+        ys.append(rl - y_right)
+        xs.append(cl - x_right)
+        if len(ys) >= max_matches:
+            break
+    y = np.array(ys)
+    return {
+        "matches": int(y.size),
+        "sift_matches": len(good),
+        "y_parallax_px": _stats(y),
+        "x_disparity_px": _stats(np.array(xs)),
+    }
+
+
+def evaluate_bag(
+    out_bag: Path,
+    truth_bag: Path | None = None,
+    *,
+    plots: Path | None = None,
+    matching: bool = True,
+) -> dict[str, Any]:
+    """Evaluate every StereoPair of ``out_bag`` (truth from ``truth_bag`` or ``out_bag``)."""
+    reader = BagReader(out_bag)
+    truth: list[GroundPoint] = (
+        truth_from_bag(BagReader(truth_bag))
+        if truth_bag
+        else (truth_from_bag(reader) if "truth/points" in reader.topics() else [])
+    )
+    result: dict[str, Any] = {"pairs": [], "truth_points": len(truth)}
+    for item in reader.messages(topics=["stereo_pair"]):
+        sp = item.msg
+        result["pairs"].append(_evaluate_pair(sp, truth, plots, matching))
+    result["pair_count"] = len(result["pairs"])
+    return result
+
+
+def _evaluate_pair(
+    sp: Any, truth: list[GroundPoint], plots: Path | None, matching: bool
+) -> dict[str, Any]:
+    lp, rp = sp.left_params, sp.right_params
+    pix = sp.normalized_pixel_size
+    out: dict[str, Any] = {
+        "pair_id": sp.pair_id,
+        "width": sp.left.width,
+        "height": sp.left.height,
+        "methods": [int(lp.method), int(rp.method)],
+        "published_y_parallax_px": {
+            "mean": sp.y_parallax_mean_px,
+            "rms": sp.y_parallax_rms_px,
+            "max": sp.y_parallax_max_px,
+            "n": sp.y_parallax_points,
+            "source": sp.y_parallax_source,
+        },
+    }
+    pts = [p for p in truth if lp.scene_id in p.observations and rp.scene_id in p.observations]
+    if pts:
+        xyz = np.array([p.xyz for p in pts])
+        ol = np.array([p.observations[lp.scene_id] for p in pts])
+        orr = np.array([p.observations[rp.scene_id] for p in pts])
+        cl, rl = normalized_px(
+            lp, sp.left_to_normalized, sp.left_x_origin, sp.y_origin, pix, ol[:, 0], ol[:, 1]
+        )
+        cr, rr = normalized_px(
+            rp, sp.right_to_normalized, sp.right_x_origin, sp.y_origin, pix, orr[:, 0], orr[:, 1]
+        )
+        ypar = rl - rr
+        disp = cl - cr
+        coef = np.polyfit(xyz[:, 2], disp, 1)
+        line_res = disp - np.polyval(coef, xyz[:, 2])
+        z_pub = sp.height_per_disparity_px * disp + sp.height_offset_m
+        out["geometric"] = {
+            "points": len(pts),
+            "y_parallax_px": _stats(ypar),
+            "x_parallax_line_rms_px": float(np.sqrt(np.mean(line_res**2))),
+            "x_parallax_line_max_px": float(np.abs(line_res).max()),
+            "disparity_px_per_m": float(coef[0]),
+            "published_px_per_m": float(1.0 / sp.height_per_disparity_px),
+            "height_from_disparity_error_m": _stats(z_pub - xyz[:, 2]),
+        }
+        scenes = []
+        for prm, obs in ((lp, ol), (rp, orr)):
+            x = (obs[:, 0] - prm.line_mid) * prm.x_per_line
+            y = (obs[:, 1] - prm.principal_point) * prm.pixel_size
+            scenes.append(
+                SceneObservation(
+                    AffineModel.from_array(prm.affine),
+                    np.column_stack([x, y]),
+                    prm.roll_psi,
+                    prm.principal_distance,
+                )
+            )
+        inter = space_intersection(scenes)
+        err = inter.points - xyz
+        out["object_space_error_m"] = {
+            "xy": {"mean": float(err[:, :2].mean()), "std": float(err[:, :2].std(ddof=1))},
+            "z": {"mean": float(err[:, 2].mean()), "std": float(err[:, 2].std(ddof=1))},
+        }
+        if plots:
+            _plot_geometry(plots, sp.pair_id, xyz[:, 2], disp, coef, ypar)
+    if matching or plots:
+        left, right = image_to_array(sp.left), image_to_array(sp.right)
+        if matching:
+            out["matching"] = match_y_parallax(left, right)
+        if plots:
+            plots.mkdir(parents=True, exist_ok=True)
+            tag = sp.pair_id.replace("/", "_").replace("+", "__")
+            cv2.imwrite(str(plots / f"{tag}_left.png"), to_uint8(left))
+            cv2.imwrite(str(plots / f"{tag}_right.png"), to_uint8(right))
+            cv2.imwrite(
+                str(plots / f"{tag}_anaglyph.png"),
+                cv2.cvtColor(anaglyph(left, right), cv2.COLOR_RGB2BGR),
+            )
+    return out
+
+
+def _plot_geometry(
+    plots: Path, pair_id: str, z: FloatArray, disp: FloatArray, coef: FloatArray, ypar: FloatArray
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plots.mkdir(parents=True, exist_ok=True)
+    tag = pair_id.replace("/", "_").replace("+", "__")
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    ax[0].plot(z, disp, ".", ms=3)
+    zz = np.linspace(z.min(), z.max(), 2)
+    ax[0].plot(zz, np.polyval(coef, zz), "-", lw=1)
+    ax[0].set(
+        xlabel="height Z (m)",
+        ylabel="disparity col_left - col_right (px)",
+        title="x-parallax against height",
+    )
+    ax[1].hist(ypar, bins=40)
+    ax[1].set(
+        xlabel="y-parallax row_left - row_right (px)",
+        ylabel="truth points",
+        title="geometric y-parallax",
+    )
+    fig.suptitle(pair_id)
+    fig.tight_layout()
+    fig.savefig(plots / f"{tag}_geometry.png", dpi=100)
+    plt.close(fig)

@@ -1,0 +1,1 @@
+"""Image side of the simulator: terrain (height field + texture) and pushbroom scene rendering."""

@@ -1,0 +1,231 @@
+"""Live-graph helpers for the demo and the end-to-end tests.
+
+Replaying a bag into DDS (``ros2 bag play`` has no wheel), recording topics into a bag, and
+running the node in its own process.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from .bag import BagReader, BagWriter, get_message_class
+
+
+def ros_environment(domain_id: int | None = None, log_dir: Path | None = None) -> dict[str, str]:
+    """The environment for ROS processes, with the rules of every run here.
+
+    DDS on localhost only, a domain of our own, a writable log directory, checked fields.
+    """
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    if domain_id is not None:
+        env["ROS_DOMAIN_ID"] = str(domain_id)
+    env.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+    if log_dir is not None:
+        env["ROS_LOG_DIR"] = str(log_dir)
+    env.setdefault("ROS_LOG_DIR", str(Path.cwd() / "build" / "ros_log"))
+    Path(env["ROS_LOG_DIR"]).mkdir(parents=True, exist_ok=True)
+    env["ROS_PYTHON_CHECK_FIELDS"] = "1"
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _qos(kind: str) -> Any:
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    if kind == "transient_local":
+        return QoSProfile(
+            depth=1,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+    return QoSProfile(
+        depth=1000, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+    )
+
+
+def replay(
+    node: Any,
+    bag: Path,
+    *,
+    rate: float = 1.0,
+    max_gap_s: float | None = None,
+    wait_for: list[str] | None = None,
+    wait_timeout_s: float = 20.0,
+    progress: bool = False,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Publish a bag's messages on ``node`` at ``rate`` x recorded speed (0 = as fast as possible).
+
+    Waits until every topic in ``wait_for`` has a subscriber (or ``wait_timeout_s``), paces by log
+    time, shortens idle stretches longer than ``max_gap_s`` to that, and waits for reliable
+    deliveries to be acknowledged at the end. Returns counts and the reader's recovery report.
+    """
+    from tqdm import tqdm
+
+    reader = BagReader(bag)
+    pubs: dict[str, Any] = {}
+    for topic, msgtype in reader.topics().items():
+        cls = get_message_class(msgtype)
+        if cls is None:
+            log(f"replay: {topic}: type {msgtype} unknown here: not published")
+            continue
+        pubs[topic] = node.create_publisher(cls, topic, _qos(reader.qos(topic)))
+    deadline = time.monotonic() + wait_timeout_s
+    for topic in wait_for or []:
+        while pubs[topic].get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        if pubs[topic].get_subscription_count() == 0:
+            log(f"replay: nobody subscribes to {topic} after {wait_timeout_s} s")
+    sent = 0
+    start_wall = time.monotonic()
+    first_log: int | None = None
+    skipped = 0.0
+    prev_log = None
+    bar = tqdm(
+        total=reader.message_count,
+        desc=f"replay {Path(bag).name}",
+        unit="msg",
+        disable=not progress,
+        leave=False,
+    )
+    for item in reader.messages():
+        pub = pubs.get(item.topic)
+        if pub is None:
+            continue
+        if first_log is None:
+            first_log = item.log_time_ns
+        if max_gap_s is not None and prev_log is not None:
+            gap = (item.log_time_ns - prev_log) / 1e9
+            if gap > max_gap_s:
+                skipped += gap - max_gap_s
+        prev_log = item.log_time_ns
+        if rate > 0:
+            due = start_wall + ((item.log_time_ns - first_log) / 1e9 - skipped) / rate
+            wait = due - time.monotonic()
+            if wait > 0:
+                time.sleep(wait)
+        pub.publish(item.msg)
+        sent += 1
+        bar.update(1)
+    bar.close()
+    for pub in pubs.values():
+        try:
+            pub.wait_for_all_acked(timeout_sec=10.0)
+        except Exception:
+            pass
+    return {
+        "sent": sent,
+        "seconds": time.monotonic() - start_wall,
+        "recovery": reader.recovery,
+        "skipped_types": reader.unknown_types(),
+    }
+
+
+class Recorder:
+    """Subscribes to topics and writes every message to a bag (receive time as log time)."""
+
+    def __init__(self, node: Any, bag: Path, topics: dict[str, str]) -> None:
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+        self.writer = BagWriter(bag, compression="zstd", overwrite=True)
+        self.counts: dict[str, int] = {t: 0 for t in topics}
+        self.messages: dict[str, list[Any]] = {t: [] for t in topics}
+        self._lock = threading.Lock()
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self._subs = []
+        for topic, msgtype in topics.items():
+            self.writer.add_topic(topic, msgtype, "reliable")
+            cls = get_message_class(msgtype)
+            self._subs.append(
+                node.create_subscription(cls, topic, lambda m, t=topic: self._on(t, m), qos)
+            )
+        self._clock = node.get_clock()
+
+    def _on(self, topic: str, msg: Any) -> None:
+        with self._lock:
+            self.writer.write(topic, msg, self._clock.now().nanoseconds)
+            self.counts[topic] += 1
+            self.messages[topic].append(msg)
+
+    def wait_for_publishers(self, topics: list[str], timeout_s: float = 20.0) -> bool:
+        """Wait until each of ``topics`` has a matched publisher (discovery done).
+
+        From then on nothing published is missed by a volatile subscription.
+        """
+        deadline = time.monotonic() + timeout_s
+        subs = dict(zip(self.counts, self._subs, strict=True))
+        while time.monotonic() < deadline:
+            if all(subs[t].get_publisher_count() > 0 for t in topics):
+                return True
+            time.sleep(0.05)
+        return False
+
+    def close(self) -> None:
+        """Close the bag."""
+        with self._lock:
+            self.writer.close()
+
+
+def node_params_yaml(params: dict[str, Any], path: Path, *, reliable_inputs: list[str]) -> Path:
+    """Write a --params-file for parproj_node.
+
+    ``reliable_inputs`` (fully qualified topic names) get reliable QoS overrides: lossless
+    replay for tests and the demo.
+    """
+    import yaml
+
+    p = dict(params)
+    overrides: dict[str, Any] = {}
+    for topic in reliable_inputs:
+        overrides[topic] = {"subscription": {"reliability": "reliable", "depth": 1000}}
+    doc: dict[str, Any] = {"parproj_node": {"ros__parameters": p}}
+    if overrides:
+        doc["parproj_node"]["ros__parameters"]["qos_overrides"] = overrides
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+class NodeProcess:
+    """parproj_node in a child process (its own DDS participant), stopped with SIGINT."""
+
+    def __init__(self, params_file: Path, env: dict[str, str], log_path: Path) -> None:
+        self.log_path = log_path
+        self._log = log_path.open("w")
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "parproj_ros.node",
+                "--ros-args",
+                "--params-file",
+                str(params_file),
+            ],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
+
+    def stop(self, timeout: float = 60.0) -> int:
+        """SIGINT (the node flushes open scenes and exits); kill after ``timeout``."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return int(self.proc.returncode)
+
+    def output(self) -> str:
+        """What the node printed so far."""
+        return self.log_path.read_text(errors="replace")

@@ -1,0 +1,670 @@
+"""The processing pipeline: strips + navigation (+ GCP) -> scene parameters and normalized pairs.
+
+One object serves the live node and the offline ``parproj process``: both feed it with plain
+arrays (see :mod:`parproj_ros.conversions` for messages) and publish or record what it returns.
+Nothing here imports ROS.
+
+Flow: strips of each view go to a :class:`SceneAssembler`; a completed scene gets its parallel
+projection parameters from GCP (when at least 5 non-check GCP are observed in it: Eq 8 with the
+roll estimated) or else from navigation (Eqs 9-13, with the crab-angle fallback); when both scenes
+of a pair have parameters, the pair is normalized (paper 2 Eq 8) and both scenes are resampled.
+Pairs are the two views' scenes with the same sequence number (two-view mode) or consecutive
+scenes of the one view (single-camera mode, e.g. an agile satellite looking forward then back).
+Every problem becomes an :class:`Issue` that says what was wrong and what was done.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from .geometry import (
+    AffineModel,
+    DegenerateGeometryError,
+    GeometryError,
+    LineCamera,
+    Normalization,
+    ParallelProjection,
+    PushbroomModel,
+    SceneFrame,
+    affine_to_nonlinear,
+    estimate_affine,
+    normalize_pair,
+    parameters_from_navigation,
+)
+from .geometry.navigation import virtual_points
+from .imaging.assembly import Scene, SceneAssembler, StripRejectedError
+from .imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
+from .trajectory import NavigationError, NavSample, TrajectoryBuffer
+
+FloatArray = NDArray[np.float64]
+
+Level = Literal["ok", "warn", "error"]
+
+#: Method names (match parproj_msgs/ParallelProjection METHOD_* constants by index).
+METHODS = (
+    "navigation",
+    "navigation_virtual_gcp",
+    "gcp_affine",
+    "gcp_known_roll",
+    "gcp_roll_estimated",
+    "tie_points",
+)
+
+
+@dataclass(frozen=True)
+class ViewConfig:
+    """One camera (view) of the platform.
+
+    Attributes:
+        name: view name, also the topic namespace ("left", "right", "fore", "aft", ...).
+        camera: interior orientation.
+        mounting: 3x3 rotation of the sensor frame in the body frame.
+    """
+
+    name: str
+    camera: LineCamera
+    mounting: FloatArray = field(default_factory=lambda: np.eye(3))
+
+
+@dataclass(frozen=True)
+class PipelineConfig:
+    """Settings of the pipeline (the node declares one ROS parameter per field).
+
+    Attributes:
+        views: two views (left, right), or one view for single-camera mode.
+        scene_lines: lines per scene (0: scenes end only on a gap or a scene-id change).
+        max_gap_lines: a larger jump between strips ends the scene; a smaller one is filled.
+        z_avg: average terrain height, metres (Eq 12; zero-disparity height of the output).
+        height_range: half range of terrain heights, metres (virtual points, checks).
+        crab_tolerance_px: largest predicted crab error accepted from Eqs 10-13, pixels.
+        gcp_roll: with GCP, "estimate" the roll (Eq 8), use the "navigation" roll, or "none".
+        min_gcp: GCP (non-check) observed in a scene needed to use them instead of navigation.
+        nodata: value of output pixels outside a scene, and of filled missing lines.
+        interpolation: "linear" or "cubic".
+        output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
+        max_output_pixels: larger normalized images are refused (the pair is skipped).
+    """
+
+    views: tuple[ViewConfig, ...]
+    scene_lines: int = 0
+    max_gap_lines: int = 64
+    z_avg: float = 0.0
+    height_range: float = 500.0
+    crab_tolerance_px: float = 0.05
+    gcp_roll: Literal["estimate", "navigation", "none"] = "estimate"
+    min_gcp: int = 5
+    nodata: float = 0.0
+    interpolation: Literal["linear", "cubic"] = "linear"
+    output_pixel: float = 0.0
+    max_output_pixels: int = 200_000_000
+
+    @property
+    def single_camera(self) -> bool:
+        """Whether consecutive scenes of the one view form the pairs."""
+        return len(self.views) == 1
+
+
+@dataclass(frozen=True)
+class Issue:
+    """A problem met, for the log and for diagnostics.
+
+    Attributes:
+        level: "ok", "warn" or "error".
+        where: the scene, view or input concerned.
+        message: what was wrong and what was done about it.
+    """
+
+    level: Level
+    where: str
+    message: str
+
+
+@dataclass(frozen=True)
+class GroundPoint:
+    """A ground control (or check) point.
+
+    Attributes:
+        id: name.
+        xyz: object coordinates, metres, (3,).
+        check: True for a check point (not used in the estimation).
+        observations: scene_id -> (line, sample) pixels.
+    """
+
+    id: str
+    xyz: FloatArray
+    check: bool
+    observations: dict[str, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """Parameters of one scene.
+
+    Attributes:
+        scene: the assembled scene.
+        params: non-linear parallel projection parameters.
+        affine: A1..A8.
+        psi: roll used for PTP, radians.
+        frame: image <-> scene metres.
+        method: one of :data:`METHODS`.
+        note: how and why the method was used.
+        model: rigorous model from navigation (None when navigation did not cover the scene).
+        camera: the view's camera (principal distance, pixel size, ...).
+        sigma0_px: a-posteriori sigma0 of a GCP fit (or the virtual-point fit), pixels.
+        residual_rms_px: RMS of per-point residual lengths, pixels.
+        residual_max_px: largest residual length, pixels.
+        gcp_count: GCP used.
+        check_count: check points evaluated.
+        check_rms_px: RMS check-point error, pixels (NaN without check points).
+        covariance: 9x9 covariance of (A1..A8, psi) (zeros when not estimated).
+        crab_angle: radians (NaN without navigation).
+    """
+
+    scene: Scene
+    params: ParallelProjection
+    affine: AffineModel
+    psi: float
+    frame: SceneFrame
+    method: str
+    note: str
+    model: PushbroomModel | None
+    camera: LineCamera
+    sigma0_px: float = 0.0
+    residual_rms_px: float = 0.0
+    residual_max_px: float = 0.0
+    gcp_count: int = 0
+    check_count: int = 0
+    check_rms_px: float = float("nan")
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((9, 9)))
+    crab_angle: float = float("nan")
+
+    def geometry(self, to_normalized: FloatArray) -> SceneGeometry:
+        """Resampling geometry of this scene for a given normalization affine."""
+        return SceneGeometry(self.frame, to_normalized, self.psi, self.camera.principal_distance)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """A normalized stereo pair.
+
+    Attributes:
+        pair_id: "<left scene id>+<right scene id>".
+        stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
+        left: left scene parameters.
+        right: right scene parameters.
+        normalization: paper 2 Eq 8 result (2x3 affines, kappa_n, s_n, parallax relation).
+        left_grid: output grid of the left image.
+        right_grid: output grid of the right image (same rows, shifted columns).
+        left_image: normalized left image.
+        right_image: normalized right image.
+        height_per_disparity_px: a in Z = a (col_left - col_right) + b, metres per pixel.
+        height_offset_m: b, metres.
+        y_parallax_px: signed y-parallax samples used for the statistics, pixels.
+        y_parallax_source: "virtual", "gcp" or "none".
+    """
+
+    pair_id: str
+    stamp_ns: int
+    left: SceneResult
+    right: SceneResult
+    normalization: Normalization
+    left_grid: OutputGrid
+    right_grid: OutputGrid
+    left_image: NDArray[np.generic]
+    right_image: NDArray[np.generic]
+    height_per_disparity_px: float
+    height_offset_m: float
+    y_parallax_px: FloatArray
+    y_parallax_source: str
+
+    @property
+    def y_parallax_stats(self) -> tuple[float, float, float]:
+        """(mean |y|, rms, max |y|) in pixels (NaN when there are no samples)."""
+        y = self.y_parallax_px
+        if y.size == 0:
+            return float("nan"), float("nan"), float("nan")
+        return float(np.abs(y).mean()), float(np.sqrt(np.mean(y**2))), float(np.abs(y).max())
+
+
+@dataclass
+class Outputs:
+    """What one call produced."""
+
+    scenes: list[SceneResult] = field(default_factory=list)
+    pairs: list[PairResult] = field(default_factory=list)
+    issues: list[Issue] = field(default_factory=list)
+
+    def extend(self, other: Outputs) -> None:
+        """Append another call's outputs."""
+        self.scenes += other.scenes
+        self.pairs += other.pairs
+        self.issues += other.issues
+
+
+class Pipeline:
+    """Turns strips + navigation (+ GCP) into scene parameters and normalized pairs."""
+
+    def __init__(self, config: PipelineConfig) -> None:
+        if not 1 <= len(config.views) <= 2:
+            raise ValueError("one view (single-camera mode) or two views (left, right) needed")
+        self.config = config
+        self.views = {v.name: v for v in config.views}
+        self.nav = TrajectoryBuffer()
+        self.assemblers = {
+            v.name: SceneAssembler(
+                v.name,
+                v.camera.line_period,
+                scene_lines=config.scene_lines,
+                max_gap_lines=config.max_gap_lines,
+                nodata=config.nodata,
+            )
+            for v in config.views
+        }
+        self.gcp: dict[str, GroundPoint] = {}
+        self._waiting_nav: list[Scene] = []
+        self._ready: dict[str, dict[int, SceneResult]] = {v.name: {} for v in config.views}
+        self.pairs_done = 0
+
+    # ---- inputs -------------------------------------------------------------------------
+    def add_navigation(self, sample: NavSample) -> Outputs:
+        """Add a navigation sample; scenes waiting for navigation may now be processed."""
+        self.nav.add(sample)
+        out = Outputs()
+        still = []
+        for scene in self._waiting_nav:
+            end = scene.last_line_ns
+            if self.nav.covers(scene.first_line_ns, end):
+                out.extend(self._process_scene(scene))
+            else:
+                still.append(scene)
+        self._waiting_nav = still
+        return out
+
+    def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
+        """Add or replace ground control points (by id)."""
+        out = Outputs()
+        for p in points:
+            xyz = np.asarray(p.xyz, dtype=float)
+            if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
+                out.issues.append(Issue("warn", f"gcp {p.id}", "non-finite coordinates: ignored"))
+                continue
+            self.gcp[p.id] = p
+        return out
+
+    def add_strip(
+        self, view: str, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]
+    ) -> Outputs:
+        """Add one strip of ``view`` (first line exposed at ``stamp_ns``)."""
+        out = Outputs()
+        if view not in self.assemblers:
+            out.issues.append(Issue("error", f"view {view}", "unknown view: strip dropped"))
+            return out
+        try:
+            scenes = self.assemblers[view].add(stamp_ns, scene_id, strip)
+        except StripRejectedError as err:
+            out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
+            return out
+        for scene in scenes:
+            out.extend(self._scene_done(scene))
+        return out
+
+    def close_scenes(self) -> Outputs:
+        """Close the open scene of every view (strips stopped coming) and process them."""
+        out = Outputs()
+        for asm in self.assemblers.values():
+            for scene in asm.flush():
+                out.extend(self._scene_done(scene))
+        return out
+
+    @property
+    def has_open_scene(self) -> bool:
+        """Whether any view has a scene still being assembled."""
+        return any(a.is_open for a in self.assemblers.values())
+
+    def flush(self) -> Outputs:
+        """End of data: close open scenes, process what can be, report what cannot."""
+        out = self.close_scenes()
+        for scene in self._waiting_nav:
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"{scene.view}/{scene.scene_id}",
+                    "navigation never covered this scene and it has no GCP: scene skipped",
+                )
+            )
+        self._waiting_nav = []
+        return out
+
+    # ---- scenes -------------------------------------------------------------------------
+    def _scene_done(self, scene: Scene) -> Outputs:
+        out = Outputs()
+        if scene.gaps:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{scene.view}/{scene.scene_id}",
+                    f"{scene.gaps} missing lines filled with no-data ({self.config.nodata})",
+                )
+            )
+        has_gcp = self._gcp_for(scene)[0].shape[0] >= self.config.min_gcp
+        if not has_gcp and not self.nav.covers(scene.first_line_ns, scene.last_line_ns):
+            last = self.nav.last_ns
+            if last is not None and last >= scene.last_line_ns:
+                out.issues.append(
+                    Issue(
+                        "error",
+                        f"{scene.view}/{scene.scene_id}",
+                        "navigation starts after the scene's first line and there are no GCP: "
+                        "scene skipped",
+                    )
+                )
+                return out
+            self._waiting_nav.append(scene)
+            return out
+        out.extend(self._process_scene(scene))
+        return out
+
+    def _gcp_for(self, scene: Scene) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """(xyz, line/sample) of GCP and of check points observed in this scene."""
+        g, gi, c, ci = [], [], [], []
+        for p in self.gcp.values():
+            obs = p.observations.get(scene.scene_id)
+            if obs is None:
+                continue
+            (c if p.check else g).append(p.xyz)
+            (ci if p.check else gi).append(obs)
+        return (
+            np.array(g).reshape(-1, 3),
+            np.array(gi).reshape(-1, 2),
+            np.array(c).reshape(-1, 3),
+            np.array(ci).reshape(-1, 2),
+        )
+
+    def _process_scene(self, scene: Scene) -> Outputs:
+        out = Outputs()
+        where = f"{scene.view}/{scene.scene_id}"
+        view = self.views[scene.view]
+        cam = view.camera
+        nav_result = None
+        model = None
+        try:
+            fit = self.nav.fit(scene.first_line_ns, scene.last_line_ns, view.mounting)
+            model = PushbroomModel(cam, fit.motion)
+            if fit.attitude_spread_rad > 1e-3:
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        where,
+                        (
+                            f"attitude varies by {np.degrees(fit.attitude_spread_rad):.3f} deg "
+                            "over the scene: the constant-attitude model is an approximation"
+                        ),
+                    )
+                )
+            nav_result = parameters_from_navigation(
+                model,
+                line_mid=(scene.lines - 1) / 2.0,
+                z_avg=self.config.z_avg,
+                scene_lines=scene.lines,
+                height_range=self.config.height_range,
+                crab_tolerance_px=self.config.crab_tolerance_px,
+            )
+        except (NavigationError, GeometryError) as err:
+            out.issues.append(Issue("warn", where, f"no navigation-derived parameters: {err}"))
+        gxyz, gls, cxyz, cls = self._gcp_for(scene)
+        result: SceneResult | None = None
+        if len(gxyz) >= self.config.min_gcp:
+            try:
+                result = self._from_gcp(scene, nav_result, gxyz, gls, cxyz, cls)
+            except GeometryError as err:
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        where,
+                        f"GCP estimation failed ({err}); "
+                        + ("using navigation" if nav_result else ""),
+                    )
+                )
+        elif len(gxyz) > 0:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    where,
+                    (f"only {len(gxyz)} GCP observed (need {self.config.min_gcp}): GCP not used"),
+                )
+            )
+        if result is None and nav_result is not None:
+            result = SceneResult(
+                scene,
+                nav_result.params,
+                nav_result.affine,
+                nav_result.psi,
+                nav_result.frame,
+                nav_result.method,
+                nav_result.note,
+                model,
+                cam,
+                sigma0_px=(
+                    float("nan") if nav_result.method == "navigation" else nav_result.fit_rms_px
+                ),
+                residual_rms_px=nav_result.fit_rms_px,
+                crab_angle=nav_result.crab_angle,
+            )
+            if nav_result.method != "navigation":
+                out.issues.append(Issue("warn", where, nav_result.note))
+        if result is None:
+            out.issues.append(
+                Issue("error", where, "no parameters (no usable navigation or GCP): scene skipped")
+            )
+            return out
+        out.scenes.append(result)
+        self._ready[scene.view][scene.index] = result
+        out.extend(self._try_pairs())
+        return out
+
+    def _from_gcp(
+        self,
+        scene: Scene,
+        nav_result: object,
+        gxyz: FloatArray,
+        gls: FloatArray,
+        cxyz: FloatArray,
+        cls: FloatArray,
+    ) -> SceneResult:
+        view = self.views[scene.view]
+        cam = view.camera
+        from .geometry.navigation import NavigationParameters
+
+        nav = nav_result if isinstance(nav_result, NavigationParameters) else None
+        frame = (
+            nav.frame
+            if nav
+            else SceneFrame((scene.lines - 1) / 2.0, cam.pixel_size, cam.pixel_size, cam.pp)
+        )
+        obs = frame.to_scene(gls[:, 0], gls[:, 1])
+        roll_mode = self.config.gcp_roll
+        if roll_mode == "navigation" and nav is None:
+            roll_mode = "estimate"
+        psi_in = {"estimate": None, "navigation": nav.psi if nav else 0.0, "none": 0.0}[roll_mode]
+        method = {
+            "estimate": "gcp_roll_estimated",
+            "navigation": "gcp_known_roll",
+            "none": "gcp_affine",
+        }[roll_mode]
+        est = estimate_affine(
+            gxyz,
+            obs,
+            principal_distance=cam.principal_distance,
+            pixel_size=cam.pixel_size,
+            psi=psi_in,
+        )
+        inv = (
+            affine_to_nonlinear(est.affine, rule="reference", reference=nav.params)
+            if nav
+            else affine_to_nonlinear(est.affine)
+        )
+        norms = est.residual_norms_px
+        check_rms = float("nan")
+        if len(cxyz):
+            errs = est.check(cxyz, frame.to_scene(cls[:, 0], cls[:, 1]))
+            check_rms = float(np.sqrt(np.mean(np.sum(errs**2, axis=1))) / cam.pixel_size)
+        note = (
+            f"{len(gxyz)} GCP, {method.replace('_', ' ')}, psi {np.degrees(est.psi):.3f} deg; "
+            f"mirror solution: {inv.rule}"
+        )
+        return SceneResult(
+            scene,
+            inv.chosen,
+            est.affine,
+            est.psi,
+            frame,
+            method,
+            note,
+            None if nav is None else PushbroomModel(cam, self._model_motion(scene)),
+            cam,
+            sigma0_px=est.sigma0_px,
+            residual_rms_px=float(np.sqrt(np.mean(norms**2))),
+            residual_max_px=float(norms.max()),
+            gcp_count=len(gxyz),
+            check_count=len(cxyz),
+            check_rms_px=check_rms,
+            covariance=est.covariance,
+            crab_angle=nav.crab_angle if nav else float("nan"),
+        )
+
+    def _model_motion(self, scene: Scene):  # type: ignore[no-untyped-def]
+        return self.nav.fit(
+            scene.first_line_ns, scene.last_line_ns, self.views[scene.view].mounting
+        ).motion
+
+    # ---- pairs --------------------------------------------------------------------------
+    def _try_pairs(self) -> Outputs:
+        out = Outputs()
+        names = [v.name for v in self.config.views]
+        if self.config.single_camera:
+            ready = self._ready[names[0]]
+            for i in sorted(ready):
+                if i % 2 == 0 and i + 1 in ready:
+                    out.extend(self._make_pair(ready.pop(i), ready.pop(i + 1)))
+        else:
+            left, right = self._ready[names[0]], self._ready[names[1]]
+            for i in sorted(set(left) & set(right)):
+                out.extend(self._make_pair(left.pop(i), right.pop(i)))
+        return out
+
+    def _make_pair(self, left: SceneResult, right: SceneResult) -> Outputs:
+        out = Outputs()
+        pair_id = f"{left.scene.scene_id}+{right.scene.scene_id}"
+        try:
+            norm = normalize_pair(
+                left.affine, right.affine, left_params=left.params, right_params=right.params
+            )
+        except DegenerateGeometryError as err:
+            out.issues.append(Issue("error", f"pair {pair_id}", f"{err}: pair skipped"))
+            return out
+        gl = left.geometry(norm.left)
+        gr = right.geometry(norm.right)
+        fl = footprint(gl, left.scene.lines, left.scene.detectors)
+        fr = footprint(gr, right.scene.lines, right.scene.detectors)
+        pix = self.config.output_pixel or min(native_pixel(gl), native_pixel(gr))
+        y0 = max(fl[:, 1].min(), fr[:, 1].min())
+        y1 = min(fl[:, 1].max(), fr[:, 1].max())
+        if y1 <= y0:
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"pair {pair_id}",
+                    "the scenes do not overlap across the epipolar lines: pair skipped",
+                )
+            )
+            return out
+        shift = norm.parallax_per_height * self.config.z_avg + norm.parallax_offset
+        xo_l = min(fl[:, 0].min(), fr[:, 0].min() + shift)
+        x1 = max(fl[:, 0].max(), fr[:, 0].max() + shift)
+        width = int(np.floor((x1 - xo_l) / pix)) + 1
+        height = int(np.floor((y1 - y0) / pix)) + 1
+        if width * height > self.config.max_output_pixels:
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"pair {pair_id}",
+                    (
+                        f"normalized images would be {width} x {height} px (> max_output_pixels "
+                        f"{self.config.max_output_pixels}): pair skipped"
+                    ),
+                )
+            )
+            return out
+        grid_l = OutputGrid(pix, xo_l, y0, width, height)
+        grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
+        interp = cv2.INTER_CUBIC if self.config.interpolation == "cubic" else cv2.INTER_LINEAR
+        img_l = resample(
+            left.scene.image, gl, grid_l, nodata=self.config.nodata, interpolation=interp
+        )
+        img_r = resample(
+            right.scene.image, gr, grid_r, nodata=self.config.nodata, interpolation=interp
+        )
+        ypar, source = self._y_parallax(left, right, gl, gr)
+        k = norm.parallax_per_height
+        self.pairs_done += 1
+        out.pairs.append(
+            PairResult(
+                pair_id,
+                max(left.scene.last_line_ns, right.scene.last_line_ns),
+                left,
+                right,
+                norm,
+                grid_l,
+                grid_r,
+                img_l,
+                img_r,
+                pix / k,
+                (grid_l.x_origin - grid_r.x_origin - norm.parallax_offset) / k,
+                ypar,
+                source,
+            )
+        )
+        return out
+
+    def _y_parallax(
+        self, left: SceneResult, right: SceneResult, gl: SceneGeometry, gr: SceneGeometry
+    ) -> tuple[FloatArray, str]:
+        """Geometric y-parallax (px): GCP/check points, else virtual points of the models."""
+        pts, ls_l, ls_r = [], [], []
+        for p in self.gcp.values():
+            a = p.observations.get(left.scene.scene_id)
+            b = p.observations.get(right.scene.scene_id)
+            if a is not None and b is not None:
+                ls_l.append(a)
+                ls_r.append(b)
+                pts.append(p.xyz)
+        pixel = self.views[left.scene.view].camera.pixel_size
+        if len(pts) >= 1:
+            nl = gl.image_to_normalized(np.array(ls_l)[:, 0], np.array(ls_l)[:, 1])
+            nr = gr.image_to_normalized(np.array(ls_r)[:, 0], np.array(ls_r)[:, 1])
+            return (nl[:, 1] - nr[:, 1]) / pixel, "gcp"
+        if left.model is not None and right.model is not None:
+            z = self.config.z_avg
+            h = self.config.height_range
+            obj = virtual_points(
+                left.model, (0.0, left.scene.lines - 1.0), [z - h, z, z + h], grid=11
+            )
+            lr = right.model.project(obj)
+            inside = (
+                (lr[:, 0] >= 0)
+                & (lr[:, 0] <= right.scene.lines - 1)
+                & (lr[:, 1] >= 0)
+                & (lr[:, 1] <= right.scene.detectors - 1)
+            )
+            if inside.sum() >= 1:
+                ll = left.model.project(obj[inside])
+                nl = gl.image_to_normalized(ll[:, 0], ll[:, 1])
+                nr = gr.image_to_normalized(lr[inside, 0], lr[inside, 1])
+                return (nl[:, 1] - nr[:, 1]) / pixel, "virtual"
+        return np.zeros(0), "none"

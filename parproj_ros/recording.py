@@ -1,0 +1,220 @@
+"""Recording simulated scenarios into bags, and reading back what the node needs from a bag.
+
+Topics of a recorded bag (all relative names, as the node subscribes to them):
+
+| topic | type | content |
+|---|---|---|
+| navigation | nav_msgs/msg/Odometry | platform position, attitude, body-frame velocity |
+| <view>/image_strip | sensor_msgs/msg/Image | strips of scan lines; frame_id = scene id |
+| <view>/scanner_info | parproj_msgs/msg/ScannerInfo | the camera, once (transient local) |
+| gcp | parproj_msgs/msg/GroundControlPoints | GCP and check points, once (transient local) |
+| truth/points | parproj_msgs/msg/GroundControlPoints | exact points for the evaluation |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .bag import BagReader, BagWriter
+from .conversions import array_to_image, gcp_from_msg, gcp_to_msg, ns_to_stamp, sample_to_odometry
+from .geometry import LineCamera, angles_from_rotation, quaternion_to_rotation
+from .geometry.rotation import rotation_to_quaternion
+from .pipeline import GroundPoint, PipelineConfig, ViewConfig
+from .scenarios import Scenario, ground_points
+from .trajectory import NavSample
+
+FRAME_ID = "map"
+
+
+def _progress(total: int, desc: str, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not enabled, unit="line", leave=False)
+
+
+def record_scenario(
+    scn: Scenario,
+    path: Path,
+    *,
+    progress: bool = True,
+    noise_px: float | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Render ``scn`` and write its bag folder at ``path``; return a summary for bags/README.
+
+    ``noise_px`` (default: the scenario's) is the standard deviation of the Gaussian noise added
+    to the GCP and check-point image measurements; truth points stay exact.
+    """
+    from nav_msgs.msg import Odometry
+    from parproj_msgs.msg import GroundControlPoints, ScannerInfo
+    from sensor_msgs.msg import Image
+
+    from .imaging.simulate import locate_on_terrain, render_scene
+    from .imaging.terrain import procedural_terrain
+
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    rng = np.random.default_rng(scn.seed)
+
+    def locate(model: Any, line: Any, sample: Any) -> Any:
+        return locate_on_terrain(model, terrain, line, sample)
+
+    gcp: list[GroundPoint] = []
+    truth: list[GroundPoint] = []
+    for k, pair in enumerate(scn.pairs()):
+        gcp += ground_points(scn, pair, scn.gcp, locate, rng, prefix=f"p{k}_gcp")
+        gcp += ground_points(scn, pair, scn.check, locate, rng, prefix=f"p{k}_chk", check=True)
+        truth += ground_points(scn, pair, scn.truth, locate, rng, prefix=f"p{k}_t", check=True)
+    noise_px = scn.gcp_noise_px if noise_px is None else noise_px
+    if noise_px > 0:
+        for p in gcp:
+            for sid, (line, sample) in list(p.observations.items()):
+                p.observations[sid] = (
+                    line + rng.normal(0, noise_px),
+                    sample + rng.normal(0, noise_px),
+                )
+    first = min(sc.start_s for sc in scn.scenes) - 1.0
+    last = max(sc.start_s + sc.lines * _cam(scn, sc.view).line_period for sc in scn.scenes) + 1.0
+    dtype = np.dtype(scn.dtype)
+    with BagWriter(path, compression="zstd") as bw:
+        bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
+        for v in scn.views:
+            bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
+            bw.add_topic(
+                f"{v.name}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local"
+            )
+        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        t_first = scn.time_ns(first)
+        for v in scn.views:
+            info = ScannerInfo()
+            ns_to_stamp(t_first, info.header.stamp)
+            info.header.frame_id = v.name
+            info.camera_name = v.name
+            info.principal_distance = v.camera.principal_distance
+            info.pixel_size = v.camera.pixel_size
+            info.detectors = v.camera.detectors
+            info.principal_point = v.camera.pp
+            info.line_period = v.camera.line_period
+            q = rotation_to_quaternion(v.mounting)
+            info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = (
+                float(c) for c in q
+            )
+            bw.write(f"{v.name}/scanner_info", info, t_first)
+        bw.write(
+            "gcp",
+            gcp_to_msg(gcp, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
+            t_first,
+        )
+        bw.write(
+            "truth/points",
+            gcp_to_msg(truth, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
+            t_first,
+        )
+        # Navigation and strips, interleaved in time order.
+        nav_t = np.arange(first, last, 1.0 / scn.nav_rate_hz)
+        events: list[tuple[int, int, Any]] = []
+        vel = np.array(scn.velocity)
+        for t in nav_t:
+            pos = np.array(scn.position0) + t * vel
+            s = NavSample(scn.time_ns(float(t)), pos, scn.body_rotation(float(t)), vel)
+            events.append(
+                (
+                    s.t_ns,
+                    0,
+                    (
+                        "navigation",
+                        sample_to_odometry(
+                            s, Odometry(), frame_id=FRAME_ID, child_frame_id="base_link"
+                        ),
+                    ),
+                )
+            )
+        total = sum(sc.lines for sc in scn.scenes)
+        with _progress(total, f"render {scn.name}", progress) as bar:
+            for i, sc in enumerate(scn.scenes):
+                model = scn.model(i)
+                img = render_scene(model, terrain, 0, sc.lines, dtype=dtype)
+                bar.update(sc.lines)
+                lp = model.camera.line_period
+                for r0 in range(0, sc.lines, scn.strip_lines):
+                    stamp = scn.time_ns(sc.start_s + r0 * lp)
+                    msg = array_to_image(
+                        img[r0 : r0 + scn.strip_lines],
+                        Image(),
+                        frame_id=scn.scene_id(i),
+                        stamp_ns=stamp,
+                    )
+                    events.append((stamp, 1, (f"{sc.view}/image_strip", msg)))
+        events.sort(key=lambda e: (e[0], e[1]))
+        for stamp, _, (topic, msg) in events:
+            bw.write(topic, msg, stamp)
+    size = sum(f.stat().st_size for f in Path(path).iterdir())
+    log(
+        f"wrote {path} ({size / 1e6:.2f} MB): {len(scn.scenes)} scenes, {len(gcp)} GCP/check, "
+        f"{len(truth)} truth points"
+    )
+    return {"name": scn.name, "size_mb": size / 1e6, "gcp": len(gcp), "truth": len(truth)}
+
+
+def _cam(scn: Scenario, view: str) -> LineCamera:
+    return next(v for v in scn.views if v.name == view).camera
+
+
+def views_from_bag(reader: BagReader) -> tuple[ViewConfig, ...]:
+    """The cameras (ScannerInfo messages) recorded in a bag, in topic order."""
+    views = []
+    for item in reader.messages(
+        topics=[t for t in reader.topics() if t.endswith("/scanner_info")]
+    ):
+        m = item.msg
+        q = m.mounting
+        cam = LineCamera(
+            m.principal_distance, m.pixel_size, int(m.detectors), m.line_period, m.principal_point
+        )
+        views.append(
+            ViewConfig(
+                item.topic.rsplit("/", 1)[0], cam, quaternion_to_rotation([q.x, q.y, q.z, q.w])
+            )
+        )
+    order = {name: i for i, name in enumerate(("left", "right"))}
+    views.sort(key=lambda v: order.get(v.name, 99))
+    return tuple(dict((v.name, v) for v in views).values())
+
+
+def truth_from_bag(reader: BagReader) -> list[GroundPoint]:
+    """Truth points recorded on truth/points."""
+    out: list[GroundPoint] = []
+    for item in reader.messages(topics=["truth/points"]):
+        out += gcp_from_msg(item.msg)
+    return out
+
+
+def node_parameters(views: tuple[ViewConfig, ...], **extra: Any) -> dict[str, Any]:
+    """parproj_node parameters for these cameras (for --params-file or -p)."""
+    params: dict[str, Any] = {"views": [v.name for v in views]}
+    for v in views:
+        c = v.camera
+        rpy = np.degrees(angles_from_rotation(v.mounting))
+        params.update(
+            {
+                f"{v.name}.principal_distance": c.principal_distance,
+                f"{v.name}.pixel_size": c.pixel_size,
+                f"{v.name}.detectors": c.detectors,
+                f"{v.name}.principal_point": c.pp,
+                f"{v.name}.line_period": c.line_period,
+                f"{v.name}.mounting_rpy_deg": [float(a) for a in rpy],
+            }
+        )
+    params.update(extra)
+    return params
+
+
+def config_from_bag(reader: BagReader, **overrides: Any) -> PipelineConfig:
+    """Pipeline settings for a bag: its cameras plus ``overrides`` (PipelineConfig fields)."""
+    return PipelineConfig(views=views_from_bag(reader), **overrides)
