@@ -8,19 +8,19 @@ every scene rendered over it (what stereo matching needs).
 
 The texture is built for feature matching at ground sample distances of 0.3 m to 2 m:
 
-* smooth value noise in nine octaves, lattice cells 1 m to 256 m (wavelengths about 2 m to 500 m),
-  each on its own rotated, shifted lattice so that no grid direction dominates;
+* smooth value noise in ten octaves, lattice cells 0.5 m to 256 m (wavelengths about 1 m to
+  500 m), each on its own rotated, shifted lattice so that no grid direction dominates;
 * two patchworks of rotated rectangular "fields" (sharp edges and corners at 45 m to 110 m);
 * a network of bright 6 m "roads", gently curved by low-frequency noise;
-* two layers of small dark and bright "buildings / trees": squares and discs 3 m to 10 m across
-  with random orientation, one per cell of a jittered grid (24 m and 37 m cells), about half of
-  the cells occupied. These give detectors such as ORB, FAST or SIFT their corners.
+* three layers of small dark and bright "buildings / trees": squares and discs 1.2 m to 15 m
+  across with random orientation, one per cell of a jittered grid (10 m, 24 m and 37 m cells),
+  about half of the cells occupied. These give detectors such as ORB, FAST or SIFT their corners.
 
-Anti-aliasing: :meth:`Terrain.texture` takes the sample spacing on the ground; noise octaves whose
-cells are not larger than two sample spacings, and blobs not wider than about three, are faded
-out, so that a renderer that averages sub-pixel samples (:func:`..simulate.render_scene`) sees no
-frequencies it cannot represent, apart from the hard edges themselves (which supersampling
-smooths).
+Anti-aliasing: :meth:`Terrain.texture` takes the sample spacing r on the ground; a noise octave
+fades out as its lattice cell shrinks from 2 r to r, and a blob as its half-size shrinks from
+1.5 r to 0.5 r, so that a renderer averaging sub-pixel samples (``simulate.render_scene``) sees
+no detail it cannot represent, apart from the hard edges themselves (which supersampling
+smooths). The texture therefore depends slightly on r, but only in detail below the resolution.
 """
 
 from __future__ import annotations
@@ -144,11 +144,12 @@ _OCTAVES: tuple[tuple[float, float], ...] = (
     (4.0, 0.06),
     (2.0, 0.06),
     (1.0, 0.055),
+    (0.5, 0.05),
 )
 #: Field patchworks: (cell along u, cell along v in metres, amplitude).
 _FIELDS: tuple[tuple[float, float, float], ...] = ((70.0, 45.0, 0.13), (110.0, 60.0, 0.11))
 #: Blob layers: jittered-grid cell in metres.
-_BLOB_CELLS: tuple[float, ...] = (24.0, 37.0)
+_BLOB_CELLS: tuple[float, ...] = (10.0, 24.0, 37.0)
 _BLOB_JITTER = 0.17  # max centre offset, fraction of the cell
 _BLOB_HALF = (0.06, 0.20)  # half-size range, fraction of the cell (reach <= 0.45 cell)
 _BLOB_PRESENCE = 0.55
@@ -211,10 +212,13 @@ class ProceduralTexture:
             float32 reflectance in [0, 1], the broadcast shape.
 
         """
-        xa, ya, ra = np.broadcast_arrays(
+        xb, yb, rb = np.broadcast_arrays(
             np.asarray(x, dtype=float), np.asarray(y, dtype=float), np.asarray(resolution, float)
         )
-        res = np.maximum(ra, 1e-6).astype(np.float32)
+        shape = xb.shape
+        # 1-d work arrays: numpy warns on uint32 wrap-around for scalars but not for arrays
+        xa, ya = xb.reshape(-1), yb.reshape(-1)
+        res = np.maximum(rb.reshape(-1), 1e-6).astype(np.float32)
         out = np.full(xa.shape, _BASE, dtype=np.float32)
         for fr, amp in self._fields:
             u, v = fr.uv(xa, ya)
@@ -227,10 +231,13 @@ class ProceduralTexture:
             u, v = fr.uv(xa, ya)
             out += _value_noise(u, v, fr.salt) * (np.float32(amp) * fade)
         self._add_roads(xa, ya, out)
+        finest = float(res.min()) if res.size else 1.0
         for fr, cell in self._blobs:
+            if _BLOB_HALF[1] * cell / finest <= 0.5:
+                continue  # every blob of this layer is below the resolution
             self._add_blobs(xa, ya, res, fr, cell, out)
         np.clip(out, 0.0, 1.0, out=out)
-        return out
+        return out.reshape(shape)
 
     def _add_roads(self, x: FloatArray, y: FloatArray, out: Float32Array) -> None:
         grid, warp = self._roads
