@@ -130,6 +130,8 @@ def test_texture_is_deterministic_bounded_and_band_limited() -> None:
     ta = a.texture(X, Y, 0.25)
     assert ta.dtype == np.float32 and ta.shape == X.shape
     assert ta.min() >= 0.0 and ta.max() <= 1.0 and ta.std() > 0.05
+    one = a.texture(X[3, 5], Y[3, 5], 0.25)
+    assert one.shape == () and one == ta[3, 5]
     np.testing.assert_array_equal(ta, b.texture(X, Y, 0.25))
     assert np.mean(np.abs(ta - c.texture(X, Y, 0.25))) > 0.05
     # asked for 4 m samples, sub-4 m detail is faded: less pixel-to-pixel variation at 0.5 m
