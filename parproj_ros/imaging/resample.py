@@ -109,7 +109,140 @@ def native_pixel(geom: SceneGeometry) -> float:
     )
 
 
+@dataclass(frozen=True)
+class Tile:
+    """One output tile and the affine map that stands for the exact one on it.
+
+    Attributes:
+        row0: first output row.
+        col0: first output column.
+        rows: tile height, pixels.
+        cols: tile width, pixels.
+        affine: 2x3, (col - col0, row - row0) -> (sample, line) of the source scene.
+        max_error_px: largest distance between the affine and the exact map found on the
+            tile's check grid, source pixels.
+    """
+
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    affine: FloatArray
+    max_error_px: float
+
+
+def _exact_map(
+    geom: SceneGeometry, grid: OutputGrid, cols: FloatArray, rows: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    xn = grid.x_origin + grid.pixel * cols
+    yn = grid.y_origin + grid.pixel * rows
+    line, sample = geom.normalized_to_image(xn, yn)
+    return sample, line
+
+
+def _fit_tile(
+    geom: SceneGeometry, grid: OutputGrid, r0: int, c0: int, nr: int, nc: int, check: int = 5
+) -> Tile:
+    """Least-squares affine of the exact map over a check x check grid of the tile."""
+    rr = np.linspace(0.0, nr - 1.0, check)
+    cc = np.linspace(0.0, nc - 1.0, check)
+    cg, rg = np.meshgrid(cc, rr)
+    sample, line = _exact_map(geom, grid, c0 + cg.ravel(), r0 + rg.ravel())
+    design = np.column_stack([cg.ravel(), rg.ravel(), np.ones(cg.size)])
+    coef, *_ = np.linalg.lstsq(design, np.column_stack([sample, line]), rcond=None)
+    err = design @ coef - np.column_stack([sample, line])
+    return Tile(
+        r0,
+        c0,
+        nr,
+        nc,
+        np.asarray(coef.T, dtype=float),
+        float(np.hypot(err[:, 0], err[:, 1]).max()),
+    )
+
+
+def plan_tiles(
+    geom: SceneGeometry,
+    grid: OutputGrid,
+    *,
+    tile: int = 512,
+    tolerance_px: float = 0.004,
+    min_tile: int = 16,
+) -> list[Tile]:
+    """Cover the output grid with tiles on which an affine map is within ``tolerance_px``.
+
+    The exact map is an affine map followed by the inverse PTP correction, a smooth 1-D
+    function of one coordinate, so its deviation from the best affine fit grows with the square
+    of the tile size: tiles that miss the tolerance are split in four until they meet it.
+    """
+    out: list[Tile] = []
+    todo = [
+        (r0, c0, min(tile, grid.height - r0), min(tile, grid.width - c0))
+        for r0 in range(0, grid.height, tile)
+        for c0 in range(0, grid.width, tile)
+    ]
+    while todo:
+        r0, c0, nr, nc = todo.pop()
+        t = _fit_tile(geom, grid, r0, c0, nr, nc)
+        if t.max_error_px <= tolerance_px or max(nr, nc) <= min_tile:
+            out.append(t)
+            continue
+        hr, hc = max(1, nr // 2), max(1, nc // 2)
+        for rr0, rn in ((r0, hr), (r0 + hr, nr - hr)):
+            for cc0, cn in ((c0, hc), (c0 + hc, nc - hc)):
+                if rn > 0 and cn > 0:
+                    todo.append((rr0, cc0, rn, cn))
+    return out
+
+
 def resample(
+    image: NDArray[np.generic],
+    geom: SceneGeometry,
+    grid: OutputGrid,
+    *,
+    nodata: float = 0.0,
+    interpolation: int = cv2.INTER_LINEAR,
+    tile: int = 512,
+    tolerance_px: float = 0.004,
+    out: NDArray[np.generic] | None = None,
+    row_offset: int = 0,
+) -> NDArray[np.generic]:
+    """Resample one original scene (lines, detectors) onto ``grid``; outside the scene: nodata.
+
+    The output is cut into tiles on each of which the exact map (normalization affine, then
+    inverse PTP) is replaced by its best affine fit, within ``tolerance_px`` source pixels
+    (:func:`plan_tiles`); each tile is one ``cv2.warpAffine``, so no per-pixel map is built.
+    The output dtype is the input's (uint8, uint16 or float32).
+
+    ``out`` and ``row_offset`` let a caller fill rows [row_offset, row_offset + len(out)) of a
+    larger grid (streaming); ``grid.height`` is then the full height.
+    """
+    if image.dtype not in ENCODINGS:
+        raise ValueError(f"unsupported pixel type {image.dtype}; use uint8, uint16 or float32")
+    if out is None:
+        out = np.empty((grid.height - row_offset, grid.width), dtype=image.dtype)
+    sub = OutputGrid(
+        grid.pixel,
+        grid.x_origin,
+        grid.y_origin + row_offset * grid.pixel,
+        grid.width,
+        out.shape[0],
+    )
+    flags = interpolation | cv2.WARP_INVERSE_MAP
+    for t in plan_tiles(geom, sub, tile=tile, tolerance_px=tolerance_px):
+        m = t.affine.copy()
+        out[t.row0 : t.row0 + t.rows, t.col0 : t.col0 + t.cols] = cv2.warpAffine(
+            image,
+            m,
+            (t.cols, t.rows),
+            flags=flags,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(nodata),
+        )
+    return out
+
+
+def resample_remap(
     image: NDArray[np.generic],
     geom: SceneGeometry,
     grid: OutputGrid,
@@ -118,20 +251,18 @@ def resample(
     interpolation: int = cv2.INTER_LINEAR,
     block_rows: int = 256,
 ) -> NDArray[np.generic]:
-    """Resample one original scene (lines, detectors) onto ``grid``; outside the scene: nodata.
+    """Reference resampler: the exact map built per pixel, then ``cv2.remap`` (slower).
 
-    Maps are built and applied in blocks of ``block_rows`` output rows to bound memory. The
-    output dtype is the input's (uint8, uint16 or float32).
+    Kept to measure :func:`resample` against (geometric error and speed).
     """
     if image.dtype not in ENCODINGS:
         raise ValueError(f"unsupported pixel type {image.dtype}; use uint8, uint16 or float32")
     out = np.empty((grid.height, grid.width), dtype=image.dtype)
-    cols = grid.x_origin + grid.pixel * np.arange(grid.width, dtype=float)
+    cols = np.arange(grid.width, dtype=float)
     for r0 in range(0, grid.height, block_rows):
         r1 = min(grid.height, r0 + block_rows)
-        rows = grid.y_origin + grid.pixel * np.arange(r0, r1, dtype=float)
-        xn, yn = np.meshgrid(cols, rows)
-        line, sample = geom.normalized_to_image(xn, yn)
+        cg, rg = np.meshgrid(cols, np.arange(r0, r1, dtype=float))
+        sample, line = _exact_map(geom, grid, cg, rg)
         out[r0:r1] = cv2.remap(
             image,
             sample.astype(np.float32),
