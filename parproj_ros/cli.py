@@ -141,6 +141,8 @@ def cmd_process(args: argparse.Namespace) -> int:
         "height_range": args.height_range,
         "gcp_roll": args.gcp_roll,
         "interpolation": args.interpolation,
+        "scene_lines": args.scene_lines,
+        "streaming": not args.no_streaming,
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
@@ -243,6 +245,36 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``parproj bench``: resampler against its lower bounds, the live node, memory."""
+    import yaml
+
+    from .bench import run_and_report
+
+    params = {}
+    for item in args.node_param:
+        key, sep, value = item.partition("=")
+        if not sep:
+            print(f"--node-param needs KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        params[key] = yaml.safe_load(value)
+    res = run_and_report(
+        args.quick,
+        json_out=args.json,
+        markdown=Path(args.markdown) if args.markdown else None,
+        include_quick=Path(args.include_quick) if args.include_quick else None,
+        workdir=Path(args.workdir) if args.workdir else None,
+        live=not args.no_live,
+        offline=not args.no_offline,
+        domain_id=args.domain_id,
+        py_spy=args.py_spy,
+        pairs=args.pairs,
+        check_fields=args.check_fields,
+        node_params=params,
+    )
+    return 1 if (res.get("live") or {}).get("error") else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     from .paper import SEED
@@ -281,6 +313,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcp-roll", choices=["estimate", "navigation", "none"], default="estimate")
     p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
+    p.add_argument("--scene-lines", type=int, default=0, help="lines per scene (0: by id/gap)")
+    p.add_argument(
+        "--no-streaming",
+        action="store_true",
+        help="whole images after both scenes, never column blocks",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_process)
 
@@ -311,6 +349,33 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=20.0, help="replay speed factor")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="benchmark: resampler, live node over DDS, memory")
+    p.add_argument("--quick", action="store_true", help="2048 x 2048 scenes, under a minute")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--markdown", help="write the report (bench/BENCHMARKS.md) to this file")
+    p.add_argument("--include-quick", help="JSON of a --quick run to include in the report")
+    p.add_argument("--workdir", help="folder for the node's files and bags (default: temporary)")
+    p.add_argument("--pairs", type=int, default=None, help="pairs through the live node")
+    p.add_argument("--no-live", action="store_true", help="skip the live node over DDS")
+    p.add_argument("--no-offline", action="store_true", help="skip the offline process")
+    p.add_argument(
+        "--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)"
+    )
+    p.add_argument(
+        "--check-fields",
+        action="store_true",
+        help="run the node with ROS_PYTHON_CHECK_FIELDS=1, as the tests do",
+    )
+    p.add_argument(
+        "--node-param",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="extra node parameter (YAML value), e.g. streaming=false; repeatable",
+    )
+    p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
+    p.set_defaults(func=cmd_bench)
     return parser
 
 

@@ -223,17 +223,27 @@ def pair_to_msgs(pair: PairResult, *, frame_id: str) -> tuple[Any, Any, Any]:
     from parproj_msgs.msg import ParallelProjection, StereoPair
     from sensor_msgs.msg import Image
 
-    left = array_to_image(
-        pair.left_image, Image(), frame_id=f"{frame_id}/normalized_left", stamp_ns=pair.stamp_ns
-    )
-    right = array_to_image(
-        pair.right_image, Image(), frame_id=f"{frame_id}/normalized_right", stamp_ns=pair.stamp_ns
-    )
+    images = []
+    for img, side in ((pair.left_image, "left"), (pair.right_image, "right")):
+        if img is None:  # streamed: the pixels went out as NormalizedBlock messages
+            msg = Image()
+            msg.header.frame_id = f"{frame_id}/normalized_{side}"
+            ns_to_stamp(pair.stamp_ns, msg.header.stamp)
+            images.append(msg)
+        else:
+            images.append(
+                array_to_image(
+                    img, Image(), frame_id=f"{frame_id}/normalized_{side}", stamp_ns=pair.stamp_ns
+                )
+            )
+    left, right = images
     sp = StereoPair()
     ns_to_stamp(pair.stamp_ns, sp.header.stamp)
     sp.header.frame_id = frame_id
     sp.pair_id = pair.pair_id
     sp.left, sp.right = left, right
+    sp.width, sp.height = int(pair.left_grid.width), int(pair.left_grid.height)
+    sp.streamed = pair.left_image is None
     lp = scene_to_msg(pair.left, ParallelProjection(), frame_id=frame_id)
     rp = scene_to_msg(pair.right, ParallelProjection(), frame_id=frame_id)
     sp.left_params, sp.right_params = lp, rp
@@ -298,21 +308,26 @@ def outputs_to_messages(out: Any, *, frame_id: str, stamp_ns: int) -> list[tuple
                 res.scene.first_line_ns,
             )
         )
+    for blk in out.blocks:
+        msgs.append(
+            (f"{blk.side}/normalized_block", block_to_msg(blk, frame_id=frame_id), blk.stamp_ns)
+        )
     for pair in out.pairs:
         sp, left, right = pair_to_msgs(pair, frame_id=frame_id)
-        ana = array_to_image(
-            anaglyph(pair.left_image, pair.right_image),
-            Image(),
-            frame_id=left.header.frame_id,
-            stamp_ns=pair.stamp_ns,
-            encoding="rgb8",
-        )
-        msgs += [
-            ("left/image_normalized", left, pair.stamp_ns),
-            ("right/image_normalized", right, pair.stamp_ns),
-            ("stereo_pair", sp, pair.stamp_ns),
-            ("anaglyph", ana, pair.stamp_ns),
-        ]
+        if pair.left_image is not None and pair.right_image is not None:
+            ana = array_to_image(
+                anaglyph(pair.left_image, pair.right_image),
+                Image(),
+                frame_id=left.header.frame_id,
+                stamp_ns=pair.stamp_ns,
+                encoding="rgb8",
+            )
+            msgs += [
+                ("left/image_normalized", left, pair.stamp_ns),
+                ("right/image_normalized", right, pair.stamp_ns),
+                ("anaglyph", ana, pair.stamp_ns),
+            ]
+        msgs.append(("stereo_pair", sp, pair.stamp_ns))
     if out.issues:
         msgs.append(
             (
@@ -324,6 +339,38 @@ def outputs_to_messages(out: Any, *, frame_id: str, stamp_ns: int) -> list[tuple
     return msgs
 
 
+def block_to_msg(blk: Any, *, frame_id: str) -> Any:
+    """streaming.BlockResult -> parproj_msgs/NormalizedBlock."""
+    from parproj_msgs.msg import NormalizedBlock
+    from sensor_msgs.msg import Image
+
+    msg = NormalizedBlock()
+    ns_to_stamp(blk.stamp_ns, msg.header.stamp)
+    msg.header.frame_id = f"{frame_id}/normalized_{blk.side}"
+    msg.pair_id, msg.side = blk.pair_id, blk.side
+    msg.col0 = int(blk.col0)
+    msg.full_width, msg.full_height = int(blk.grid.width), int(blk.grid.height)
+    msg.pixel_size = float(blk.grid.pixel)
+    msg.x_origin, msg.y_origin = float(blk.grid.x_origin), float(blk.grid.y_origin)
+    msg.index, msg.last = int(blk.index), bool(blk.last)
+    msg.image = array_to_image(
+        blk.image, Image(), frame_id=msg.header.frame_id, stamp_ns=blk.stamp_ns
+    )
+    return msg
+
+
+def assemble_blocks(blocks: list[Any]) -> Any:
+    """NormalizedBlock messages of one side of one pair -> the full normalized image."""
+    if not blocks:
+        raise ConversionError("no blocks")
+    first = blocks[0]
+    parts = [(b.col0, image_to_array(b.image)) for b in blocks]
+    out = np.zeros((first.full_height, first.full_width), dtype=parts[0][1].dtype)
+    for col0, arr in parts:
+        out[:, col0 : col0 + arr.shape[1]] = arr
+    return out
+
+
 #: Published topics and their types (node and offline process alike).
 OUTPUT_TOPICS = {
     "parallel_projection": "parproj_msgs/msg/ParallelProjection",
@@ -331,5 +378,7 @@ OUTPUT_TOPICS = {
     "left/image_normalized": "sensor_msgs/msg/Image",
     "right/image_normalized": "sensor_msgs/msg/Image",
     "anaglyph": "sensor_msgs/msg/Image",
+    "left/normalized_block": "parproj_msgs/msg/NormalizedBlock",
+    "right/normalized_block": "parproj_msgs/msg/NormalizedBlock",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .bag import BagReader
-from .conversions import image_to_array
+from .conversions import assemble_blocks, image_to_array
 from .geometry import AffineModel, SceneObservation, space_intersection
 from .geometry.ptp import ptp_forward
 from .pipeline import GroundPoint
@@ -153,22 +153,37 @@ def evaluate_bag(
         else (truth_from_bag(reader) if "truth/points" in reader.topics() else [])
     )
     result: dict[str, Any] = {"pairs": [], "truth_points": len(truth)}
+    blocks: dict[tuple[str, str], list[Any]] = {}
+    block_topics = [
+        t for t in ("left/normalized_block", "right/normalized_block") if t in reader.topics()
+    ]
+    if block_topics:
+        for item in reader.messages(topics=block_topics):
+            blocks.setdefault((item.msg.pair_id, item.msg.side), []).append(item.msg)
     for item in reader.messages(topics=["stereo_pair"]):
         sp = item.msg
-        result["pairs"].append(_evaluate_pair(sp, truth, plots, matching))
+        images = None
+        if sp.streamed:
+            parts = [blocks.get((sp.pair_id, side), []) for side in ("left", "right")]
+            images = tuple(assemble_blocks(p) for p in parts) if all(parts) else None
+        result["pairs"].append(_evaluate_pair(sp, truth, plots, matching, images))
     result["pair_count"] = len(result["pairs"])
     return result
 
 
 def _evaluate_pair(
-    sp: Any, truth: list[GroundPoint], plots: Path | None, matching: bool
+    sp: Any,
+    truth: list[GroundPoint],
+    plots: Path | None,
+    matching: bool,
+    images: tuple[Any, Any] | None = None,
 ) -> dict[str, Any]:
     lp, rp = sp.left_params, sp.right_params
     pix = sp.normalized_pixel_size
     out: dict[str, Any] = {
         "pair_id": sp.pair_id,
-        "width": sp.left.width,
-        "height": sp.left.height,
+        "width": int(sp.width or sp.left.width),
+        "height": int(sp.height or sp.left.height),
         "methods": [int(lp.method), int(rp.method)],
         "published_y_parallax_px": {
             "mean": sp.y_parallax_mean_px,
@@ -223,8 +238,14 @@ def _evaluate_pair(
         }
         if plots:
             _plot_geometry(plots, sp.pair_id, xyz[:, 2], disp, coef, ypar)
+    if images is None and sp.streamed:
+        out["images"] = "streamed, but the blocks are not all in the bag"
+        return out
+    out["streamed"] = bool(sp.streamed)
     if matching or plots:
-        left, right = image_to_array(sp.left), image_to_array(sp.right)
+        left, right = (
+            images if images is not None else (image_to_array(sp.left), image_to_array(sp.right))
+        )
         if matching:
             out["matching"] = match_y_parallax(left, right)
         if plots:

@@ -57,7 +57,8 @@ def _load_csv(path: Path) -> list[GroundPoint]:
         missing = need - set(reader.fieldnames or [])
         if missing:
             raise GcpFileError(f"{path}: missing columns {sorted(missing)}")
-        for n, row in enumerate(reader, start=2):
+        for row in reader:
+            n = reader.line_num  # the file's line, blank lines included
             try:
                 xyz = np.array([float(row["X"]), float(row["Y"]), float(row["Z"])])
                 obs = (float(row["line"]), float(row["sample"]))
@@ -71,7 +72,7 @@ def _load_csv(path: Path) -> list[GroundPoint]:
             if old is None:
                 points[pid] = GroundPoint(pid, xyz, check, {row["scene_id"].strip(): obs})
             else:
-                if not np.allclose(old.xyz, xyz) or old.check != check:
+                if not np.allclose(old.xyz, xyz, rtol=0.0, atol=1e-6) or old.check != check:
                     raise GcpFileError(f"{path}:{n}: point {pid} repeated with other X Y Z/check")
                 old.observations[row["scene_id"].strip()] = obs
     return list(points.values())
@@ -99,6 +100,9 @@ def _load_yaml(path: Path) -> list[GroundPoint]:
             raise GcpFileError(f"{path}: points[{i}]: {err!r}") from err
         if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
             raise GcpFileError(f"{path}: points[{i}]: xyz must be 3 finite numbers")
+        bad = [k for k, v in obs.items() if not np.all(np.isfinite(v))]
+        if bad:
+            raise GcpFileError(f"{path}: points[{i}]: non-finite observation in {bad}")
         out.append(gp)
     return out
 

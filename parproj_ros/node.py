@@ -20,7 +20,12 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
-from parproj_msgs.msg import GroundControlPoints, ParallelProjection, StereoPair
+from parproj_msgs.msg import (
+    GroundControlPoints,
+    NormalizedBlock,
+    ParallelProjection,
+    StereoPair,
+)
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import (
@@ -115,6 +120,12 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "max_output_pixels", 200_000_000, "larger normalized images are refused", 1, 2_000_000_000
     ),
+    Param(
+        "streaming",
+        True,
+        "publish normalized column blocks while the scenes arrive (two views, scene_lines > 0, "
+        "navigation-derived parameters); otherwise whole images after both scenes",
+    ),
 )
 
 #: Per-view parameters, declared as "<view>.<name>".
@@ -192,6 +203,7 @@ class ParprojNode(Node):
             interpolation=vals["interpolation"],
             output_pixel=float(vals["output_pixel"]),
             max_output_pixels=int(vals["max_output_pixels"]),
+            streaming=bool(vals["streaming"]),
         )
         self.pipeline = Pipeline(config)
         self.counts = {
@@ -244,6 +256,8 @@ class ParprojNode(Node):
             "left/image_normalized": Image,
             "right/image_normalized": Image,
             "anaglyph": Image,
+            "left/normalized_block": NormalizedBlock,
+            "right/normalized_block": NormalizedBlock,
         }
         self.pubs = {t: self.create_publisher(cls, t, out_qos) for t, cls in types.items()}
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)

@@ -1,4 +1,7 @@
-"""``parproj process``: the pipeline run over a bag without DDS, outputs written to a bag."""
+"""``parproj process``: the pipeline over a bag without DDS, outputs written to a bag.
+
+Outputs are logged at the log time of the input message that produced them.
+"""
 
 from __future__ import annotations
 
@@ -57,10 +60,10 @@ def process_bag(
             bw.add_topic(topic, msgtype, "reliable")
 
         def emit(out: Outputs, stamp_ns: int) -> None:
-            for topic, msg, stamp in conv.outputs_to_messages(
+            for topic, msg, _ in conv.outputs_to_messages(
                 out, frame_id=frame_id, stamp_ns=stamp_ns
             ):
-                bw.write(topic, msg, stamp)
+                bw.write(topic, msg, stamp_ns)  # log time: the input that produced it
             summary.scenes += len(out.scenes)
             summary.pairs += len(out.pairs)
             summary.issues += out.issues

@@ -40,6 +40,7 @@ from .geometry import (
 from .geometry.navigation import virtual_points
 from .imaging.assembly import Scene, SceneAssembler, StripRejectedError
 from .imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
+from .streaming import BlockResult, SideStream, StreamPair, plan_blocks, render_block
 from .trajectory import NavigationError, NavSample, TrajectoryBuffer
 
 FloatArray = NDArray[np.float64]
@@ -89,6 +90,8 @@ class PipelineConfig:
         interpolation: "linear" or "cubic".
         output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
         max_output_pixels: larger normalized images are refused (the pair is skipped).
+        streaming: publish normalized column blocks while the scenes arrive, when possible
+            (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
     """
 
     views: tuple[ViewConfig, ...]
@@ -103,6 +106,7 @@ class PipelineConfig:
     interpolation: Literal["linear", "cubic"] = "linear"
     output_pixel: float = 0.0
     max_output_pixels: int = 200_000_000
+    streaming: bool = True
 
     @property
     def single_camera(self) -> bool:
@@ -190,6 +194,18 @@ class SceneResult:
 
 
 @dataclass(frozen=True)
+class PairGeometry:
+    """Normalization and output grids of a pair, before any pixel is resampled."""
+
+    pair_id: str
+    normalization: Normalization
+    left_geom: SceneGeometry
+    right_geom: SceneGeometry
+    left_grid: OutputGrid
+    right_grid: OutputGrid
+
+
+@dataclass(frozen=True)
 class PairResult:
     """A normalized stereo pair.
 
@@ -201,8 +217,8 @@ class PairResult:
         normalization: paper 2 Eq 8 result (2x3 affines, kappa_n, s_n, parallax relation).
         left_grid: output grid of the left image.
         right_grid: output grid of the right image (same rows, shifted columns).
-        left_image: normalized left image.
-        right_image: normalized right image.
+        left_image: normalized left image (None when streamed block by block).
+        right_image: normalized right image (None when streamed).
         height_per_disparity_px: a in Z = a (col_left - col_right) + b, metres per pixel.
         height_offset_m: b, metres.
         y_parallax_px: signed y-parallax samples used for the statistics, pixels.
@@ -216,8 +232,8 @@ class PairResult:
     normalization: Normalization
     left_grid: OutputGrid
     right_grid: OutputGrid
-    left_image: NDArray[np.generic]
-    right_image: NDArray[np.generic]
+    left_image: NDArray[np.generic] | None
+    right_image: NDArray[np.generic] | None
     height_per_disparity_px: float
     height_offset_m: float
     y_parallax_px: FloatArray
@@ -239,12 +255,14 @@ class Outputs:
     scenes: list[SceneResult] = field(default_factory=list)
     pairs: list[PairResult] = field(default_factory=list)
     issues: list[Issue] = field(default_factory=list)
+    blocks: list[BlockResult] = field(default_factory=list)
 
     def extend(self, other: Outputs) -> None:
         """Append another call's outputs."""
         self.scenes += other.scenes
         self.pairs += other.pairs
         self.issues += other.issues
+        self.blocks += other.blocks
 
 
 class Pipeline:
@@ -270,6 +288,8 @@ class Pipeline:
         self._waiting_nav: list[Scene] = []
         self._ready: dict[str, dict[int, SceneResult]] = {v.name: {} for v in config.views}
         self.pairs_done = 0
+        self._streams: dict[int, StreamPair] = {}
+        self._no_stream: set[int] = set()
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -311,7 +331,10 @@ class Pipeline:
             out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
             return out
         for scene in scenes:
-            out.extend(self._scene_done(scene))
+            out.extend(self._scene_closed(scene))
+        if self._can_stream:
+            out.extend(self._stream_start())
+            out.extend(self._stream_advance(view))
         return out
 
     def close_scenes(self) -> Outputs:
@@ -319,8 +342,312 @@ class Pipeline:
         out = Outputs()
         for asm in self.assemblers.values():
             for scene in asm.flush():
-                out.extend(self._scene_done(scene))
+                out.extend(self._scene_closed(scene))
         return out
+
+    # ---- streaming ----------------------------------------------------------------------
+    @property
+    def _can_stream(self) -> bool:
+        c = self.config
+        return c.streaming and not c.single_camera and c.scene_lines > 0
+
+    def _scene_closed(self, scene: Scene) -> Outputs:
+        stream = self._streams.get(scene.index)
+        if stream is None or scene.view not in [s.view for s in stream.sides.values()]:
+            return self._scene_done(scene)
+        return self._stream_close(stream, scene)
+
+    def _stream_start(self) -> Outputs:
+        """Start streaming pair k once the scenes of both sides have begun (or one is done).
+
+        A side whose scene is still arriving gets parameters extrapolated from the latest
+        navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
+        sees the same ground later) keeps its parameters and has all its blocks emitted at once.
+        """
+        out = Outputs()
+        names = [v.name for v in self.config.views]
+        opened = {n: self.assemblers[n].open_scene() for n in names}
+        for k in sorted({o[1] for o in opened.values() if o is not None}):
+            if k in self._streams or k in self._no_stream:
+                continue
+            parts: list[tuple[str, tuple[str, int, int, int] | SceneResult]] = []
+            for n in names:
+                o = opened[n]
+                if o is not None and o[1] == k:
+                    parts.append((n, o))
+                elif k in self._ready[n]:
+                    parts.append((n, self._ready[n][k]))
+            if len(parts) < 2:
+                continue
+            newest = max(o[2] for o in opened.values() if o is not None)
+            overdue = [
+                part
+                for _, part in parts
+                if not isinstance(part, SceneResult)
+                and part[2] + self.config.scene_lines * self._period(part) < newest
+            ]
+            if overdue:
+                # A scene that should have been complete by now is still open: it is short
+                # (end of a pass); its length is unknown, so it is processed whole.
+                self._no_stream.add(k)
+                continue
+            results: list[SceneResult] = []
+            for name, part in parts:
+                if isinstance(part, SceneResult):
+                    results.append(part)
+                    continue
+                res = self._predict_scene(name, part, out)
+                if res is None:
+                    return out
+                results.append(res)
+            if k in self._no_stream:
+                continue
+            out.extend(self._open_stream(k, results))
+        return out
+
+    def _period(self, opened: tuple[str, int, int, int]) -> float:
+        """Line period (ns) of the view whose open scene is ``opened``."""
+        for name, asm in self.assemblers.items():
+            if asm.open_scene() == opened:
+                return self.views[name].camera.line_period * 1e9
+        return 0.0
+
+    def _predict_scene(
+        self, name: str, opened: tuple[str, int, int, int], out: Outputs
+    ) -> SceneResult | None:
+        """Parameters of a scene that has just started, from the latest navigation."""
+        sid, k, t0, _ = opened
+        n_gcp = sum(1 for p in self.gcp.values() if sid in p.observations and not p.check)
+        if n_gcp >= self.config.min_gcp:
+            self._no_stream.add(k)  # GCP-based parameters need the whole scene
+            return None
+        view = self.views[name]
+        lines = self.config.scene_lines
+        try:
+            fit = self.nav.fit_recent(t0, view.mounting)
+        except NavigationError:
+            return None  # not yet: try again with the next strip
+        model = PushbroomModel(view.camera, fit.motion)
+        try:
+            nav = parameters_from_navigation(
+                model,
+                line_mid=(lines - 1) / 2.0,
+                z_avg=self.config.z_avg,
+                scene_lines=lines,
+                height_range=self.config.height_range,
+                crab_tolerance_px=self.config.crab_tolerance_px,
+            )
+        except GeometryError as err:
+            self._no_stream.add(k)
+            out.issues.append(
+                Issue("warn", f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing")
+            )
+            return None
+        dtype = self.assemblers[name].retained()[1].dtype
+        placeholder = Scene(
+            name,
+            sid,
+            k,
+            t0,
+            view.camera.line_period,
+            np.empty((0, view.camera.detectors), dtype=dtype),
+            0,
+            "streaming",
+            lines,
+        )
+        return SceneResult(
+            placeholder,
+            nav.params,
+            nav.affine,
+            nav.psi,
+            nav.frame,
+            nav.method,
+            nav.note + "; extrapolated from the navigation at the scene start (streaming)",
+            model,
+            view.camera,
+            sigma0_px=(float("nan") if nav.method == "navigation" else nav.fit_rms_px),
+            residual_rms_px=nav.fit_rms_px,
+            crab_angle=nav.crab_angle,
+        )
+
+    def _open_stream(self, k: int, results: list[SceneResult]) -> Outputs:
+        out = Outputs()
+        geo = self._pair_geometry(
+            results[0], results[1], (results[0].scene.lines, results[1].scene.lines)
+        )
+        if isinstance(geo, Issue):
+            self._no_stream.add(k)
+            out.issues.append(geo)
+            return out
+        sides = {}
+        for side, res, geom, grid in (
+            ("left", results[0], geo.left_geom, geo.left_grid),
+            ("right", results[1], geo.right_geom, geo.right_grid),
+        ):
+            sides[side] = SideStream(
+                side,
+                res.scene.view,
+                res,
+                geom,
+                grid,
+                res.scene.lines,
+                plan_blocks(geom, grid, res.scene.lines),
+            )
+        stamp = max(r.scene.last_line_ns for r in results)
+        stream = StreamPair(k, geo, sides, stamp)
+        self._streams[k] = stream
+        out.issues.append(
+            Issue(
+                "ok",
+                f"pair {geo.pair_id}",
+                f"streaming: {geo.left_grid.width} x {geo.left_grid.height} px in "
+                f"{len(sides['left'].blocks)} + {len(sides['right'].blocks)} column blocks",
+            )
+        )
+        for side in sides.values():
+            if side.result.scene.image.shape[0] > 0:  # a side that was already complete
+                self._ready[side.view].pop(k, None)
+                out.extend(self._stream_close(stream, side.result.scene, prefetched=True))
+        return out
+
+    def _emit_blocks(
+        self,
+        stream: StreamPair,
+        side: SideStream,
+        received: int,
+        data: NDArray[np.generic],
+        first: int,
+        complete: bool,
+    ) -> Outputs:
+        out = Outputs()
+        while side.next_block < len(side.blocks):
+            b = side.blocks[side.next_block]
+            if not complete and b.max_line >= received:
+                break
+            img = render_block(
+                b,
+                data,
+                first,
+                side.grid,
+                nodata=self.config.nodata,
+                interpolation=self.interpolation_flag,
+            )
+            side.next_block += 1
+            out.blocks.append(
+                BlockResult(
+                    stream.geometry.pair_id,
+                    side.side,
+                    side.next_block - 1,
+                    b.col0,
+                    img,
+                    side.grid,
+                    stream.stamp_ns,
+                    side.next_block == len(side.blocks),
+                )
+            )
+        return out
+
+    def _stream_advance(self, view: str) -> Outputs:
+        out = Outputs()
+        asm = self.assemblers[view]
+        opened = asm.open_scene()
+        if opened is None:
+            return out
+        stream = self._streams.get(opened[1])
+        if stream is None:
+            return out
+        for side in stream.sides.values():
+            if side.view != view or side.done:
+                continue
+            first, data = asm.retained()
+            out.extend(self._emit_blocks(stream, side, opened[3], data, first, False))
+            if side.next_block > 0:  # keep every line until the stream has really begun
+                asm.release(side.needed_from())
+        return out
+
+    def _stream_close(self, stream: StreamPair, scene: Scene, prefetched: bool = False) -> Outputs:
+        """A streamed side's scene is complete: its last blocks, and the pair if both are.
+
+        ``prefetched``: the scene was complete before the stream started (its result is known;
+        no parameters are published for it again).
+        """
+        out = Outputs()
+        side = next(s for s in stream.sides.values() if s.view == scene.view)
+        where = f"{scene.view}/{scene.scene_id}"
+        if scene.lines != side.lines:
+            self._streams.pop(stream.index, None)
+            self._no_stream.add(stream.index)
+            if all(s.next_block == 0 for s in stream.sides.values()) and scene.released == 0:
+                # Nothing was published or released yet: fall back to whole scenes, unseen.
+                for s in stream.sides.values():
+                    if s.prefetched or (s.done and s.result.scene.image.shape[0] > 0):
+                        self._ready[s.view][stream.index] = s.result
+                return self._scene_done(scene)
+            out.issues.append(
+                Issue(
+                    "error",
+                    where,
+                    f"scene ended after {scene.lines} of {side.lines} lines ({scene.reason}): "
+                    f"streamed pair {stream.geometry.pair_id} abandoned after "
+                    f"{side.next_block} of {len(side.blocks)} blocks; the blocks published "
+                    "so far stay valid, the pair is not completed",
+                )
+            )
+            return out
+        out.extend(self._emit_blocks(stream, side, scene.lines, scene.image, scene.released, True))
+        side.done = True
+        side.prefetched = prefetched
+        stream.scenes[side.side] = scene
+        if not all(s.done for s in stream.sides.values()):
+            return out
+        self._streams.pop(stream.index, None)
+        results = []
+        for s in (stream.sides["left"], stream.sides["right"]):
+            results.append(s.result)
+            if s.prefetched:
+                continue  # published when its scene completed
+            check = self._check_extrapolation(s)
+            if check is not None:
+                out.issues.append(check)
+            out.scenes.append(s.result)
+        out.pairs.append(
+            self._pair_result(
+                results[0], results[1], stream.geometry, (None, None), stream.stamp_ns
+            )
+        )
+        return out
+
+    def _check_extrapolation(self, side: SideStream) -> Issue | None:
+        """Compare the extrapolated motion with a fit on the scene's own navigation."""
+        res = side.result
+        sc = res.scene
+        if res.model is None or not self.nav.covers(sc.first_line_ns, sc.last_line_ns):
+            return None
+        try:
+            fit = self.nav.fit(sc.first_line_ns, sc.last_line_ns, self.views[sc.view].mounting)
+        except NavigationError:
+            return None
+        actual = PushbroomModel(res.camera, fit.motion)
+        pts = virtual_points(
+            res.model,
+            (0.0, sc.lines - 1.0),
+            [
+                self.config.z_avg - self.config.height_range,
+                self.config.z_avg + self.config.height_range,
+            ],
+            grid=5,
+        )
+        diff = float(np.abs(actual.project(pts) - res.model.project(pts)).max())
+        if diff > 0.1:
+            return Issue(
+                "warn",
+                f"{sc.view}/{sc.scene_id}",
+                (
+                    f"the motion extrapolated at the scene start differs from the scene's "
+                    f"navigation by up to {diff:.3f} px: the streamed pair carries that error"
+                ),
+            )
+        return None
 
     @property
     def has_open_scene(self) -> bool:
@@ -331,6 +658,9 @@ class Pipeline:
         """End of data: close open scenes, process what can be, report what cannot."""
         out = self.close_scenes()
         for scene in self._waiting_nav:
+            if self._gcp_for(scene)[0].shape[0] >= self.config.min_gcp:
+                out.extend(self._process_scene(scene))  # navigation ended early: GCP only
+                continue
             out.issues.append(
                 Issue(
                     "error",
@@ -353,8 +683,12 @@ class Pipeline:
                 )
             )
         has_gcp = self._gcp_for(scene)[0].shape[0] >= self.config.min_gcp
-        if not has_gcp and not self.nav.covers(scene.first_line_ns, scene.last_line_ns):
+        if not self.nav.covers(scene.first_line_ns, scene.last_line_ns):
             last = self.nav.last_ns
+            if has_gcp and (last is None or last >= scene.last_line_ns):
+                # GCP alone will do: no navigation at all, or it will never cover the scene.
+                out.extend(self._process_scene(scene))
+                return out
             if last is not None and last >= scene.last_line_ns:
                 out.issues.append(
                     Issue(
@@ -558,78 +892,102 @@ class Pipeline:
                 out.extend(self._make_pair(left.pop(i), right.pop(i)))
         return out
 
-    def _make_pair(self, left: SceneResult, right: SceneResult) -> Outputs:
-        out = Outputs()
+    def _pair_geometry(
+        self, left: SceneResult, right: SceneResult, lines: tuple[int, int]
+    ) -> PairGeometry | Issue:
+        """Normalization and output grids of a pair (scenes of ``lines`` lines each)."""
         pair_id = f"{left.scene.scene_id}+{right.scene.scene_id}"
         try:
             norm = normalize_pair(
                 left.affine, right.affine, left_params=left.params, right_params=right.params
             )
         except DegenerateGeometryError as err:
-            out.issues.append(Issue("error", f"pair {pair_id}", f"{err}: pair skipped"))
-            return out
+            return Issue("error", f"pair {pair_id}", f"{err}: pair skipped")
         gl = left.geometry(norm.left)
         gr = right.geometry(norm.right)
-        fl = footprint(gl, left.scene.lines, left.scene.detectors)
-        fr = footprint(gr, right.scene.lines, right.scene.detectors)
+        fl = footprint(gl, lines[0], left.scene.detectors)
+        fr = footprint(gr, lines[1], right.scene.detectors)
         pix = self.config.output_pixel or min(native_pixel(gl), native_pixel(gr))
         y0 = max(fl[:, 1].min(), fr[:, 1].min())
         y1 = min(fl[:, 1].max(), fr[:, 1].max())
         if y1 <= y0:
-            out.issues.append(
-                Issue(
-                    "error",
-                    f"pair {pair_id}",
-                    "the scenes do not overlap across the epipolar lines: pair skipped",
-                )
+            return Issue(
+                "error",
+                f"pair {pair_id}",
+                "the scenes do not overlap across the epipolar lines: pair skipped",
             )
-            return out
         shift = norm.parallax_per_height * self.config.z_avg + norm.parallax_offset
         xo_l = min(fl[:, 0].min(), fr[:, 0].min() + shift)
         x1 = max(fl[:, 0].max(), fr[:, 0].max() + shift)
         width = int(np.floor((x1 - xo_l) / pix)) + 1
         height = int(np.floor((y1 - y0) / pix)) + 1
         if width * height > self.config.max_output_pixels:
-            out.issues.append(
-                Issue(
-                    "error",
-                    f"pair {pair_id}",
-                    (
-                        f"normalized images would be {width} x {height} px (> max_output_pixels "
-                        f"{self.config.max_output_pixels}): pair skipped"
-                    ),
-                )
+            return Issue(
+                "error",
+                f"pair {pair_id}",
+                f"normalized images would be {width} x {height} px (> max_output_pixels "
+                f"{self.config.max_output_pixels}): pair skipped",
             )
-            return out
         grid_l = OutputGrid(pix, xo_l, y0, width, height)
         grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
-        interp = cv2.INTER_CUBIC if self.config.interpolation == "cubic" else cv2.INTER_LINEAR
+        return PairGeometry(pair_id, norm, gl, gr, grid_l, grid_r)
+
+    @property
+    def interpolation_flag(self) -> int:
+        """OpenCV interpolation flag of the configured interpolation."""
+        return cv2.INTER_CUBIC if self.config.interpolation == "cubic" else cv2.INTER_LINEAR
+
+    def _pair_result(
+        self,
+        left: SceneResult,
+        right: SceneResult,
+        geo: PairGeometry,
+        images: tuple[NDArray[np.generic] | None, NDArray[np.generic] | None],
+        stamp_ns: int,
+    ) -> PairResult:
+        ypar, source = self._y_parallax(left, right, geo.left_geom, geo.right_geom)
+        k = geo.normalization.parallax_per_height
+        self.pairs_done += 1
+        return PairResult(
+            geo.pair_id,
+            stamp_ns,
+            left,
+            right,
+            geo.normalization,
+            geo.left_grid,
+            geo.right_grid,
+            images[0],
+            images[1],
+            geo.left_grid.pixel / k,
+            (geo.left_grid.x_origin - geo.right_grid.x_origin - geo.normalization.parallax_offset)
+            / k,
+            ypar,
+            source,
+        )
+
+    def _make_pair(self, left: SceneResult, right: SceneResult) -> Outputs:
+        out = Outputs()
+        geo = self._pair_geometry(left, right, (left.scene.lines, right.scene.lines))
+        if isinstance(geo, Issue):
+            out.issues.append(geo)
+            return out
+        interp = self.interpolation_flag
         img_l = resample(
-            left.scene.image, gl, grid_l, nodata=self.config.nodata, interpolation=interp
+            left.scene.image,
+            geo.left_geom,
+            geo.left_grid,
+            nodata=self.config.nodata,
+            interpolation=interp,
         )
         img_r = resample(
-            right.scene.image, gr, grid_r, nodata=self.config.nodata, interpolation=interp
+            right.scene.image,
+            geo.right_geom,
+            geo.right_grid,
+            nodata=self.config.nodata,
+            interpolation=interp,
         )
-        ypar, source = self._y_parallax(left, right, gl, gr)
-        k = norm.parallax_per_height
-        self.pairs_done += 1
-        out.pairs.append(
-            PairResult(
-                pair_id,
-                max(left.scene.last_line_ns, right.scene.last_line_ns),
-                left,
-                right,
-                norm,
-                grid_l,
-                grid_r,
-                img_l,
-                img_r,
-                pix / k,
-                (grid_l.x_origin - grid_r.x_origin - norm.parallax_offset) / k,
-                ypar,
-                source,
-            )
-        )
+        stamp = max(left.scene.last_line_ns, right.scene.last_line_ns)
+        out.pairs.append(self._pair_result(left, right, geo, (img_l, img_r), stamp))
         return out
 
     def _y_parallax(

@@ -83,6 +83,21 @@ class MotionFit:
     position_rms_m: float
     attitude_spread_rad: float
     velocity_mismatch: float
+    t0_ns: int = 0
+
+    def _replace_t0(self, t0_ns: int) -> MotionFit:
+        """The same motion with its time origin (t = 0 s) moved to ``t0_ns``."""
+        dt = (t0_ns - self.t0_ns) / 1e9
+        m = self.motion
+        moved = ConstantMotion(m.position + dt * m.velocity, m.velocity, m.rotation, t0=0.0)
+        return MotionFit(
+            moved,
+            self.samples,
+            self.position_rms_m,
+            self.attitude_spread_rad,
+            self.velocity_mismatch,
+            t0_ns,
+        )
 
 
 class TrajectoryBuffer:
@@ -128,6 +143,25 @@ class TrajectoryBuffer:
     def covers(self, t0_ns: int, t1_ns: int) -> bool:
         """Whether samples exist at or before t0 and at or after t1."""
         return bool(self._t) and self._t[0] <= t0_ns and self._t[-1] >= t1_ns
+
+    def fit_recent(self, t0_ns: int, mounting: FloatArray, *, window_s: float = 2.0) -> MotionFit:
+        """Fit the motion on the latest ``window_s`` of navigation, with its origin at ``t0_ns``.
+
+        For extrapolation over a scene that has just started at ``t0_ns`` (streaming).
+
+        Raises:
+            NavigationError: fewer than 2 samples in the window, or the newest sample is more
+                than ``max_gap_s`` before ``t0_ns``.
+        """
+        if len(self._t) < 2:
+            raise NavigationError("fewer than 2 navigation samples received")
+        last = self._t[-1]
+        if last < t0_ns - self.max_gap_s * 1e9:
+            raise NavigationError(
+                f"newest navigation is {(t0_ns - last) / 1e9:.3f} s older than the scene start"
+            )
+        start = max(self._t[0], last - round(window_s * 1e9))
+        return self.fit(start, last, mounting)._replace_t0(t0_ns)
 
     def fit(self, t0_ns: int, t1_ns: int, mounting: FloatArray) -> MotionFit:
         """Fit the constant motion of the span [t0, t1] (ns); ``t0`` becomes the motion's t0.
@@ -175,4 +209,6 @@ class TrajectoryBuffer:
         v_fit = coef[1]
         mismatch = float(np.linalg.norm(v_fit - v_rep) / max(np.linalg.norm(v_fit), 1e-12))
         motion = ConstantMotion(coef[0], v_fit, r_mean @ mounting, t0=0.0)
-        return MotionFit(motion, len(samples), float(np.sqrt(np.mean(resid**2))), spread, mismatch)
+        return MotionFit(
+            motion, len(samples), float(np.sqrt(np.mean(resid**2))), spread, mismatch, t0_ns
+        )

@@ -22,6 +22,7 @@ from parproj_msgs.msg import (
     GroundControlPoint,
     GroundControlPoints,
     ImageObservation,
+    NormalizedBlock,
     ParallelProjection,
     ScannerInfo,
     StereoPair,
@@ -40,6 +41,7 @@ ALL_TYPES = (
     GroundControlPoints,
     ParallelProjection,
     StereoPair,
+    NormalizedBlock,
 )
 
 # The interface contract (issue brief): field name -> rosidl type, in declaration order.
@@ -97,6 +99,9 @@ EXPECTED_FIELDS: dict[type, dict[str, str]] = {
         "pair_id": "string",
         "left": "sensor_msgs/Image",
         "right": "sensor_msgs/Image",
+        "width": "uint32",
+        "height": "uint32",
+        "streamed": "boolean",
         "left_params": "parproj_msgs/ParallelProjection",
         "right_params": "parproj_msgs/ParallelProjection",
         "left_to_normalized": "double[6]",
@@ -116,6 +121,20 @@ EXPECTED_FIELDS: dict[type, dict[str, str]] = {
         "y_parallax_max_px": "double",
         "y_parallax_points": "uint32",
         "y_parallax_source": "string",
+    },
+    NormalizedBlock: {
+        "header": "std_msgs/Header",
+        "pair_id": "string",
+        "side": "string",
+        "col0": "uint32",
+        "full_width": "uint32",
+        "full_height": "uint32",
+        "pixel_size": "double",
+        "x_origin": "double",
+        "y_origin": "double",
+        "index": "uint32",
+        "last": "boolean",
+        "image": "sensor_msgs/Image",
     },
 }
 

@@ -30,6 +30,8 @@ class Scene:
         image: (lines, detectors) pixels, uint8 / uint16 / float32.
         gaps: number of missing lines that were filled with no-data.
         reason: why the scene was closed ("length", "gap", "scene_change", "flush").
+        released: lines at the start of the scene that a streaming consumer had already used
+            and released; ``image`` holds lines ``released`` .. ``released + len(image) - 1``.
     """
 
     view: str
@@ -40,11 +42,12 @@ class Scene:
     image: NDArray[np.generic]
     gaps: int = 0
     reason: str = "length"
+    released: int = 0
 
     @property
     def lines(self) -> int:
-        """Number of lines."""
-        return int(self.image.shape[0])
+        """Number of lines of the scene (released ones included)."""
+        return int(self.image.shape[0]) + self.released
 
     @property
     def detectors(self) -> int:
@@ -65,11 +68,14 @@ class StripRejectedError(ValueError):
 class _Open:
     scene_id: str
     first_line_ns: int
+    base_id: str = ""
+    part: int = 0
     blocks: list[NDArray[np.generic]] = field(default_factory=list)
     lines: int = 0
     gaps: int = 0
     dtype: np.dtype | None = None
     width: int = 0
+    released: int = 0
 
 
 class SceneAssembler:
@@ -100,13 +106,23 @@ class SceneAssembler:
         self.nodata = nodata
         self._open: _Open | None = None
         self._count = 0
+        # (frame_id, part, time of the line after the last) of the scene last closed
+        self._last: tuple[str, int, int] | None = None
 
     def _close(self, reason: str) -> Scene | None:
         op = self._open
         self._open = None
         if op is None or op.lines == 0:
             return None
-        image = np.concatenate(op.blocks, axis=0) if len(op.blocks) > 1 else op.blocks[0]
+        self._last = (
+            op.base_id,
+            op.part,
+            op.first_line_ns + round(op.lines * self.line_period * 1e9),
+        )
+        if op.blocks:
+            image = np.concatenate(op.blocks, axis=0) if len(op.blocks) > 1 else op.blocks[0]
+        else:
+            image = np.empty((0, op.width), dtype=op.dtype)
         scene = Scene(
             self.view,
             op.scene_id,
@@ -116,6 +132,7 @@ class SceneAssembler:
             image,
             op.gaps,
             reason,
+            op.released,
         )
         self._count += 1
         return scene
@@ -125,18 +142,51 @@ class SceneAssembler:
         """Whether a scene is being assembled."""
         return self._open is not None
 
+    def open_scene(self) -> tuple[str, int, int, int] | None:
+        """(scene_id, index, first_line_ns, lines received) of the open scene, or None."""
+        op = self._open
+        if op is None:
+            return None
+        return op.scene_id, self._count, op.first_line_ns, op.lines
+
+    def retained(self) -> tuple[int, NDArray[np.generic]]:
+        """(first retained line, lines retained so far) of the open scene, as one array."""
+        op = self._open
+        if op is None:
+            raise ValueError("no open scene")
+        if len(op.blocks) > 1:
+            op.blocks = [np.concatenate(op.blocks, axis=0)]
+        if not op.blocks:
+            return op.released, np.empty((0, op.width), dtype=op.dtype)
+        return op.released, op.blocks[0]
+
+    def release(self, upto_line: int) -> None:
+        """Drop the open scene's lines before ``upto_line`` (a streaming consumer is done)."""
+        op = self._open
+        if op is None or upto_line <= op.released:
+            return
+        first, data = self.retained()
+        drop = min(upto_line - first, data.shape[0])
+        op.blocks = [data[drop:].copy()] if drop < data.shape[0] else []
+        op.released += drop
+
     def flush(self) -> list[Scene]:
         """Close the open scene (end of data)."""
         s = self._close("flush")
         return [s] if s is not None else []
 
     def add(self, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]) -> list[Scene]:
-        """Add one strip; return the scenes it completed (0, 1 or 2).
+        """Add one strip; return the scenes it completed.
+
+        ``scene_id`` is the strips' frame_id. A scene cut by length (or closed by a gap) and
+        continued by strips of the same frame_id gets the id ``"<frame_id>#<part>"`` for parts
+        1, 2, ...; the first part keeps the plain frame_id, so GCP observations keyed by it
+        refer to the scene's own line numbers.
 
         Raises:
             StripRejectedError: the strip is empty, of an unsupported type, of another width or
-                type than the open scene, or overlaps lines already received (duplicate or out of
-                order). Nothing is changed then.
+                type than the open scene, or overlaps lines already received (duplicate or out
+                of order, also against the scene last closed). Nothing is changed then.
         """
         if strip.ndim != 2 or strip.shape[0] == 0 or strip.shape[1] == 0:
             raise StripRejectedError(
@@ -144,16 +194,24 @@ class SceneAssembler:
             )
         if strip.dtype not in ENCODINGS:
             raise StripRejectedError(f"unsupported pixel type {strip.dtype}")
+        period_ns = self.line_period * 1e9
         done: list[Scene] = []
         op = self._open
-        if op is not None:
-            expected = op.first_line_ns + round(op.lines * self.line_period * 1e9)
-            jump = (stamp_ns - expected) / (self.line_period * 1e9)
-            if scene_id != op.scene_id:
-                done += [s for s in [self._close("scene_change")] if s]
-            elif round(jump) < 0:
+        if op is None and self._last is not None:
+            base, _, next_ns = self._last
+            if scene_id == base and round((stamp_ns - next_ns) / period_ns) < 0:
                 raise StripRejectedError(
-                    f"strip at {stamp_ns} ns starts {-round(jump)} lines before the end of "
+                    f"strip at {stamp_ns} ns overlaps scene {base} already completed "
+                    "(duplicate or out of order): dropped"
+                )
+        if op is not None:
+            expected = op.first_line_ns + round(op.lines * period_ns)
+            jump = round((stamp_ns - expected) / period_ns)
+            if scene_id != op.base_id:
+                done += [sc for sc in [self._close("scene_change")] if sc]
+            elif jump < 0:
+                raise StripRejectedError(
+                    f"strip at {stamp_ns} ns starts {-jump} lines before the end of "
                     "scene data already received (duplicate or out of order): dropped"
                 )
             elif strip.shape[1] != op.width or strip.dtype != op.dtype:
@@ -161,34 +219,43 @@ class SceneAssembler:
                     f"strip is {strip.shape[1]} px {strip.dtype}, scene {op.scene_id} is "
                     f"{op.width} px {op.dtype}: dropped"
                 )
-            elif round(jump) > self.max_gap_lines:
-                done += [s for s in [self._close("gap")] if s]
-            elif round(jump) > 0:
-                fill = np.full((round(jump), op.width), self.nodata, dtype=op.dtype)
-                op.blocks.append(fill)
-                op.lines += fill.shape[0]
-                op.gaps += fill.shape[0]
-        if self._open is None:
-            self._open = _Open(scene_id, int(stamp_ns), dtype=strip.dtype, width=strip.shape[1])
-        op = self._open
-        block = np.ascontiguousarray(strip)
+            elif jump > self.max_gap_lines:
+                done += [sc for sc in [self._close("gap")] if sc]
+            elif jump > 0:
+                fill = np.full((jump, op.width), self.nodata, dtype=op.dtype)
+                done += self._push(fill, scene_id, expected, filled=True)
+        start = stamp_ns
+        if self._open is not None:
+            start = self._open.first_line_ns + round(self._open.lines * period_ns)
+        done += self._push(np.ascontiguousarray(strip), scene_id, start, filled=False)
+        return done
+
+    def _push(
+        self, block: NDArray[np.generic], base_id: str, start_ns: int, *, filled: bool
+    ) -> list[Scene]:
+        """Append lines (first one exposed at ``start_ns``), cutting scenes at the length."""
+        done: list[Scene] = []
+        period_ns = self.line_period * 1e9
         while block.shape[0] > 0:
+            if self._open is None:
+                part = 0
+                if self._last is not None and self._last[0] == base_id:
+                    part = self._last[1] + 1
+                sid = base_id if part == 0 else f"{base_id}#{part}"
+                self._open = _Open(
+                    sid, int(start_ns), base_id, part, dtype=block.dtype, width=block.shape[1]
+                )
+            op = self._open
             room = self.scene_lines - op.lines if self.scene_lines > 0 else block.shape[0]
             take = block[:room]
             op.blocks.append(take)
             op.lines += take.shape[0]
+            if filled:
+                op.gaps += take.shape[0]
             block = block[room:]
+            start_ns = op.first_line_ns + round(op.lines * period_ns)
             if self.scene_lines > 0 and op.lines >= self.scene_lines:
                 closed = self._close("length")
                 if closed:
                     done.append(closed)
-                if block.shape[0] > 0:
-                    start = closed.last_line_ns if closed else stamp_ns
-                    self._open = _Open(
-                        scene_id,
-                        start + round(self.line_period * 1e9),
-                        dtype=strip.dtype,
-                        width=strip.shape[1],
-                    )
-                    op = self._open
         return done

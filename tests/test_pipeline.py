@@ -1,0 +1,501 @@
+"""The Pipeline without DDS, on scenario geometry with cheap images made here.
+
+Strips and navigation are fed in time order as parproj_ros/recording.py records them; the images
+are random textures (or a smooth pattern for the resampling test): the geometry only needs strips
+of the right shape at the right times.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+import pytest
+
+from parproj_ros.geometry import ptp_inverse
+from parproj_ros.pipeline import Outputs, PairResult, Pipeline, PipelineConfig, SceneResult
+from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
+from parproj_ros.trajectory import NavSample
+
+Event = tuple[int, int, Any]
+
+# These tests are about whole-scene processing: keep the streaming mode (scene_lines > 0 with two
+# views, when the pipeline has it) out of the way.
+WHOLE = {"streaming": False} if "streaming" in PipelineConfig.__dataclass_fields__ else {}
+
+
+def render(scn: Scenario, dtype: type, *, smooth: bool = False, low: int = 1) -> list[np.ndarray]:
+    """One image per scene: random texture in [low, high), or a smooth pattern."""
+    rng = np.random.default_rng(0)
+    out = []
+    for sc in scn.scenes:
+        det = next(v for v in scn.views if v.name == sc.view).camera.detectors
+        if smooth:
+            ll, ss = np.mgrid[0 : sc.lines, 0:det].astype(float)
+            img = 1000.0 + 400.0 * np.sin(ll / 41.0 + 0.3) * np.cos(ss / 53.0) + 0.5 * ss
+        else:
+            img = rng.integers(low, 250 if dtype == np.uint8 else 2000, (sc.lines, det))
+        out.append(img.astype(dtype))
+    return out
+
+
+def nav_events(
+    scn: Scenario, *, offset: Callable[[float], np.ndarray] | None = None
+) -> list[Event]:
+    lp = scn.views[0].camera.line_period
+    first = min(sc.start_s for sc in scn.scenes) - 1.0
+    last = max(sc.start_s + sc.lines * lp for sc in scn.scenes) + 1.0
+    vel = np.array(scn.velocity)
+    ev = []
+    for t in np.arange(first, last, 1.0 / scn.nav_rate_hz):
+        pos = np.array(scn.position0) + t * vel
+        if offset is not None:
+            pos = pos + offset(float(t))
+        s = NavSample(scn.time_ns(float(t)), pos, scn.body_rotation(float(t)), vel)
+        ev.append((s.t_ns, 0, s))
+    return ev
+
+
+def strip_events(
+    scn: Scenario, images: list[np.ndarray], skip: Iterable[tuple[int, int]] = ()
+) -> list[Event]:
+    skipped = set(skip)
+    ev = []
+    for i, sc in enumerate(scn.scenes):
+        lp = next(v for v in scn.views if v.name == sc.view).camera.line_period
+        for r0 in range(0, sc.lines, scn.strip_lines):
+            if (i, r0) in skipped:
+                continue
+            st = scn.time_ns(sc.start_s + r0 * lp)
+            ev.append(
+                (st, 1, (sc.view, st, scn.scene_id(i), images[i][r0 : r0 + scn.strip_lines]))
+            )
+    return ev
+
+
+def feed(pipe: Pipeline, events: list[Event], *, flush: bool = True) -> Outputs:
+    out = Outputs()
+    for _, kind, item in sorted(events, key=lambda e: (e[0], e[1])):
+        out.extend(pipe.add_navigation(item) if kind == 0 else pipe.add_strip(*item))
+    if flush:
+        out.extend(pipe.flush())
+    return out
+
+
+def run(scn: Scenario, images: list[np.ndarray], **config: Any) -> tuple[Pipeline, Outputs]:
+    pipe = Pipeline(scn.pipeline_config(**config))
+    return pipe, feed(pipe, nav_events(scn) + strip_events(scn, images))
+
+
+def hills(model: Any, line: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    """Points on a smooth +-250 m relief (GCP must not be coplanar for Eq 8)."""
+    return model.locate(line, sample, 250.0 * np.sin(line / 97.0) * np.cos(sample / 131.0))
+
+
+def flat(model: Any, line: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    return model.locate(line, sample, np.zeros_like(line))
+
+
+def messages(out: Outputs, level: str) -> list[str]:
+    return [f"{i.where}: {i.message}" for i in out.issues if i.level == level]
+
+
+# ---- scenarios as recorded ----------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def airborne() -> tuple[Scenario, Outputs]:
+    scn = SCENARIOS["airborne_foreaft"]()
+    return scn, run(scn, render(scn, np.uint8))[1]
+
+
+def test_airborne_navigation_pair(airborne: tuple[Scenario, Outputs]) -> None:
+    scn, out = airborne
+    assert out.issues == []
+    assert [s.method for s in out.scenes] == ["navigation", "navigation"]
+    assert [(s.scene.view, s.scene.scene_id) for s in out.scenes] == [
+        ("left", "left_scene_0000"),
+        ("right", "right_scene_0001"),
+    ]
+    assert [s.scene.first_line_ns for s in out.scenes] == [
+        scn.time_ns(sc.start_s) for sc in scn.scenes
+    ]
+    (pair,) = out.pairs
+    assert pair.pair_id == "left_scene_0000+right_scene_0001"
+    assert pair.stamp_ns == out.scenes[1].scene.last_line_ns
+    assert pair.left_image.shape == pair.right_image.shape
+    assert pair.left_image.dtype == np.uint8
+    assert pair.left_grid.height == pair.right_grid.height
+    assert pair.left_grid.y_origin == pair.right_grid.y_origin
+    # Exact navigation: the virtual points of the rigorous models have no y-parallax.
+    assert pair.y_parallax_source == "virtual"
+    assert pair.y_parallax_px.size > 100
+    mean, rms, mx = pair.y_parallax_stats
+    assert mx < 0.01 and rms < 0.01 and mean < 0.01
+    # x-parallax -> height: the fore/aft base over 5000 m.
+    assert np.isfinite(pair.height_per_disparity_px) and pair.height_per_disparity_px != 0
+
+
+def _ikonos_gcp(
+    locate: Callable[..., np.ndarray], n_gcp: int, n_check: int
+) -> tuple[Scenario, list[Any]]:
+    scn = SCENARIOS["ikonos_agile"]()
+    rng = np.random.default_rng(1)
+    pts = ground_points(scn, (0, 1), n_gcp, locate, rng, prefix="g")
+    pts += ground_points(scn, (0, 1), n_check, locate, rng, prefix="c", check=True)
+    return scn, pts
+
+
+def test_ikonos_gcp_roll_estimated() -> None:
+    scn, pts = _ikonos_gcp(hills, 12, 4)
+    pipe = Pipeline(scn.pipeline_config())
+    assert pipe.add_gcp(pts).issues == []
+    out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
+    assert out.issues == []
+    assert [s.method for s in out.scenes] == ["gcp_roll_estimated"] * 2
+    for s in out.scenes:
+        assert (s.gcp_count, s.check_count) == (12, 4)
+        assert s.sigma0_px < 0.1 and s.check_rms_px < 0.1  # exact observations
+        assert s.covariance.shape == (9, 9) and s.covariance[8, 8] > 0
+        assert s.model is not None  # navigation covered: reference for the mirror solution
+    (pair,) = out.pairs
+    assert pair.pair_id == "pan_scene_0000+pan_scene_0001"
+    assert pair.left_image.dtype == np.uint16
+    assert pair.y_parallax_source == "gcp" and pair.y_parallax_px.size == 16
+    assert pair.y_parallax_stats[2] < 0.01
+
+
+def test_ikonos_flat_gcp_are_coplanar_and_navigation_is_used() -> None:
+    scn, pts = _ikonos_gcp(flat, 12, 0)
+    pipe = Pipeline(scn.pipeline_config())
+    pipe.add_gcp(pts)
+    out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
+    assert [s.method for s in out.scenes] == ["navigation"] * 2
+    warns = messages(out, "warn")
+    assert len(warns) == 2 and all("coplanar" in w and "using navigation" in w for w in warns)
+    (pair,) = out.pairs
+    assert pair.y_parallax_stats[2] < 0.01
+
+
+def test_fewer_than_min_gcp_falls_back_to_navigation() -> None:
+    scn, pts = _ikonos_gcp(hills, 3, 0)
+    pipe = Pipeline(scn.pipeline_config(min_gcp=5))
+    pipe.add_gcp(pts)
+    out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
+    assert [s.method for s in out.scenes] == ["navigation"] * 2
+    assert [s.gcp_count for s in out.scenes] == [0, 0]
+    assert messages(out, "warn") == [
+        f"pan/pan_scene_000{k}: only 3 GCP observed (need 5): GCP not used" for k in (0, 1)
+    ]
+    assert messages(out, "error") == []
+    assert len(out.pairs) == 1
+
+
+def test_non_finite_gcp_ignored_with_warning() -> None:
+    scn, pts = _ikonos_gcp(hills, 5, 0)
+    bad = type(pts[0])("bad", np.array([0.0, np.nan, 0.0]), False, dict(pts[0].observations))
+    pipe = Pipeline(scn.pipeline_config())
+    out = pipe.add_gcp([*pts, bad])
+    assert [(i.level, i.where) for i in out.issues] == [("warn", "gcp bad")]
+    assert sorted(pipe.gcp) == sorted(p.id for p in pts)
+
+
+# ---- order of arrival ---------------------------------------------------------------------------
+
+
+def test_strips_before_navigation_are_held() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    pipe = Pipeline(scn.pipeline_config())
+    out = feed(pipe, strip_events(scn, render(scn, np.uint8)), flush=False)
+    out.extend(pipe.close_scenes())
+    assert out.scenes == [] and out.pairs == [] and out.issues == []
+    assert not pipe.has_open_scene
+    last_lines = [
+        scn.time_ns(sc.start_s) + round((sc.lines - 1) * scn.views[0].camera.line_period * 1e9)
+        for sc in scn.scenes
+    ]
+    done_at: dict[str, int] = {}
+    pairs: list[PairResult] = []
+    for t_ns, _, sample in nav_events(scn):
+        o = pipe.add_navigation(sample)
+        assert o.issues == []
+        for s in o.scenes:
+            done_at[s.scene.scene_id] = t_ns
+        pairs += o.pairs
+    # Each scene is processed by the first sample at or after its last line (50 Hz).
+    assert sorted(done_at) == ["left_scene_0000", "right_scene_0001"]
+    for t_done, t_last in zip(done_at.values(), last_lines, strict=True):
+        assert t_last <= t_done < t_last + 20_000_000
+    assert len(pairs) == 1 and pairs[0].y_parallax_stats[2] < 0.01
+    final = pipe.flush()
+    assert final.scenes == [] and final.pairs == [] and final.issues == []
+
+
+def test_navigation_never_arrives_reported_by_flush() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    pipe = Pipeline(scn.pipeline_config())
+    out = feed(pipe, strip_events(scn, render(scn, np.uint8)))
+    assert out.scenes == [] and out.pairs == []
+    errors = messages(out, "error")
+    assert len(errors) == 2
+    assert errors[0].startswith("left/left_scene_0000: navigation never covered")
+    assert errors[1].startswith("right/right_scene_0001: navigation never covered")
+    assert pipe.flush().issues == []  # reported once
+
+
+def test_navigation_of_the_second_scene_never_arrives() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    t_cut = scn.time_ns(scn.scenes[0].start_s + 3.0)
+    nav = [e for e in nav_events(scn) if e[0] < t_cut]
+    pipe = Pipeline(scn.pipeline_config())
+    out = feed(pipe, nav + strip_events(scn, render(scn, np.uint8)))
+    assert [s.scene.scene_id for s in out.scenes] == ["left_scene_0000"]
+    assert out.pairs == []
+    assert messages(out, "error") == [
+        "right/right_scene_0001: navigation never covered this scene and it has no GCP: "
+        "scene skipped"
+    ]
+
+
+def test_navigation_starting_after_the_first_line() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    t_from = scn.time_ns(scn.scenes[0].start_s + 0.5)
+    nav = [e for e in nav_events(scn) if e[0] >= t_from]
+    pipe = Pipeline(scn.pipeline_config())
+    out = feed(pipe, nav + strip_events(scn, render(scn, np.uint8)))
+    assert [s.scene.scene_id for s in out.scenes] == ["right_scene_0001"]
+    errors = messages(out, "error")
+    assert len(errors) == 1
+    assert errors[0].startswith("left/left_scene_0000: navigation starts after the scene's first")
+
+
+# ---- scenes and pairs ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("scene_lines", "lines"), [(256, [256, 256, 256]), (300, [300, 300, 168])]
+)
+def test_scene_lines_splitting(scene_lines: int, lines: list[int]) -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    _, out = run(scn, render(scn, np.uint8), scene_lines=scene_lines, **WHOLE)
+    assert messages(out, "error") == []
+    left = [s for s in out.scenes if s.scene.view == "left"]
+    right = [s for s in out.scenes if s.scene.view == "right"]
+    assert [s.scene.lines for s in left] == lines and [s.scene.lines for s in right] == lines
+    assert [s.scene.index for s in left] == [0, 1, 2]
+    lp = scn.views[0].camera.line_period
+    for part, s in enumerate(left):
+        expected = scn.time_ns(scn.scenes[0].start_s + part * scene_lines * lp)
+        assert abs(s.scene.first_line_ns - expected) <= 1
+    assert len(out.pairs) == 3
+    for k, pair in enumerate(out.pairs):
+        assert pair.left is left[k] and pair.right is right[k]
+        assert pair.y_parallax_stats[2] < 0.01
+
+
+def test_split_scenes_get_distinct_scene_ids() -> None:
+    # ParallelProjection.msg: "Scene identifier, unique in a run"; ImageObservation.scene_id
+    # refers to it. Three parts of one acquisition must not share one id (nor pairs one id).
+    scn = SCENARIOS["airborne_foreaft"]()
+    _, out = run(scn, render(scn, np.uint8), scene_lines=256, **WHOLE)
+    ids = [s.scene.scene_id for s in out.scenes]
+    assert len(ids) == 6
+    assert len(set(ids)) == 6, ids
+    assert len({p.pair_id for p in out.pairs}) == 3
+
+
+def _predicted_line(res: SceneResult, xyz: np.ndarray) -> np.ndarray:
+    """Line of object points in a scene, by the scene's parameters (affine, PTP, frame)."""
+    xy = res.affine.project(xyz)
+    y = ptp_inverse(xy[:, 1], res.camera.principal_distance, res.psi)
+    return res.frame.to_image(xy[:, 0], y)[:, 0]
+
+
+def test_split_scene_parameters_fit_their_own_lines() -> None:
+    # GCP observations are lines of the whole acquisition (scene id = the strips' frame_id).
+    # A part that starts 384 lines into the acquisition must not be given parameters that put
+    # its GCP 384 lines off.
+    scn, pts = _ikonos_gcp(hills, 12, 0)
+    pipe = Pipeline(scn.pipeline_config(scene_lines=384, **WHOLE))
+    pipe.add_gcp(pts)
+    out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
+    lp = scn.views[0].camera.line_period
+    assert len(out.scenes) == 4
+    checked = 0
+    for res in out.scenes:
+        # The acquisition (scenario scene) this part belongs to, and the part's first line in it.
+        i = max(
+            k for k in range(2) if scn.time_ns(scn.scenes[k].start_s) <= res.scene.first_line_ns
+        )
+        offset = round((res.scene.first_line_ns - scn.time_ns(scn.scenes[i].start_s)) / lp / 1e9)
+        inside = [
+            p
+            for p in pts
+            if offset <= p.observations[scn.scene_id(i)][0] < offset + res.scene.lines
+        ]
+        xyz = np.array([p.xyz for p in inside])
+        lines = np.array([p.observations[scn.scene_id(i)][0] for p in inside]) - offset
+        err = _predicted_line(res, xyz) - lines
+        assert np.abs(err).max() < 0.5, (res.scene.index, offset, err.round(1))
+        checked += len(inside)
+    assert checked == 24
+
+
+def test_scenes_without_overlap() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
+
+    def far(t: float) -> np.ndarray:  # the right scene flown 1 km to the side (swath 83 m)
+        return np.array([0.0, 1000.0 if t > t_mid else 0.0, 0.0])
+
+    pipe = Pipeline(scn.pipeline_config())
+    out = feed(pipe, nav_events(scn, offset=far) + strip_events(scn, render(scn, np.uint8)))
+    assert [s.method for s in out.scenes] == ["navigation", "navigation"]
+    assert out.pairs == []
+    errors = messages(out, "error")
+    assert len(errors) == 1
+    assert errors[0].startswith("pair left_scene_0000+right_scene_0001: ")
+    assert "do not overlap" in errors[0]
+    assert pipe.pairs_done == 0
+
+
+def test_unknown_view() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    pipe = Pipeline(scn.pipeline_config())
+    out = pipe.add_strip("middle", scn.t0_ns, "m0", np.zeros((4, 768), np.uint8))
+    assert [(i.level, i.where) for i in out.issues] == [("error", "view middle")]
+    assert "unknown view" in out.issues[0].message
+    assert out.scenes == [] and not pipe.has_open_scene
+
+
+def test_rejected_strip_reported_as_warning() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    pipe = Pipeline(scn.pipeline_config())
+    pipe.add_strip("left", scn.t0_ns, "a", np.zeros((4, 768), np.uint8))
+    out = pipe.add_strip("left", scn.t0_ns, "a", np.zeros((4, 768), np.uint8))
+    assert [(i.level, i.where) for i in out.issues] == [("warn", "left/a")]
+    assert "duplicate or out of order" in out.issues[0].message
+
+
+def test_missing_strip_filled_and_reported(airborne: tuple[Scenario, Outputs]) -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    images = render(scn, np.uint8, low=20)
+    pipe = Pipeline(scn.pipeline_config(nodata=3.0))
+    out = feed(pipe, nav_events(scn) + strip_events(scn, images, skip=[(0, 128)]))
+    assert messages(out, "warn") == [
+        "left/left_scene_0000: 64 missing lines filled with no-data (3.0)"
+    ]
+    left = out.scenes[0].scene
+    assert (left.lines, left.gaps) == (768, 64)
+    assert np.all(left.image[128:192] == 3) and np.all(left.image[192:] == images[0][192:])
+    assert len(out.pairs) == 1
+    # Same parameters as without the gap.
+    np.testing.assert_allclose(
+        out.scenes[0].affine.array, airborne[1].scenes[0].affine.array, rtol=1e-12
+    )
+
+
+# ---- normalized images --------------------------------------------------------------------------
+
+
+def test_float32_strips_give_float32_images() -> None:
+    scn = SCENARIOS["airborne_foreaft"]()
+    t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
+    images = [im.astype(np.float32) / 7.0 for im in render(scn, np.uint8)]
+    pipe = Pipeline(scn.pipeline_config(nodata=float("nan")))
+    nav = nav_events(scn, offset=lambda t: np.array([20.0 if t > t_mid else 0.0, 0.0, 0.0]))
+    out = feed(pipe, nav + strip_events(scn, images))
+    (pair,) = out.pairs
+    assert pair.left_image.dtype == np.float32 and pair.right_image.dtype == np.float32
+    for side, img in (("left", pair.left_image), ("right", pair.right_image)):
+        line, sample = _source_coordinates(pair, side)
+        outside = (line < -1) | (line > 768) | (sample < -1) | (sample > 768)
+        inside = (line > 1) & (line < 766) & (sample > 1) & (sample < 766)
+        assert outside.mean() > 0.1 and inside.mean() > 0.5
+        assert np.isnan(img[outside]).all()  # nodata NaN outside the footprint
+        assert np.isfinite(img[inside]).all()
+        assert img[inside].min() >= 1 / 7 - 1e-6 and img[inside].max() <= 249 / 7 + 1e-5
+        assert np.unique(img[inside]).size > 1000  # interpolated, not quantized to 8 bits
+
+
+def _source_coordinates(pair: PairResult, side: str) -> tuple[np.ndarray, np.ndarray]:
+    res = pair.left if side == "left" else pair.right
+    grid = pair.left_grid if side == "left" else pair.right_grid
+    to_n = pair.normalization.left if side == "left" else pair.normalization.right
+    rows, cols = np.mgrid[0 : grid.height, 0 : grid.width]
+    xn = grid.x_origin + grid.pixel * cols
+    yn = grid.y_origin + grid.pixel * rows
+    return res.geometry(to_n).normalized_to_image(xn.astype(float), yn.astype(float))
+
+
+@pytest.mark.parametrize(
+    ("name", "dtype", "shift_m"),
+    [
+        ("airborne_foreaft", np.uint8, 20.0),  # right scene 20 m (185 lines) further along track
+        ("ikonos_agile", np.uint16, 0.0),  # fore / aft looks of different scales
+    ],
+)
+def test_nodata_outside_the_footprint(name: str, dtype: type, shift_m: float) -> None:
+    scn = SCENARIOS[name]()
+    t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
+    pipe = Pipeline(scn.pipeline_config(nodata=5.0))
+    nav = nav_events(scn, offset=lambda t: np.array([shift_m if t > t_mid else 0.0, 0.0, 0.0]))
+    out = feed(pipe, nav + strip_events(scn, render(scn, dtype, low=20)))
+    (pair,) = out.pairs
+    for side, img in (("left", pair.left_image), ("right", pair.right_image)):
+        res = pair.left if side == "left" else pair.right
+        line, sample = _source_coordinates(pair, side)
+        n_l, n_s = res.scene.lines, res.scene.detectors
+        outside = (line < -1) | (line > n_l) | (sample < -1) | (sample > n_s)
+        inside = (line > 1) & (line < n_l - 2) & (sample > 1) & (sample < n_s - 2)
+        assert outside.mean() > 0.02 and inside.mean() > 0.5
+        assert np.all(img[outside] == 5), side
+        assert img[inside].min() >= 20, side
+
+
+def _bilinear(img: np.ndarray, line: np.ndarray, sample: np.ndarray) -> np.ndarray:
+    l0 = np.floor(line).astype(int)
+    s0 = np.floor(sample).astype(int)
+    fl, fs = line - l0, sample - s0
+    a = img.astype(float)
+    return (
+        a[l0, s0] * (1 - fl) * (1 - fs)
+        + a[l0, s0 + 1] * (1 - fl) * fs
+        + a[l0 + 1, s0] * fl * (1 - fs)
+        + a[l0 + 1, s0 + 1] * fl * fs
+    )
+
+
+def test_resampling_is_exact() -> None:
+    scn = SCENARIOS["ikonos_agile"]()
+    images = render(scn, np.uint16, smooth=True)
+    _, out = run(scn, images)
+    (pair,) = out.pairs
+    for side, img, src in (
+        ("left", pair.left_image, images[0]),
+        ("right", pair.right_image, images[1]),
+    ):
+        res = pair.left if side == "left" else pair.right
+        grid = pair.left_grid if side == "left" else pair.right_grid
+        geom = res.geometry(
+            pair.normalization.left if side == "left" else pair.normalization.right
+        )
+        line_all, sample_all = _source_coordinates(pair, side)
+        ok = (line_all > 2) & (line_all < src.shape[0] - 3) & (sample_all > 2)
+        ok &= sample_all < src.shape[1] - 3
+        rows, cols = np.nonzero(ok)
+        pick = np.random.default_rng(5).choice(rows.size, 200, replace=False)
+        rows, cols = rows[pick], cols[pick]
+        xn = grid.x_origin + grid.pixel * cols
+        yn = grid.y_origin + grid.pixel * rows
+        line, sample = geom.normalized_to_image(xn, yn)
+        back = geom.image_to_normalized(line, sample)
+        assert np.abs(back[:, 0] - xn).max() < 1e-9 and np.abs(back[:, 1] - yn).max() < 1e-9
+        # The map is not a trivial one: sub-pixel positions, and not the identity.
+        assert np.ptp(line - rows) > 1 or np.ptp(sample - cols) > 1
+        expected = _bilinear(src, line, sample)
+        diff = img[rows, cols].astype(float) - expected
+        assert np.abs(diff).max() <= 1.0, (side, np.abs(diff).max())
+        # ... and a map one pixel off would not pass.
+        assert np.abs(img[rows, cols] - _bilinear(src, line + 1.0, sample)).max() > 5
