@@ -143,6 +143,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         "interpolation": args.interpolation,
         "scene_lines": args.scene_lines,
         "streaming": not args.no_streaming,
+        "tie_points": not args.no_tie_points,
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
@@ -275,6 +276,50 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if (res.get("live") or {}).get("error") else 0
 
 
+def cmd_import(args: argparse.Namespace) -> int:
+    """``parproj import``: two images with RPC -> a single-camera bag with virtual GCP."""
+    from .rpc import RPCError
+    from .scene_import import import_pair
+
+    try:
+        import_pair(
+            args.left,
+            args.right,
+            args.output,
+            rpc_left=args.rpc_left,
+            rpc_right=args.rpc_right,
+            dem=args.dem,
+            geoid_undulation=args.geoid_undulation,
+            heights=tuple(args.heights) if args.heights else None,
+            scene_ids=tuple(args.ids),
+            overwrite=args.force,
+        )
+    except (RPCError, FileExistsError, OSError, ValueError) as err:
+        print(f"parproj import: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def cmd_ventoux_eval(args: argparse.Namespace) -> int:
+    """``parproj ventoux-eval``: y-parallax of matches, ours vs reference epipolar grids."""
+    from .ventoux import evaluate_against_grids, format_table
+
+    res = evaluate_against_grids(
+        args.output_bag,
+        args.left,
+        args.right,
+        args.grids,
+        truth_bag=args.truth,
+        pair_index=args.pair,
+    )
+    if args.json:
+        json.dump(res, sys.stdout, indent=1, default=float)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(res))
+    return 0 if res["methods"]["ours"].get("n", 0) > 0 else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     from .paper import SEED
@@ -314,6 +359,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
     p.add_argument("--scene-lines", type=int, default=0, help="lines per scene (0: by id/gap)")
+    p.add_argument(
+        "--no-tie-points",
+        action="store_true",
+        help="do not refine pairs with tie points matched in the images",
+    )
     p.add_argument(
         "--no-streaming",
         action="store_true",
@@ -376,6 +426,47 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser(
+        "import", help="two images with RPC -> a single-camera bag with virtual GCP, no navigation"
+    )
+    p.add_argument("left", help="left image (GeoTIFF/TIFF; first scene)")
+    p.add_argument("right", help="right image (second scene)")
+    p.add_argument("-o", "--output", required=True, help="bag folder to create")
+    p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
+    p.add_argument("--rpc-right", help="RPC of the right full scene")
+    p.add_argument("--dem", help="SRTM .hgt tile: virtual points on the ground +- 100 m")
+    p.add_argument(
+        "--geoid-undulation",
+        type=float,
+        default=0.0,
+        help="metres added to the DEM heights (geoid -> WGS84 ellipsoid; about 50 at Ventoux)",
+    )
+    p.add_argument(
+        "--heights",
+        type=float,
+        nargs=2,
+        metavar=("HMIN", "HMAX"),
+        help="ellipsoidal heights without a DEM (default: RPC height_off +- height_scale / 2)",
+    )
+    p.add_argument(
+        "--ids", nargs=2, default=["left", "right"], metavar=("LEFT", "RIGHT"), help="scene ids"
+    )
+    p.add_argument("--force", action="store_true", help="replace an existing bag")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser(
+        "ventoux-eval",
+        help="y-parallax of image matches: published transforms vs reference epipolar grids",
+    )
+    p.add_argument("output_bag", help="output bag of parproj process (a stereo_pair)")
+    p.add_argument("--left", required=True, help="original left image (the pair's left scene)")
+    p.add_argument("--right", required=True, help="original right image")
+    p.add_argument("--grids", required=True, help="folder of the reference grids (OTB, shareloc)")
+    p.add_argument("--truth", help="the imported input bag: evaluate its RPC-exact truth points")
+    p.add_argument("--pair", type=int, default=0, help="which stereo_pair of the bag (from 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.set_defaults(func=cmd_ventoux_eval)
     return parser
 
 

@@ -121,6 +121,15 @@ PARAMS: tuple[Param, ...] = (
         "max_output_pixels", 200_000_000, "larger normalized images are refused", 1, 2_000_000_000
     ),
     Param(
+        "tie_points",
+        True,
+        "refine whole-scene pairs with tie points matched between the normalized images "
+        "(RANSAC on G1..G4), removing y-parallax left by biased navigation, GCP or RPC",
+    ),
+    Param(
+        "tie_threshold_px", 1.0, "RANSAC inlier threshold on the epipolar residual, px", 0.05, 50.0
+    ),
+    Param(
         "streaming",
         True,
         "publish normalized column blocks while the scenes arrive (two views, scene_lines > 0, "
@@ -204,6 +213,8 @@ class ParprojNode(Node):
             output_pixel=float(vals["output_pixel"]),
             max_output_pixels=int(vals["max_output_pixels"]),
             streaming=bool(vals["streaming"]),
+            tie_points=bool(vals["tie_points"]),
+            tie_threshold_px=float(vals["tie_threshold_px"]),
         )
         self.pipeline = Pipeline(config)
         self.counts = {

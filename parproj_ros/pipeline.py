@@ -16,7 +16,7 @@ Every problem becomes an :class:`Issue` that says what was wrong and what was do
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -41,6 +41,7 @@ from .geometry.navigation import virtual_points
 from .imaging.assembly import Scene, SceneAssembler, StripRejectedError
 from .imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
 from .streaming import BlockResult, SideStream, StreamPair, plan_blocks, render_block
+from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavigationError, NavSample, TrajectoryBuffer
 
 FloatArray = NDArray[np.float64]
@@ -90,6 +91,10 @@ class PipelineConfig:
         interpolation: "linear" or "cubic".
         output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
         max_output_pixels: larger normalized images are refused (the pair is skipped).
+        tie_points: refine each whole-scene pair with tie points matched between the normalized
+            images (RANSAC on paper 2's G1..G4, then an affine correction of the right image's
+            rows), so that a bias of navigation, GCP or RPC leaves no y-parallax.
+        tie_threshold_px: RANSAC inlier threshold on the epipolar residual, pixels.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
     """
@@ -107,6 +112,8 @@ class PipelineConfig:
     output_pixel: float = 0.0
     max_output_pixels: int = 200_000_000
     streaming: bool = True
+    tie_points: bool = True
+    tie_threshold_px: float = 1.0
 
     @property
     def single_camera(self) -> bool:
@@ -987,7 +994,33 @@ class Pipeline:
             interpolation=interp,
         )
         stamp = max(left.scene.last_line_ns, right.scene.last_line_ns)
-        out.pairs.append(self._pair_result(left, right, geo, (img_l, img_r), stamp))
+        tie: TieRefinement | None = None
+        if self.config.tie_points:
+            refined = refine_with_tie_points(
+                geo,
+                img_l,
+                img_r,
+                nodata=self.config.nodata,
+                pixel=left.camera.pixel_size,
+                threshold_px=self.config.tie_threshold_px,
+            )
+            if isinstance(refined, str):
+                out.issues.append(Issue("warn", f"pair {geo.pair_id}", refined))
+            else:
+                tie = refined
+                geo = tie.geometry
+                img_r = resample(
+                    right.scene.image,
+                    geo.right_geom,
+                    geo.right_grid,
+                    nodata=self.config.nodata,
+                    interpolation=interp,
+                )
+                out.issues.append(Issue("ok", f"pair {geo.pair_id}", tie.summary))
+        pair = self._pair_result(left, right, geo, (img_l, img_r), stamp)
+        if tie is not None:
+            pair = replace(pair, y_parallax_px=tie.residual_px, y_parallax_source="tie_points")
+        out.pairs.append(pair)
         return out
 
     def _y_parallax(

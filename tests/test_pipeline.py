@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from parproj_ros.geometry import ptp_inverse
-from parproj_ros.pipeline import Outputs, PairResult, Pipeline, PipelineConfig, SceneResult
+from parproj_ros.pipeline import Outputs, PairResult, Pipeline, SceneResult
 from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
 from parproj_ros.trajectory import NavSample
 
@@ -22,7 +22,7 @@ Event = tuple[int, int, Any]
 
 # These tests are about whole-scene processing: keep the streaming mode (scene_lines > 0 with two
 # views, when the pipeline has it) out of the way.
-WHOLE = {"streaming": False} if "streaming" in PipelineConfig.__dataclass_fields__ else {}
+WHOLE = {"streaming": False}
 
 
 def render(scn: Scenario, dtype: type, *, smooth: bool = False, low: int = 1) -> list[np.ndarray]:
@@ -84,7 +84,7 @@ def feed(pipe: Pipeline, events: list[Event], *, flush: bool = True) -> Outputs:
 
 
 def run(scn: Scenario, images: list[np.ndarray], **config: Any) -> tuple[Pipeline, Outputs]:
-    pipe = Pipeline(scn.pipeline_config(**config))
+    pipe = Pipeline(scn.pipeline_config(**{"tie_points": False, **config}))
     return pipe, feed(pipe, nav_events(scn) + strip_events(scn, images))
 
 
@@ -149,7 +149,7 @@ def _ikonos_gcp(
 
 def test_ikonos_gcp_roll_estimated() -> None:
     scn, pts = _ikonos_gcp(hills, 12, 4)
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     assert pipe.add_gcp(pts).issues == []
     out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
     assert out.issues == []
@@ -168,7 +168,7 @@ def test_ikonos_gcp_roll_estimated() -> None:
 
 def test_ikonos_flat_gcp_are_coplanar_and_navigation_is_used() -> None:
     scn, pts = _ikonos_gcp(flat, 12, 0)
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     pipe.add_gcp(pts)
     out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
     assert [s.method for s in out.scenes] == ["navigation"] * 2
@@ -180,7 +180,7 @@ def test_ikonos_flat_gcp_are_coplanar_and_navigation_is_used() -> None:
 
 def test_fewer_than_min_gcp_falls_back_to_navigation() -> None:
     scn, pts = _ikonos_gcp(hills, 3, 0)
-    pipe = Pipeline(scn.pipeline_config(min_gcp=5))
+    pipe = Pipeline(scn.pipeline_config(min_gcp=5, tie_points=False))
     pipe.add_gcp(pts)
     out = feed(pipe, nav_events(scn) + strip_events(scn, render(scn, np.uint16)))
     assert [s.method for s in out.scenes] == ["navigation"] * 2
@@ -195,7 +195,7 @@ def test_fewer_than_min_gcp_falls_back_to_navigation() -> None:
 def test_non_finite_gcp_ignored_with_warning() -> None:
     scn, pts = _ikonos_gcp(hills, 5, 0)
     bad = type(pts[0])("bad", np.array([0.0, np.nan, 0.0]), False, dict(pts[0].observations))
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = pipe.add_gcp([*pts, bad])
     assert [(i.level, i.where) for i in out.issues] == [("warn", "gcp bad")]
     assert sorted(pipe.gcp) == sorted(p.id for p in pts)
@@ -206,7 +206,7 @@ def test_non_finite_gcp_ignored_with_warning() -> None:
 
 def test_strips_before_navigation_are_held() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = feed(pipe, strip_events(scn, render(scn, np.uint8)), flush=False)
     out.extend(pipe.close_scenes())
     assert out.scenes == [] and out.pairs == [] and out.issues == []
@@ -234,7 +234,7 @@ def test_strips_before_navigation_are_held() -> None:
 
 def test_navigation_never_arrives_reported_by_flush() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = feed(pipe, strip_events(scn, render(scn, np.uint8)))
     assert out.scenes == [] and out.pairs == []
     errors = messages(out, "error")
@@ -248,7 +248,7 @@ def test_navigation_of_the_second_scene_never_arrives() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     t_cut = scn.time_ns(scn.scenes[0].start_s + 3.0)
     nav = [e for e in nav_events(scn) if e[0] < t_cut]
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = feed(pipe, nav + strip_events(scn, render(scn, np.uint8)))
     assert [s.scene.scene_id for s in out.scenes] == ["left_scene_0000"]
     assert out.pairs == []
@@ -262,7 +262,7 @@ def test_navigation_starting_after_the_first_line() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     t_from = scn.time_ns(scn.scenes[0].start_s + 0.5)
     nav = [e for e in nav_events(scn) if e[0] >= t_from]
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = feed(pipe, nav + strip_events(scn, render(scn, np.uint8)))
     assert [s.scene.scene_id for s in out.scenes] == ["right_scene_0001"]
     errors = messages(out, "error")
@@ -349,7 +349,7 @@ def test_scenes_without_overlap() -> None:
     def far(t: float) -> np.ndarray:  # the right scene flown 1 km to the side (swath 83 m)
         return np.array([0.0, 1000.0 if t > t_mid else 0.0, 0.0])
 
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = feed(pipe, nav_events(scn, offset=far) + strip_events(scn, render(scn, np.uint8)))
     assert [s.method for s in out.scenes] == ["navigation", "navigation"]
     assert out.pairs == []
@@ -362,7 +362,7 @@ def test_scenes_without_overlap() -> None:
 
 def test_unknown_view() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     out = pipe.add_strip("middle", scn.t0_ns, "m0", np.zeros((4, 768), np.uint8))
     assert [(i.level, i.where) for i in out.issues] == [("error", "view middle")]
     assert "unknown view" in out.issues[0].message
@@ -371,7 +371,7 @@ def test_unknown_view() -> None:
 
 def test_rejected_strip_reported_as_warning() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
-    pipe = Pipeline(scn.pipeline_config())
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
     pipe.add_strip("left", scn.t0_ns, "a", np.zeros((4, 768), np.uint8))
     out = pipe.add_strip("left", scn.t0_ns, "a", np.zeros((4, 768), np.uint8))
     assert [(i.level, i.where) for i in out.issues] == [("warn", "left/a")]
@@ -381,7 +381,7 @@ def test_rejected_strip_reported_as_warning() -> None:
 def test_missing_strip_filled_and_reported(airborne: tuple[Scenario, Outputs]) -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     images = render(scn, np.uint8, low=20)
-    pipe = Pipeline(scn.pipeline_config(nodata=3.0))
+    pipe = Pipeline(scn.pipeline_config(nodata=3.0, tie_points=False))
     out = feed(pipe, nav_events(scn) + strip_events(scn, images, skip=[(0, 128)]))
     assert messages(out, "warn") == [
         "left/left_scene_0000: 64 missing lines filled with no-data (3.0)"
