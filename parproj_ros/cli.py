@@ -292,6 +292,8 @@ def cmd_import(args: argparse.Namespace) -> int:
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
             scene_ids=tuple(args.ids),
+            principal_distance=args.principal_distance,
+            pixel_size=args.pixel_size,
             overwrite=args.force,
         )
     except (RPCError, FileExistsError, OSError, ValueError) as err:
@@ -451,6 +453,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--ids", nargs=2, default=["left", "right"], metavar=("LEFT", "RIGHT"), help="scene ids"
+    )
+    p.add_argument(
+        "--principal-distance",
+        type=float,
+        default=12.905,
+        help="c written in the scanner info, m (not in an RPC; Pleiades-like default)",
+    )
+    p.add_argument(
+        "--pixel-size", type=float, default=13e-6, help="detector pitch, m (default 13 um)"
     )
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     p.set_defaults(func=cmd_import)

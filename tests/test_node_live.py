@@ -25,7 +25,7 @@ from parproj_ros.offline import process_bag
 from parproj_ros.recording import node_parameters, views_from_bag
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
-ALL_BAGS = ["ikonos_agile", "airborne_foreaft", "crab_foreaft"]
+ALL_BAGS = ["ikonos_agile", "airborne_foreaft", "crab_foreaft", "ventoux"]
 
 
 def run_live(
@@ -93,7 +93,7 @@ def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactor
 
 
 #: How each bag's scenes must be oriented (parproj_msgs/ParallelProjection METHOD_*).
-EXPECTED_METHOD = {"ikonos_agile": 4, "airborne_foreaft": 0, "crab_foreaft": 1}
+EXPECTED_METHOD = {"ikonos_agile": 4, "airborne_foreaft": 0, "crab_foreaft": 1, "ventoux": 4}
 
 
 def test_outputs_published(live: dict) -> None:
@@ -128,7 +128,8 @@ def test_normalized_images_read_by_independent_reader(live: dict) -> None:
     a = image_to_array(ours["left/image_normalized"])
     b = np.frombuffer(bytes(left.data), dtype=a.dtype).reshape(a.shape)
     assert np.array_equal(a, b)
-    assert (a != 0).mean() > 0.5  # mostly inside the footprint
+    # Mostly inside the footprint (the Ventoux crops overlap by only about 30 %).
+    assert (a != 0).mean() > (0.3 if live["name"] == "ventoux" else 0.5)
 
 
 def test_geometry_of_published_pair(live: dict) -> None:
@@ -136,9 +137,15 @@ def test_geometry_of_published_pair(live: dict) -> None:
     (pair,) = res["pairs"]
     g = pair["geometric"]
     assert g["points"] >= 100
-    # Geometric y-parallax: truth points through the published transforms.
-    limit = {"ikonos_agile": 0.1, "crab_foreaft": 0.1, "airborne_foreaft": 0.5}[live["name"]]
-    assert g["y_parallax_px"]["rms"] <= limit, g
+    # Geometric y-parallax: truth points through the published transforms. Ventoux's truth is
+    # the RPC models', which disagree with the images by 4.8 px (the RPCs' relative error,
+    # shared/data/ventoux/README.md); the tie points align the pair on the images, so there the
+    # truth keeps that offset and only the image matches below measure the pair.
+    if live["name"] == "ventoux":
+        assert 4.0 < g["y_parallax_px"]["mean_abs"] < 5.6, g
+    else:
+        limit = {"ikonos_agile": 0.1, "crab_foreaft": 0.1, "airborne_foreaft": 0.5}[live["name"]]
+        assert g["y_parallax_px"]["rms"] <= limit, g
     # x-parallax linear in height: residual of a line fit over the whole relief.
     assert g["x_parallax_line_rms_px"] <= 0.2, g
     # The published disparity -> height relation agrees with the fitted slope to 0.5 %.
@@ -147,6 +154,8 @@ def test_geometry_of_published_pair(live: dict) -> None:
     m = pair["matching"]
     assert m["matches"] >= 50, m
     assert m["y_parallax_px"]["median_abs"] <= 0.2, m
+    if live["name"] == "ventoux":  # issue 5's target on the real pair
+        assert m["y_parallax_px"]["mean_abs"] <= 0.3, m
 
 
 def test_offline_process_matches_live(live: dict, tmp_path: Path) -> None:
