@@ -9,7 +9,7 @@ scene; the caller logs and reports them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,13 +64,51 @@ class StripRejectedError(ValueError):
     """A strip that cannot be used, with the reason (the scene it would belong to is unchanged)."""
 
 
+class _LineBuffer:
+    """Lines of one scene in one array: appended at the end, released at the front.
+
+    Appending copies the strip once; releasing only moves the start. When the end reaches the
+    capacity, the retained lines are moved to the front (if that frees enough room) or the
+    array grows by doubling, so the cost per line stays constant and no concatenation of the
+    whole scene is ever needed.
+    """
+
+    def __init__(self, width: int, dtype: np.dtype, capacity: int) -> None:
+        self.buf = np.empty((max(1, capacity), width), dtype=dtype)
+        self.start = 0
+        self.end = 0
+
+    def append(self, block: NDArray[np.generic]) -> None:
+        n = block.shape[0]
+        if self.end + n > self.buf.shape[0]:
+            keep = self.end - self.start
+            cap = self.buf.shape[0]
+            if self.start > 0 and keep <= cap // 2 and keep + n <= cap:
+                self.buf[:keep] = self.buf[self.start : self.end]
+            else:
+                grown = np.empty(
+                    (max(2 * self.buf.shape[0], keep + n), self.buf.shape[1]), dtype=self.buf.dtype
+                )
+                grown[:keep] = self.buf[self.start : self.end]
+                self.buf = grown
+            self.start, self.end = 0, keep
+        self.buf[self.end : self.end + n] = block
+        self.end += n
+
+    def view(self) -> NDArray[np.generic]:
+        return self.buf[self.start : self.end]
+
+    def drop(self, k: int) -> None:
+        self.start = min(self.end, self.start + k)
+
+
 @dataclass
 class _Open:
     scene_id: str
     first_line_ns: int
     base_id: str = ""
     part: int = 0
-    blocks: list[NDArray[np.generic]] = field(default_factory=list)
+    data: _LineBuffer | None = None
     lines: int = 0
     gaps: int = 0
     dtype: np.dtype | None = None
@@ -119,8 +157,8 @@ class SceneAssembler:
             op.part,
             op.first_line_ns + round(op.lines * self.line_period * 1e9),
         )
-        if op.blocks:
-            image = np.concatenate(op.blocks, axis=0) if len(op.blocks) > 1 else op.blocks[0]
+        if op.data is not None:
+            image = op.data.view()
         else:
             image = np.empty((0, op.width), dtype=op.dtype)
         scene = Scene(
@@ -154,11 +192,9 @@ class SceneAssembler:
         op = self._open
         if op is None:
             raise ValueError("no open scene")
-        if len(op.blocks) > 1:
-            op.blocks = [np.concatenate(op.blocks, axis=0)]
-        if not op.blocks:
+        if op.data is None:
             return op.released, np.empty((0, op.width), dtype=op.dtype)
-        return op.released, op.blocks[0]
+        return op.released, op.data.view()
 
     def release(self, upto_line: int) -> None:
         """Drop the open scene's lines before ``upto_line`` (a streaming consumer is done)."""
@@ -167,7 +203,8 @@ class SceneAssembler:
             return
         first, data = self.retained()
         drop = min(upto_line - first, data.shape[0])
-        op.blocks = [data[drop:].copy()] if drop < data.shape[0] else []
+        if op.data is not None:
+            op.data.drop(drop)
         op.released += drop
 
     def flush(self) -> list[Scene]:
@@ -248,7 +285,10 @@ class SceneAssembler:
             op = self._open
             room = self.scene_lines - op.lines if self.scene_lines > 0 else block.shape[0]
             take = block[:room]
-            op.blocks.append(take)
+            if op.data is None:
+                cap = self.scene_lines if self.scene_lines > 0 else max(1024, 4 * take.shape[0])
+                op.data = _LineBuffer(op.width, np.dtype(op.dtype), cap)
+            op.data.append(take)
             op.lines += take.shape[0]
             if filled:
                 op.gaps += take.shape[0]

@@ -46,23 +46,36 @@ class Matches:
         )
 
 
-def to_uint8(img: NDArray[np.generic], nodata: float) -> NDArray[np.uint8]:
-    """Percentile stretch of valid pixels to 0..255 (0 stays for nodata)."""
+def stretch_limits(img: NDArray[np.generic], nodata: float) -> tuple[float, float]:
+    """1st and 99th percentiles of the valid pixels, from a subsample of at most ~250k."""
+    step = max(1, int(np.sqrt(img.size / 250_000)))
+    a = np.asarray(img[::step, ::step], dtype=np.float32)
+    v = a[np.isfinite(a) & (a != nodata)]
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(v, [1.0, 99.0])
+    return float(lo), float(hi)
+
+
+def to_uint8(
+    img: NDArray[np.generic], nodata: float = 0.0, limits: tuple[float, float] | None = None
+) -> NDArray[np.uint8]:
+    """Linear stretch of valid pixels to 1..255 between ``limits``; nodata becomes 0.
+
+    ``limits`` defaults to the 1st and 99th percentiles (:func:`stretch_limits`).
+    """
+    lo, hi = limits if limits is not None else stretch_limits(img, nodata)
     a = np.asarray(img, dtype=np.float32)
     valid = np.isfinite(a) & (a != nodata)
-    if not valid.any():
-        return np.zeros(a.shape, dtype=np.uint8)
-    sub = a[valid][:: max(1, int(valid.sum() // 200_000))]
-    lo, hi = np.percentile(sub, [1.0, 99.0])
-    scaled = np.nan_to_num((a - lo) * (254.0 / max(float(hi - lo), 1e-12)) + 1.0)
+    scaled = np.nan_to_num((a - lo) * (254.0 / max(hi - lo, 1e-12)) + 1.0)
     out = np.clip(scaled, 1, 255).astype(np.uint8)
     out[~valid] = 0
     return out
 
 
 def _refine(
-    lf: NDArray[np.float32],
-    rf: NDArray[np.float32],
+    lf: NDArray[np.generic],
+    rf: NDArray[np.generic],
     nodata: float,
     xl: float,
     yl: float,
@@ -82,10 +95,10 @@ def _refine(
         or cr + half + search >= rf.shape[1]
     ):
         return None
-    tpl = lf[rl - half : rl + half + 1, cl - half : cl + half + 1]
+    tpl = lf[rl - half : rl + half + 1, cl - half : cl + half + 1].astype(np.float32)
     win = rf[
         rr - half - search : rr + half + search + 1, cr - half - search : cr + half + search + 1
-    ]
+    ].astype(np.float32)
     if (
         (tpl == nodata).any()
         or (win == nodata).any()
@@ -136,8 +149,7 @@ def match_normalized(
         max_y_px: matches with a larger row difference are discarded (gross errors).
     """
     h, w = left.shape
-    l8, r8 = to_uint8(left, nodata), to_uint8(right, nodata)
-    lf, rf = left.astype(np.float32), right.astype(np.float32)
+    lim_l, lim_r = stretch_limits(left, nodata), stretch_limits(right, nodata)
     sift = cv2.SIFT_create(nfeatures=4 * max_per_window)
     matcher = cv2.BFMatcher(cv2.NORM_L2)
     ws = min(window, h, w)
@@ -147,7 +159,7 @@ def match_normalized(
     for r0 in r0s:
         for c0 in c0s:
             sl = np.s_[r0 : r0 + ws, c0 : c0 + ws]
-            a, b = l8[sl], r8[sl]
+            a, b = to_uint8(left[sl], nodata, lim_l), to_uint8(right[sl], nodata, lim_r)
             if (a > 0).mean() < 0.3 or (b > 0).mean() < 0.3:
                 continue
             ka, da = sift.detectAndCompute(a, (a > 0).astype(np.uint8))
@@ -163,7 +175,7 @@ def match_normalized(
                 if abs(yl - yr) > max_y_px:
                     continue
                 ref = _refine(
-                    lf, rf, nodata, xl + c0, yl + r0, xr + c0, yr + r0, half, search, min_corr
+                    left, right, nodata, xl + c0, yl + r0, xr + c0, yr + r0, half, search, min_corr
                 )
                 if ref is not None:
                     out.append((float(round(xl + c0)), float(round(yl + r0)), *ref))

@@ -140,25 +140,37 @@ def _exact_map(
     return sample, line
 
 
-def _fit_tile(
-    geom: SceneGeometry, grid: OutputGrid, r0: int, c0: int, nr: int, nc: int, check: int = 5
-) -> Tile:
-    """Least-squares affine of the exact map over a check x check grid of the tile."""
-    rr = np.linspace(0.0, nr - 1.0, check)
-    cc = np.linspace(0.0, nc - 1.0, check)
-    cg, rg = np.meshgrid(cc, rr)
-    sample, line = _exact_map(geom, grid, c0 + cg.ravel(), r0 + rg.ravel())
-    design = np.column_stack([cg.ravel(), rg.ravel(), np.ones(cg.size)])
-    coef, *_ = np.linalg.lstsq(design, np.column_stack([sample, line]), rcond=None)
-    err = design @ coef - np.column_stack([sample, line])
-    return Tile(
-        r0,
-        c0,
-        nr,
-        nc,
-        np.asarray(coef.T, dtype=float),
-        float(np.hypot(err[:, 0], err[:, 1]).max()),
-    )
+def _fit_tiles(
+    geom: SceneGeometry,
+    grid: OutputGrid,
+    boxes: list[tuple[int, int, int, int]],
+    check: int = 5,
+) -> list[Tile]:
+    """Least-squares affine of the exact map over a check x check grid of each tile.
+
+    Vectorised: the exact map is evaluated for all tiles in one call, and tiles of the same
+    size share one pseudo-inverse of their (identical) design matrix.
+    """
+    out: list[Tile] = []
+    sizes: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for r0, c0, nr, nc in boxes:
+        sizes.setdefault((nr, nc), []).append((r0, c0))
+    u = np.linspace(0.0, 1.0, check)
+    for (nr, nc), origins in sizes.items():
+        cg, rg = np.meshgrid(u * (nc - 1.0), u * (nr - 1.0))
+        design = np.column_stack([cg.ravel(), rg.ravel(), np.ones(cg.size)])
+        pinv = np.linalg.pinv(design)  # (3, k)
+        o = np.array(origins, dtype=float)  # (n, 2) as (r0, c0)
+        cols = o[:, 1:2] + cg.ravel()[None, :]
+        rows = o[:, 0:1] + rg.ravel()[None, :]
+        sample, line = _exact_map(geom, grid, cols, rows)  # (n, k) each
+        vals = np.stack([sample, line], axis=-1)  # (n, k, 2)
+        coef = np.einsum("jk,nkc->njc", pinv, vals)  # (n, 3, 2)
+        err = np.einsum("kj,njc->nkc", design, coef) - vals
+        emax = np.hypot(err[..., 0], err[..., 1]).max(axis=1)
+        for (r0, c0), cf, e in zip(origins, coef, emax, strict=True):
+            out.append(Tile(r0, c0, nr, nc, np.asarray(cf.T, dtype=float), float(e)))
+    return out
 
 
 def plan_tiles(
@@ -182,16 +194,17 @@ def plan_tiles(
         for c0 in range(0, grid.width, tile)
     ]
     while todo:
-        r0, c0, nr, nc = todo.pop()
-        t = _fit_tile(geom, grid, r0, c0, nr, nc)
-        if t.max_error_px <= tolerance_px or max(nr, nc) <= min_tile:
-            out.append(t)
-            continue
-        hr, hc = max(1, nr // 2), max(1, nc // 2)
-        for rr0, rn in ((r0, hr), (r0 + hr, nr - hr)):
-            for cc0, cn in ((c0, hc), (c0 + hc, nc - hc)):
-                if rn > 0 and cn > 0:
-                    todo.append((rr0, cc0, rn, cn))
+        split: list[tuple[int, int, int, int]] = []
+        for t in _fit_tiles(geom, grid, todo):
+            if t.max_error_px <= tolerance_px or max(t.rows, t.cols) <= min_tile:
+                out.append(t)
+                continue
+            hr, hc = max(1, t.rows // 2), max(1, t.cols // 2)
+            for rr0, rn in ((t.row0, hr), (t.row0 + hr, t.rows - hr)):
+                for cc0, cn in ((t.col0, hc), (t.col0 + hc, t.cols - hc)):
+                    if rn > 0 and cn > 0:
+                        split.append((rr0, cc0, rn, cn))
+        todo = split
     return out
 
 
