@@ -25,6 +25,7 @@ from .bag import BagReader
 from .conversions import assemble_blocks, image_to_array
 from .geometry import AffineModel, SceneObservation, space_intersection
 from .geometry.ptp import ptp_forward
+from .imaging.matching import match_normalized
 from .pipeline import GroundPoint
 from .preview import anaglyph, to_uint8
 from .recording import truth_from_bag
@@ -76,65 +77,24 @@ def match_y_parallax(
     *,
     nodata: float = 0.0,
     max_matches: int = 400,
-    half: int = 10,
-    search: int = 3,
-    min_corr: float = 0.85,
 ) -> dict[str, Any]:
-    """Row differences of SIFT matches refined by NCC (pixels of the normalized images)."""
-    l8, r8 = to_uint8(left, nodata), to_uint8(right, nodata)
-    sift = cv2.SIFT_create(nfeatures=4000)
-    kl, dl = sift.detectAndCompute(l8, (l8 > 0).astype(np.uint8))
-    kr, dr = sift.detectAndCompute(r8, (r8 > 0).astype(np.uint8))
-    if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:
+    """Row differences of image matches between the normalized images, pixels.
+
+    ORB key points (the tie points of the pipeline are SIFT's), refined to sub-pixel by
+    correlation (:func:`parproj_ros.imaging.matching.match_normalized`); the best
+    ``max_matches`` by correlation peak.
+    """
+    m = match_normalized(left, right, nodata=nodata, detector="orb")
+    if len(m) == 0:
         return {"matches": 0, "y_parallax_px": _stats(np.zeros(0))}
-    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dl, dr, k=2)
-    good = [m[0] for m in pairs if len(m) == 2 and m[0].distance < 0.75 * m[1].distance]
-    good.sort(key=lambda m: m.distance)
-    lf, rf = left.astype(np.float32), right.astype(np.float32)
-    ys, xs = [], []
-    for m in good[: 4 * max_matches]:
-        xl, yl = kl[m.queryIdx].pt
-        xr, yr = kr[m.trainIdx].pt
-        cl, rl = round(xl), round(yl)
-        cr, rr = round(xr), round(yr)
-        if (
-            min(cl, rl, cr, rr) < half + search
-            or rl + half + search >= lf.shape[0]
-            or rr + half + search >= rf.shape[0]
-            or cl + half + search >= lf.shape[1]
-            or cr + half + search >= rf.shape[1]
-        ):
-            continue
-        tpl = lf[rl - half : rl + half + 1, cl - half : cl + half + 1]
-        win = rf[
-            rr - half - search : rr + half + search + 1,
-            cr - half - search : cr + half + search + 1,
-        ]
-        if (tpl == nodata).any() or (win == nodata).any() or tpl.std() == 0:
-            continue
-        res = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
-        _, peak, _, (px, py) = cv2.minMaxLoc(res)
-        if peak < min_corr or px in (0, res.shape[1] - 1) or py in (0, res.shape[0] - 1):
-            continue
-
-        def sub(a: float, b: float, c: float) -> float:
-            d = a - 2 * b + c
-            return 0.0 if d == 0 else 0.5 * (a - c) / d
-
-        dy = sub(res[py - 1, px], res[py, px], res[py + 1, px])
-        dx = sub(res[py, px - 1], res[py, px], res[py, px + 1])
-        y_right = rr - search + py + dy
-        x_right = cr - search + px + dx
-        ys.append(rl - y_right)
-        xs.append(cl - x_right)
-        if len(ys) >= max_matches:
-            break
-    y = np.array(ys)
+    best = np.argsort(-m.score)[:max_matches]
+    y = (m.yl - m.yr)[best]
+    x = (m.xl - m.xr)[best]
     return {
         "matches": int(y.size),
-        "sift_matches": len(good),
+        "detected": len(m),
         "y_parallax_px": _stats(y),
-        "x_disparity_px": _stats(np.array(xs)),
+        "x_disparity_px": _stats(x),
     }
 
 

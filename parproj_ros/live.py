@@ -117,11 +117,11 @@ def replay(
         sent += 1
         bar.update(1)
     bar.close()
-    for pub in pubs.values():
-        try:
-            pub.wait_for_all_acked(timeout_sec=10.0)
-        except Exception:
-            pass
+    from rclpy.duration import Duration
+
+    for topic, pub in pubs.items():
+        if not pub.wait_for_all_acked(Duration(seconds=10)):
+            log(f"replay: {topic}: not every message was acknowledged within 10 s")
     return {
         "sent": sent,
         "seconds": time.monotonic() - start_wall,

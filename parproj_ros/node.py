@@ -27,6 +27,7 @@ from parproj_msgs.msg import (
     StereoPair,
 )
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy,
@@ -54,6 +55,7 @@ class Param:
     low: float | None = None
     high: float | None = None
     read_only: bool = True
+    choices: tuple[str, ...] = ()
 
 
 #: Node-wide parameters (per-view camera parameters are in VIEW_PARAMS).
@@ -109,11 +111,14 @@ PARAMS: tuple[Param, ...] = (
         "gcp_roll",
         "estimate",
         "with GCP: 'estimate' the roll (Eq 8), use the 'navigation' roll, or 'none' (no PTP)",
+        choices=("estimate", "navigation", "none"),
     ),
     Param("min_gcp", 5, "non-check GCP observed in a scene needed to use them", 4, 100000),
     Param("gcp_file", "", "CSV/YAML file of GCP loaded at start ('' = none); see README"),
     Param("nodata", 0.0, "output value outside a scene and for missing lines", -1e30, 1e30),
-    Param("interpolation", "linear", "'linear' or 'cubic' resampling"),
+    Param(
+        "interpolation", "linear", "'linear' or 'cubic' resampling", choices=("linear", "cubic")
+    ),
     Param(
         "output_pixel", 0.0, "normalized metres per output pixel; 0 = native resolution", 0.0, 1.0
     ),
@@ -156,7 +161,16 @@ VIEW_PARAMS: tuple[Param, ...] = (
         "sensor frame in the body frame: roll, pitch, "
         "yaw in degrees, R = Rx(roll) Ry(pitch) Rz(yaw)",
     ),
+    Param(
+        "encoding",
+        "",
+        "pixel encoding the camera delivers (mono8, mono16, 32FC1); strips of another encoding "
+        "are dropped; '' = whatever a scene's first strip has",
+        choices=("", "mono8", "mono16", "32FC1"),
+    ),
 )
+
+ENCODING_DTYPES = {"mono8": "uint8", "mono16": "uint16", "32FC1": "float32"}
 
 
 def _descriptor(p: Param, name: str) -> ParameterDescriptor:
@@ -174,20 +188,39 @@ def _descriptor(p: Param, name: str) -> ParameterDescriptor:
 class ParprojNode(Node):
     """ROS 2 node: strips + navigation (+ GCP) -> ParallelProjection, StereoPair, images."""
 
+    def _declare(self, name: str, p: Param) -> Any:
+        """Declare one parameter; a bad value is replaced by the default and reported.
+
+        Out of range or not among the choices: the node keeps running with the default, logs an
+        error, and its 1 Hz summary stays at ERROR naming the parameter.
+        """
+        desc = _descriptor(p, name)
+        try:
+            value = self.declare_parameter(name, p.default, desc).value
+        except (InvalidParameterValueException, InvalidParameterTypeException) as err:
+            self._startup_issues.append(
+                Issue("error", f"parameter {name}", f"{err}; the default {p.default!r} is used")
+            )
+            return self.declare_parameter(name, p.default, desc, ignore_override=True).value
+        if p.choices and value not in p.choices:
+            self._startup_issues.append(
+                Issue(
+                    "error",
+                    f"parameter {name}",
+                    f"{value!r} is not one of {list(p.choices)}; "
+                    f"the default {p.default!r} is used",
+                )
+            )
+            return p.default
+        return value
+
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("parproj_node", **kwargs)
-        vals = {
-            p.name: self.declare_parameter(p.name, p.default, _descriptor(p, p.name)).value
-            for p in PARAMS
-        }
+        self._startup_issues: list[Issue] = []
+        vals = {p.name: self._declare(p.name, p) for p in PARAMS}
         views = []
         for name in vals["views"]:
-            v = {
-                p.name: self.declare_parameter(
-                    f"{name}.{p.name}", p.default, _descriptor(p, p.name)
-                ).value
-                for p in VIEW_PARAMS
-            }
+            v = {p.name: self._declare(f"{name}.{p.name}", p) for p in VIEW_PARAMS}
             pp = None if v["principal_point"] < 0 else float(v["principal_point"])
             cam = LineCamera(
                 float(v["principal_distance"]),
@@ -197,7 +230,11 @@ class ParprojNode(Node):
                 pp,
             )
             rpy = np.radians(np.asarray(v["mounting_rpy_deg"], dtype=float))
-            views.append(ViewConfig(name, cam, rotation_from_angles(*rpy)))
+            views.append(
+                ViewConfig(
+                    name, cam, rotation_from_angles(*rpy), ENCODING_DTYPES.get(v["encoding"])
+                )
+            )
         self.frame_id = str(vals["frame_id"])
         config = PipelineConfig(
             views=tuple(views),
@@ -289,6 +326,7 @@ class ParprojNode(Node):
                         )
                     ]
                 )
+        self._report(self._startup_issues)
         self._worker = threading.Thread(target=self._work, name="parproj_pipeline", daemon=True)
         self._worker.start()
 
@@ -402,9 +440,15 @@ class ParprojNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status.append(
             DiagnosticStatus(
-                level=DiagnosticStatus.OK,
+                level=DiagnosticStatus.ERROR if self._startup_issues else DiagnosticStatus.OK,
                 name="parproj_node: summary",
-                message="running",
+                message="running"
+                + (
+                    "; bad parameters replaced by defaults: "
+                    + "; ".join(f"{i.where}: {i.message}" for i in self._startup_issues)
+                    if self._startup_issues
+                    else ""
+                ),
                 values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
                 + [KeyValue(key="queue", value=str(self._queue.qsize()))],
             )

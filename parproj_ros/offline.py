@@ -37,6 +37,36 @@ class ProcessSummary:
     skipped_topics: dict[str, int] = field(default_factory=dict)
 
 
+def _bag_issues(reader: BagReader, name: str) -> Outputs:
+    """What reading the input bag lost or skipped, as issues for /diagnostics."""
+    out = Outputs()
+    rec = reader.recovery
+    if rec is not None and not rec.complete:
+        lost = rec.messages_lost
+        out.issues.append(
+            Issue(
+                "warn",
+                name,
+                (
+                    f"input bag cut off ({rec.error}): "
+                    + (f"{lost} messages lost, " if lost is not None else "")
+                    + f"{rec.messages_read} complete messages read and processed"
+                ),
+            )
+        )
+    for topic, n in sorted(reader.skipped.items()):
+        out.issues.append(
+            Issue(
+                "warn",
+                topic,
+                (f"{n} messages of type {reader.topics().get(topic, '?')} unknown here: skipped"),
+            )
+        )
+    for topic, n in sorted(reader.decode_errors.items()):
+        out.issues.append(Issue("warn", topic, f"{n} messages could not be decoded: skipped"))
+    return out
+
+
 def process_bag(
     src: Path,
     dst: Path,
@@ -100,6 +130,7 @@ def process_bag(
                 out.issues.append(Issue("warn", item.topic, f"{err}: message dropped"))
             emit(out, item.log_time_ns)
         bar.close()
+        emit(_bag_issues(reader, Path(src).name), last)
         emit(pipe.flush(), last)
     summary.recovery = reader.recovery
     summary.skipped_topics = dict(reader.skipped)

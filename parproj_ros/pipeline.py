@@ -67,11 +67,14 @@ class ViewConfig:
         name: view name, also the topic namespace ("left", "right", "fore", "aft", ...).
         camera: interior orientation.
         mounting: 3x3 rotation of the sensor frame in the body frame.
+        dtype: expected pixel type ("uint8", "uint16", "float32"); None accepts the type of a
+            scene's first strip.
     """
 
     name: str
     camera: LineCamera
     mounting: FloatArray = field(default_factory=lambda: np.eye(3))
+    dtype: str | None = None
 
 
 @dataclass(frozen=True)
@@ -95,6 +98,10 @@ class PipelineConfig:
             images (RANSAC on paper 2's G1..G4, then an affine correction of the right image's
             rows), so that a bias of navigation, GCP or RPC leaves no y-parallax.
         tie_threshold_px: RANSAC inlier threshold on the epipolar residual, pixels.
+        nav_jump_s: a navigation stamp this far from the newest one is suspicious (held until
+            confirmed when ahead, reported when behind), seconds.
+        nav_position_tolerance_m: RMS of navigation positions about the constant-velocity line
+            above which a scene's navigation is reported as inconsistent, metres.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
     """
@@ -114,6 +121,8 @@ class PipelineConfig:
     streaming: bool = True
     tie_points: bool = True
     tie_threshold_px: float = 1.0
+    nav_jump_s: float = 10.0
+    nav_position_tolerance_m: float = 5.0
 
     @property
     def single_camera(self) -> bool:
@@ -296,13 +305,52 @@ class Pipeline:
         self._ready: dict[str, dict[int, SceneResult]] = {v.name: {} for v in config.views}
         self.pairs_done = 0
         self._streams: dict[int, StreamPair] = {}
+        self._nav_pending: NavSample | None = None
         self._no_stream: set[int] = set()
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
-        """Add a navigation sample; scenes waiting for navigation may now be processed."""
-        self.nav.add(sample)
+        """Add a navigation sample; scenes waiting for navigation may now be processed.
+
+        A sample more than ``nav_jump_s`` ahead of the newest one is held until the next sample
+        confirms the jump (a clock jump or a stray stamp is then dropped and reported); one more
+        than ``nav_jump_s`` behind is dropped and reported.
+        """
         out = Outputs()
+        jump = self.config.nav_jump_s * 1e9
+        last = self.nav.last_ns
+        if self._nav_pending is not None:
+            pending, self._nav_pending = self._nav_pending, None
+            if abs(sample.t_ns - pending.t_ns) <= jump:
+                self.nav.add(pending)  # the jump is confirmed by this sample
+            else:
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        "navigation",
+                        (
+                            f"a sample stamped {(pending.t_ns - (last or 0)) / 1e9:+.3f} s "
+                            "from the "
+                            "newest one was not followed by others: dropped"
+                        ),
+                    )
+                )
+        elif last is not None and sample.t_ns > last + jump:
+            self._nav_pending = sample
+            return out
+        if last is not None and sample.t_ns < last - jump:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    "navigation",
+                    (
+                        f"sample stamped {(sample.t_ns - last) / 1e9:+.3f} s from the newest one "
+                        "(stamps going backwards; too late for any scene still open): dropped"
+                    ),
+                )
+            )
+            return out
+        self.nav.add(sample)
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
@@ -331,6 +379,30 @@ class Pipeline:
         out = Outputs()
         if view not in self.assemblers:
             out.issues.append(Issue("error", f"view {view}", "unknown view: strip dropped"))
+            return out
+        detectors = self.views[view].camera.detectors
+        want = self.views[view].dtype
+        if want is not None and strip.dtype != np.dtype(want):
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{view}/{scene_id}",
+                    (f"strip is {strip.dtype}, the camera delivers {want}: dropped"),
+                )
+            )
+            return out
+        if strip.ndim == 2 and strip.shape[1] != detectors:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{view}/{scene_id}",
+                    (
+                        f"strip is {strip.shape[1]} px wide, the camera has {detectors} "
+                        "detectors: "
+                        "dropped"
+                    ),
+                )
+            )
             return out
         try:
             scenes = self.assemblers[view].add(stamp_ns, scene_id, strip)
@@ -711,12 +783,33 @@ class Pipeline:
         out.extend(self._process_scene(scene))
         return out
 
-    def _gcp_for(self, scene: Scene) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-        """(xyz, line/sample) of GCP and of check points observed in this scene."""
-        g, gi, c, ci = [], [], [], []
+    def _bad_observations(self, scene: Scene) -> list[str]:
+        """Ids of GCP whose observation in this scene is non-finite or far outside it."""
+        bad = []
+        margin = 0.5 * max(scene.lines, scene.detectors)
         for p in self.gcp.values():
             obs = p.observations.get(scene.scene_id)
             if obs is None:
+                continue
+            line, sample = obs
+            if not (np.isfinite(line) and np.isfinite(sample)) or not (
+                -margin <= line <= scene.lines + margin
+                and -margin <= sample <= scene.detectors + margin
+            ):
+                bad.append(p.id)
+        return bad
+
+    def _gcp_for(self, scene: Scene) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        """(xyz, line/sample) of GCP and of check points observed in this scene.
+
+        Observations that are non-finite or far outside the scene are left out
+        (:meth:`_bad_observations`).
+        """
+        g, gi, c, ci = [], [], [], []
+        bad = set(self._bad_observations(scene))
+        for p in self.gcp.values():
+            obs = p.observations.get(scene.scene_id)
+            if obs is None or p.id in bad:
                 continue
             (c if p.check else g).append(p.xyz)
             (ci if p.check else gi).append(obs)
@@ -737,6 +830,20 @@ class Pipeline:
         try:
             fit = self.nav.fit(scene.first_line_ns, scene.last_line_ns, view.mounting)
             model = PushbroomModel(cam, fit.motion)
+            if fit.position_rms_m > self.config.nav_position_tolerance_m:
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        where,
+                        (
+                            f"navigation positions scatter by {fit.position_rms_m:.3f} m rms "
+                            "about the "
+                            "constant-velocity line "
+                            f"(> {self.config.nav_position_tolerance_m} m): an "
+                            "outlier or a manoeuvre; the parameters carry that error"
+                        ),
+                    )
+                )
             if fit.attitude_spread_rad > 1e-3:
                 out.issues.append(
                     Issue(
@@ -758,6 +865,19 @@ class Pipeline:
             )
         except (NavigationError, GeometryError) as err:
             out.issues.append(Issue("warn", where, f"no navigation-derived parameters: {err}"))
+        for pid in self._bad_observations(scene):
+            obs = self.gcp[pid].observations[scene.scene_id]
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"gcp {pid}",
+                    (
+                        f"observation in {scene.scene_id} at line {obs[0]}, sample {obs[1]} "
+                        "is not in "
+                        f"the scene ({scene.lines} x {scene.detectors}): ignored"
+                    ),
+                )
+            )
         gxyz, gls, cxyz, cls = self._gcp_for(scene)
         result: SceneResult | None = None
         if len(gxyz) >= self.config.min_gcp:

@@ -153,7 +153,7 @@ def _agile(
     return Scenario(
         name=name,
         description=description,
-        views=(ViewConfig("pan", cam),),
+        views=(ViewConfig("pan", cam, dtype="uint16"),),
         position0=(x0, y0, h),
         velocity=(7000.0, 0.0, 0.0),
         scenes=(
@@ -215,8 +215,8 @@ def airborne() -> Scenario:
     gsd = 6.5e-6 * h / 0.3
     cam = LineCamera(0.3, 6.5e-6, 768, gsd / speed)
     tilt = 14.0
-    fore = ViewConfig("left", cam, rotation_from_angles(0.0, np.radians(-tilt), 0.0))
-    aft = ViewConfig("right", cam, rotation_from_angles(0.0, np.radians(tilt), 0.0))
+    fore = ViewConfig("left", cam, rotation_from_angles(0.0, np.radians(-tilt), 0.0), "uint8")
+    aft = ViewConfig("right", cam, rotation_from_angles(0.0, np.radians(tilt), 0.0), "uint8")
     reach = h * np.tan(np.radians(tilt))
     lines = 768
     dur = lines * cam.line_period

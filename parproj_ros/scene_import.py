@@ -601,10 +601,16 @@ def import_pair(
             msg = gcp_to_msg(pts, GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info)
             bw.write(topic, msg, t_info)
         for img, t0 in zip((left, right), starts, strict=True):
+            # One camera has one detector count: a narrower crop is padded on the right with
+            # no-data (0) columns, which changes no pixel's position.
+            pixels = img.image
+            if pixels.shape[1] < detectors:
+                pad = np.zeros((pixels.shape[0], detectors - pixels.shape[1]), pixels.dtype)
+                pixels = np.hstack([pixels, pad])
             for r0 in range(0, img.lines, STRIP_LINES):
                 stamp = t0 + round(r0 * period_ns)
                 msg = array_to_image(
-                    img.image[r0 : r0 + STRIP_LINES],
+                    pixels[r0 : r0 + STRIP_LINES],
                     Image(),
                     frame_id=img.scene_id,
                     stamp_ns=stamp,

@@ -141,8 +141,21 @@ class TrajectoryBuffer:
         return self._t[-1] if self._t else None
 
     def covers(self, t0_ns: int, t1_ns: int) -> bool:
-        """Whether samples exist at or before t0 and at or after t1."""
-        return bool(self._t) and self._t[0] <= t0_ns and self._t[-1] >= t1_ns
+        """Whether samples bracket t0 and t1 (ns), each within ``max_gap_s`` of it.
+
+        A single stray sample far in the future does not make a span "covered".
+        """
+        if not self._t:
+            return False
+        gap = self.max_gap_s * 1e9
+        i0 = bisect.bisect_right(self._t, t0_ns) - 1
+        i1 = bisect.bisect_left(self._t, t1_ns)
+        return (
+            i0 >= 0
+            and t0_ns - self._t[i0] <= gap
+            and i1 < len(self._t)
+            and self._t[i1] - t1_ns <= gap
+        )
 
     def fit_recent(self, t0_ns: int, mounting: FloatArray, *, window_s: float = 2.0) -> MotionFit:
         """Fit the motion on the latest ``window_s`` of navigation, with its origin at ``t0_ns``.

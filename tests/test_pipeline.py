@@ -7,6 +7,7 @@ of the right shape at the right times.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -403,7 +404,9 @@ def test_float32_strips_give_float32_images() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
     images = [im.astype(np.float32) / 7.0 for im in render(scn, np.uint8)]
-    pipe = Pipeline(scn.pipeline_config(nodata=float("nan")))
+    # The scenario's cameras deliver uint8; these views accept whatever the strips carry.
+    views = tuple(dataclasses.replace(v, dtype=None) for v in scn.views)
+    pipe = Pipeline(scn.pipeline_config(views=views, nodata=float("nan")))
     nav = nav_events(scn, offset=lambda t: np.array([20.0 if t > t_mid else 0.0, 0.0, 0.0]))
     out = feed(pipe, nav + strip_events(scn, images))
     (pair,) = out.pairs

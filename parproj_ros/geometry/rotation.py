@@ -79,10 +79,11 @@ def quaternion_to_rotation(quat: ArrayLike) -> FloatArray:
     q = np.asarray(quat, dtype=float).reshape(-1)
     if q.shape != (4,) or not np.all(np.isfinite(q)):
         raise GeometryError(f"quaternion must be 4 finite numbers (x, y, z, w), got {q}")
-    n = float(np.linalg.norm(q))
-    if n < 1e-9:
+    big = float(np.abs(q).max())
+    if big < 1e-9:
         raise GeometryError("quaternion has zero norm: no orientation")
-    x, y, z, w = q / n
+    q = q / big  # first bring it near 1, so that the norm cannot overflow
+    x, y, z, w = q / np.linalg.norm(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

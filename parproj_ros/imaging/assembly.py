@@ -146,6 +146,10 @@ class SceneAssembler:
         self._count = 0
         # (frame_id, part, time of the line after the last) of the scene last closed
         self._last: tuple[str, int, int] | None = None
+        # time of the line after the last line received on this view (any scene), ns
+        self._latest_ns: int | None = None
+        # next part number of each frame_id, so that scene ids never repeat
+        self._parts: dict[str, int] = {}
 
     def _close(self, reason: str) -> Scene | None:
         op = self._open
@@ -234,12 +238,14 @@ class SceneAssembler:
         period_ns = self.line_period * 1e9
         done: list[Scene] = []
         op = self._open
-        if op is None and self._last is not None:
-            base, _, next_ns = self._last
-            if scene_id == base and round((stamp_ns - next_ns) / period_ns) < 0:
+        if self._latest_ns is not None:
+            behind = -round((stamp_ns - self._latest_ns) / period_ns)
+            if behind > 0:
                 raise StripRejectedError(
-                    f"strip at {stamp_ns} ns overlaps scene {base} already completed "
-                    "(duplicate or out of order): dropped"
+                    f"strip at {stamp_ns} ns starts {behind} lines before data already received "
+                    f"on view {self.view} (duplicate or out of order, or stamps going "
+                    "backwards): "
+                    "dropped"
                 )
         if op is not None:
             expected = op.first_line_ns + round(op.lines * period_ns)
@@ -275,9 +281,8 @@ class SceneAssembler:
         period_ns = self.line_period * 1e9
         while block.shape[0] > 0:
             if self._open is None:
-                part = 0
-                if self._last is not None and self._last[0] == base_id:
-                    part = self._last[1] + 1
+                part = self._parts.get(base_id, 0)
+                self._parts[base_id] = part + 1
                 sid = base_id if part == 0 else f"{base_id}#{part}"
                 self._open = _Open(
                     sid, int(start_ns), base_id, part, dtype=block.dtype, width=block.shape[1]
@@ -298,4 +303,5 @@ class SceneAssembler:
                 closed = self._close("length")
                 if closed:
                     done.append(closed)
+        self._latest_ns = int(start_ns)
         return done

@@ -132,7 +132,8 @@ def match_normalized(
     half: int = 10,
     search: int = 3,
     min_corr: float = 0.85,
-    max_y_px: float = 50.0,
+    max_y_px: float | None = 50.0,
+    detector: str = "sift",
 ) -> Matches:
     """Tie points between two normalized images of equal size (pixels, sub-pixel refined).
 
@@ -146,12 +147,19 @@ def match_normalized(
         half: half size of the correlation patch, pixels.
         search: correlation search radius around the SIFT position, pixels.
         min_corr: smallest accepted NCC peak.
-        max_y_px: matches with a larger row difference are discarded (gross errors).
+        max_y_px: matches with a larger row difference are discarded (gross errors); None keeps
+            all (images that are not yet epipolar).
+        detector: "sift", or "orb" for key points independent of SIFT's (an evaluation that
+            must not reuse the tie points).
     """
     h, w = left.shape
     lim_l, lim_r = stretch_limits(left, nodata), stretch_limits(right, nodata)
-    sift = cv2.SIFT_create(nfeatures=4 * max_per_window)
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    if detector == "orb":
+        feat = cv2.ORB_create(nfeatures=4 * max_per_window, fastThreshold=5)
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    else:
+        feat = cv2.SIFT_create(nfeatures=4 * max_per_window)
+        matcher = cv2.BFMatcher(cv2.NORM_L2)
     ws = min(window, h, w)
     r0s = np.unique(np.linspace(0, h - ws, grid).round().astype(int)) if h > ws else [0]
     c0s = np.unique(np.linspace(0, w - ws, grid).round().astype(int)) if w > ws else [0]
@@ -162,8 +170,8 @@ def match_normalized(
             a, b = to_uint8(left[sl], nodata, lim_l), to_uint8(right[sl], nodata, lim_r)
             if (a > 0).mean() < 0.3 or (b > 0).mean() < 0.3:
                 continue
-            ka, da = sift.detectAndCompute(a, (a > 0).astype(np.uint8))
-            kb, db = sift.detectAndCompute(b, (b > 0).astype(np.uint8))
+            ka, da = feat.detectAndCompute(a, (a > 0).astype(np.uint8))
+            kb, db = feat.detectAndCompute(b, (b > 0).astype(np.uint8))
             if da is None or db is None or len(ka) < 2 or len(kb) < 2:
                 continue
             pairs = matcher.knnMatch(da, db, k=2)
@@ -172,7 +180,7 @@ def match_normalized(
             for m in good[:max_per_window]:
                 xl, yl = ka[m.queryIdx].pt
                 xr, yr = kb[m.trainIdx].pt
-                if abs(yl - yr) > max_y_px:
+                if max_y_px is not None and abs(yl - yr) > max_y_px:
                     continue
                 ref = _refine(
                     left, right, nodata, xl + c0, yl + r0, xr + c0, yr + r0, half, search, min_corr
