@@ -209,8 +209,14 @@ class TrajectoryBuffer:
         tt = (ts - t0_ns) / 1e9
         pos = np.array([s.position for s in samples])
         design = np.column_stack([np.ones_like(tt), tt])
-        coef, *_ = np.linalg.lstsq(design, pos, rcond=None)
-        resid = pos - design @ coef
+        with np.errstate(all="ignore"):
+            coef, *_ = np.linalg.lstsq(design, pos, rcond=None)
+            resid = pos - design @ coef
+            v_rep = np.mean([s.velocity for s in samples], axis=0)
+        if not (
+            np.all(np.isfinite(coef)) and np.all(np.isfinite(resid)) and np.all(np.isfinite(v_rep))
+        ):
+            raise NavigationError("navigation values too large to fit a motion (overflow)")
         # Attitude: chordal L2 mean of the rotations, projected back onto SO(3).
         rs = np.array([s.rotation for s in samples])
         u, _, vt = np.linalg.svd(rs.mean(axis=0))
@@ -218,9 +224,9 @@ class TrajectoryBuffer:
         spread = max(
             float(np.arccos(np.clip((np.trace(r_mean.T @ r) - 1) / 2, -1.0, 1.0))) for r in rs
         )
-        v_rep = np.mean([s.velocity for s in samples], axis=0)
         v_fit = coef[1]
-        mismatch = float(np.linalg.norm(v_fit - v_rep) / max(np.linalg.norm(v_fit), 1e-12))
+        with np.errstate(all="ignore"):  # absurd (finite) velocities overflow the norm: NaN
+            mismatch = float(np.linalg.norm(v_fit - v_rep) / max(np.linalg.norm(v_fit), 1e-12))
         motion = ConstantMotion(coef[0], v_fit, r_mean @ mounting, t0=0.0)
         return MotionFit(
             motion, len(samples), float(np.sqrt(np.mean(resid**2))), spread, mismatch, t0_ns

@@ -265,8 +265,14 @@ def normalize_pair(
     lp = left_params or affine_to_nonlinear(left).chosen
     rp = right_params or affine_to_nonlinear(right).chosen
     d1, d2 = left.direction, right.direction
+    if min(d1[2], d2[2]) <= 1e-9:
+        raise DegenerateGeometryError(
+            "a projection vector is horizontal or points down (N <= 0): no normalization plane"
+        )
     diff = d1[:2] / d1[2] - d2[:2] / d2[2]
     base = float(np.hypot(*diff))
+    if not np.isfinite(base):
+        raise DegenerateGeometryError("the projection vectors are not finite")
     if base < min_base_ratio:
         raise DegenerateGeometryError(
             f"no usable stereo base: base-to-height ratio {base:.3g} < {min_base_ratio} "
