@@ -1,0 +1,67 @@
+"""`parproj bench`: the resampling part at a tiny size (keys, finite geometric error, report).
+
+Speed is measured by the benchmark, never asserted here.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+from parproj_ros.bench import BenchConfig, format_markdown, format_text, run_bench, targets
+from parproj_ros.cli import build_parser, cmd_bench
+
+TINY = BenchConfig(
+    name="test",
+    lines=256,
+    detectors=320,
+    pairs=1,
+    offline_pairs=1,
+    strip_lines=64,
+    map_coordinates_rows=16,
+    repeats=1,
+    scaling=((128, 160), (256, 160)),
+)
+
+#: The keys `parproj bench --json` always prints (None for parts not run).
+KEYS = (
+    "resample_vs_warpaffine",
+    "resample_mpx_s",
+    "warpaffine_mpx_s",
+    "map_coordinates_mpx_s",
+    "copyto_mpx_s",
+    "geometric_error_max_px",
+    "realtime_factor",
+    "latency_s",
+    "dropped_strips",
+    "peak_rss_over_pair",
+    "rss_slope_mb_per_pair",
+    "offline_realtime_factor",
+)
+
+
+def test_resampling_part_keys_and_geometric_error() -> None:
+    res = run_bench(TINY, live=False, offline=False, log=lambda s: None)
+    doc = json.loads(json.dumps(res, allow_nan=False))
+    for key in KEYS:
+        assert key in doc, key
+    for key in KEYS[:6]:
+        assert isinstance(doc[key], float) and math.isfinite(doc[key]) and doc[key] > 0, key
+    err = doc["micro"]["geometric_error"]
+    assert err["pixels"] > 0.5 * TINY.lines * TINY.detectors
+    assert math.isfinite(err["max_px"]) and 0 <= err["rms_px"] <= err["max_px"]
+    assert doc["realtime_factor"] is None and doc["offline_realtime_factor"] is None
+    assert [(r["lines"], r["detectors"]) for r in doc["scaling"]] == [(128, 160), (256, 160)]
+    # Reports render without the live and offline parts; no target can be judged then.
+    assert targets(doc) == []
+    md = format_markdown(doc)
+    assert "Resampling one scene" in md and "| resample() (parproj) |" in md
+    assert "Resampling one scene" in format_text(doc)
+
+
+def test_cli_has_bench() -> None:
+    args = build_parser().parse_args(
+        ["bench", "--quick", "--json", "--node-param", "streaming=false"]
+    )
+    assert args.func is cmd_bench and args.quick and args.json
+    assert args.node_param == ["streaming=false"]
