@@ -458,17 +458,34 @@ class Pipeline:
                     parts.append((n, self._ready[n][k]))
             if len(parts) < 2:
                 continue
-            newest = max(o[2] for o in opened.values() if o is not None)
+            # Time of the line after the last one received, per open scene.
+            ends = {o[0]: o[2] + o[3] * self._period(o) for o in opened.values() if o is not None}
+            newest = max(ends.values())
+            duration = self.config.scene_lines * max(
+                v.camera.line_period for v in self.config.views
+            )
+            stale_ns = max(1.0, 0.5 * duration) * 1e9
             overdue = [
                 part
                 for _, part in parts
-                if not isinstance(part, SceneResult)
-                and part[2] + self.config.scene_lines * self._period(part) < newest
+                if not isinstance(part, SceneResult) and newest - ends[part[0]] > stale_ns
             ]
             if overdue:
-                # A scene that should have been complete by now is still open: it is short
-                # (end of a pass); its length is unknown, so it is processed whole.
+                # Strips of a scene stopped coming while the other view went on (by more than
+                # half a scene, at least 1 s): it is short (end of a pass) and its length is
+                # unknown, so it is processed whole. A view merely delivered late is not stale.
                 self._no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "ok",
+                        f"pair {k}",
+                        (
+                            "not streamed: the strips of "
+                            + ", ".join(p[0] for p in overdue)
+                            + " stopped arriving (a short scene): processed whole"
+                        ),
+                    )
+                )
                 continue
             results: list[SceneResult] = []
             for name, part in parts:

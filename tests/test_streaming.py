@@ -109,3 +109,43 @@ def test_short_last_scene_is_processed_whole(tmp_path: Path) -> None:
     assert [p.streamed for p in pairs] == [True, True, False]
     ids = [p.pair_id for p in pairs]
     assert len(set(ids)) == 3  # split scenes have distinct ids ("#1", "#2")
+
+
+@pytest.mark.parametrize("delay_s", [0.0, 0.08, -0.08])
+def test_a_view_delivered_late_still_streams(delay_s: float) -> None:
+    """Fore/aft cameras on one line clock (the benchmark's platform, narrow): one view's strips
+    arrive 0.08 s (two strips) after the other's. Both pairs must still stream: a view
+    that is merely late is not a short scene."""
+    from parproj_ros import conversions as conv
+    from parproj_ros.bench import StripMessages, acquisition, make_platform, nav_message
+    from parproj_ros.pipeline import PipelineConfig
+
+    # 2048 lines: the platform's fore/aft angle follows the scene length (base/height 0.0025);
+    # 256 detectors keep the test fast.
+    lines, strip_lines = 2048, 256
+    plat = make_platform(lines, 256)
+    events = acquisition(plat, 2, strip_lines, 50.0)
+    strips = StripMessages(plat, strip_lines)
+    order = sorted(
+        events,
+        key=lambda e: (
+            e.due_s + (delay_s if e.kind == "strip" and e.view == 0 else 0.0),
+            e.kind != "nav",
+        ),
+    )
+    pipe = Pipeline(PipelineConfig(views=plat.views, scene_lines=lines))
+    streamed = whole = 0
+    for e in order:
+        if e.kind == "nav":
+            out = pipe.add_navigation(conv.odometry_to_sample(nav_message(plat, e.t_s)))
+        else:
+            m = strips.get(e)
+            out = pipe.add_strip(
+                ("left", "right")[e.view],
+                stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        streamed += sum(p.left_image is None for p in out.pairs)
+        whole += sum(p.left_image is not None for p in out.pairs)
+    assert (streamed, whole) == (2, 0)
