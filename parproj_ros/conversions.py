@@ -7,6 +7,7 @@ Python loops: ``bytes`` in, ``np.frombuffer`` out (ROS2_WHEELS.md: assigning a n
 
 from __future__ import annotations
 
+import array
 from typing import Any
 
 import numpy as np
@@ -68,11 +69,10 @@ def image_to_array(msg: Any) -> NDArray[np.generic]:
     data = msg.data
     if len(data) < step * h:
         raise ConversionError(f"data has {len(data)} bytes, step x height needs {step * h}")
-    buf = np.frombuffer(
-        bytes(data) if not isinstance(data, (bytes, bytearray, memoryview)) else data,
-        dtype=np.uint8,
-        count=step * h,
-    )
+    try:  # bytes, array.array('B') (what rclpy delivers), memoryview: no copy
+        buf = np.frombuffer(data, dtype=np.uint8, count=step * h)
+    except (TypeError, ValueError):  # a list of ints, or an array of another item size
+        buf = np.frombuffer(bytes(data), dtype=np.uint8, count=step * h)
     arr = buf.reshape(h, step)[:, :row]
     dt = dtype.newbyteorder(">" if msg.is_bigendian else "<")
     out = arr.view(dt) if arr.flags.c_contiguous else np.ascontiguousarray(arr).view(dt)
@@ -107,7 +107,12 @@ def array_to_image(
     msg.encoding = enc
     msg.is_bigendian = 0
     msg.step = int(a.shape[1] * a.itemsize * (3 if enc == "rgb8" else 1))
-    msg.data = a.astype(a.dtype.newbyteorder("<"), copy=False).tobytes()
+    # An array.array('B') is taken as it is; bytes are copied and, with
+    # ROS_PYTHON_CHECK_FIELDS=1, checked element by element (0.7 s against 0.013 s for 14 MB).
+    data = array.array("B")
+    little = np.ascontiguousarray(a.astype(a.dtype.newbyteorder("<"), copy=False))
+    data.frombytes(little.reshape(-1).view(np.uint8))  # one copy, from the array's buffer
+    msg.data = data
     return msg
 
 
