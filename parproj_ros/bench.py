@@ -1362,12 +1362,10 @@ def write_input_bag(
     plat: Platform, pairs: int, strip_lines: int, path: Path, nav_hz: float
 ) -> int:
     """The acquisition of ``pairs`` pairs as a bag (what ``parproj process`` reads); messages."""
-    from parproj_msgs.msg import ScannerInfo
     from rclpy.serialization import serialize_message
 
+    from . import conversions as conv
     from .bag import BagWriter
-    from .conversions import ns_to_stamp
-    from .geometry.rotation import rotation_to_quaternion
 
     events = acquisition(plat, pairs, strip_lines, nav_hz)
     strips = StripMessages(plat, strip_lines)
@@ -1381,19 +1379,7 @@ def write_input_bag(
             )
         t_first = T0_NS - 2_000_000_000
         for v in plat.views:
-            info = ScannerInfo()
-            ns_to_stamp(t_first, info.header.stamp)
-            info.header.frame_id = v.name
-            info.camera_name = v.name
-            info.principal_distance = v.camera.principal_distance
-            info.pixel_size = v.camera.pixel_size
-            info.detectors = v.camera.detectors
-            info.principal_point = v.camera.pp
-            info.line_period = v.camera.line_period
-            q = rotation_to_quaternion(v.mounting)
-            info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = (
-                float(c) for c in q
-            )
+            info = conv.scanner_info_msg(v, stamp_ns=t_first)
             bw.write(f"{v.name}/scanner_info", info, t_first)
             n += 1
         for ev in events:

@@ -152,6 +152,25 @@ def sample_to_odometry(sample: NavSample, msg: Any, *, frame_id: str, child_fram
     return msg
 
 
+def scanner_info_msg(view: Any, *, stamp_ns: int) -> Any:
+    """pipeline.ViewConfig -> parproj_msgs/ScannerInfo (frame_id and camera_name = view name)."""
+    from parproj_msgs.msg import ScannerInfo
+
+    info = ScannerInfo()
+    ns_to_stamp(stamp_ns, info.header.stamp)
+    info.header.frame_id = view.name
+    info.camera_name = view.name
+    cam = view.camera
+    info.principal_distance = float(cam.principal_distance)
+    info.pixel_size = float(cam.pixel_size)
+    info.detectors = int(cam.detectors)
+    info.principal_point = float(cam.pp)
+    info.line_period = float(cam.line_period)
+    q = rotation_to_quaternion(view.mounting)
+    info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = (float(c) for c in q)
+    return info
+
+
 def gcp_from_msg(msg: Any) -> list[GroundPoint]:
     """parproj_msgs/GroundControlPoints -> GroundPoints."""
     out = []

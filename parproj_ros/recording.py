@@ -20,9 +20,14 @@ from typing import Any
 import numpy as np
 
 from .bag import BagReader, BagWriter
-from .conversions import array_to_image, gcp_from_msg, gcp_to_msg, ns_to_stamp, sample_to_odometry
+from .conversions import (
+    array_to_image,
+    gcp_from_msg,
+    gcp_to_msg,
+    sample_to_odometry,
+    scanner_info_msg,
+)
 from .geometry import LineCamera, angles_from_rotation, quaternion_to_rotation
-from .geometry.rotation import rotation_to_quaternion
 from .pipeline import GroundPoint, PipelineConfig, ViewConfig
 from .scenarios import Scenario, ground_points
 from .trajectory import NavSample
@@ -50,7 +55,7 @@ def record_scenario(
     to the GCP and check-point image measurements; truth points stay exact.
     """
     from nav_msgs.msg import Odometry
-    from parproj_msgs.msg import GroundControlPoints, ScannerInfo
+    from parproj_msgs.msg import GroundControlPoints
     from sensor_msgs.msg import Image
 
     from .imaging.simulate import locate_on_terrain, render_scene
@@ -92,20 +97,7 @@ def record_scenario(
         bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
         t_first = scn.time_ns(first)
         for v in scn.views:
-            info = ScannerInfo()
-            ns_to_stamp(t_first, info.header.stamp)
-            info.header.frame_id = v.name
-            info.camera_name = v.name
-            info.principal_distance = v.camera.principal_distance
-            info.pixel_size = v.camera.pixel_size
-            info.detectors = v.camera.detectors
-            info.principal_point = v.camera.pp
-            info.line_period = v.camera.line_period
-            q = rotation_to_quaternion(v.mounting)
-            info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = (
-                float(c) for c in q
-            )
-            bw.write(f"{v.name}/scanner_info", info, t_first)
+            bw.write(f"{v.name}/scanner_info", scanner_info_msg(v, stamp_ns=t_first), t_first)
         bw.write(
             "gcp",
             gcp_to_msg(gcp, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),

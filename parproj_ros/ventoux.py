@@ -51,13 +51,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from .bag import BagReader
 from .evaluate import normalized_px
-from .preview import to_uint8
+from .imaging.matching import match_normalized
 from .scene_import import MODEL_TRANSFORMATION_TAG, crop_offset, read_image
 
 FloatArray = NDArray[np.float64]
@@ -216,8 +215,8 @@ class Matches:
         left: positions in the left image (integer: template centres).
         right: sub-pixel positions in the right image.
         ncc: correlation peak of each match.
-        candidates: ratio-test matches before NCC and the outlier cut.
-        refined: matches after NCC refinement, before the outlier cut.
+        candidates: matches after the ratio test and NCC refinement.
+        refined: the same count (kept for the report), before the outlier cut.
         cut_threshold_px: the final rejection threshold across the parallax direction, pixels.
 
     """
@@ -231,11 +230,6 @@ class Matches:
 
     def __len__(self) -> int:
         return len(self.left)
-
-
-def _parabola(a: float, b: float, c: float) -> float:
-    d = a - 2.0 * b + c
-    return 0.0 if d == 0 else 0.5 * (a - c) / d
 
 
 def robust_cut(
@@ -286,62 +280,35 @@ def match_images(
     right: NDArray[np.generic],
     *,
     nodata: float = 0.0,
-    ratio: float = 0.75,
     half: int = 10,
     search: int = 3,
     min_corr: float = 0.85,
     nfeatures: int = 6000,
 ) -> Matches:
-    """SIFT + ratio test + NCC sub-pixel refinement + robust cut (module docstring)."""
-    l8, r8 = to_uint8(left, nodata), to_uint8(right, nodata)
-    sift = cv2.SIFT_create(nfeatures=nfeatures)
-    kl, dl = sift.detectAndCompute(l8, (l8 > 0).astype(np.uint8))
-    kr, dr = sift.detectAndCompute(r8, (r8 > 0).astype(np.uint8))
+    """SIFT + ratio test + NCC sub-pixel refinement + robust cut (module docstring).
+
+    The matching itself is :func:`parproj_ros.imaging.matching.match_normalized` over the
+    whole image (one window) with no row filter, since the original crops are not epipolar.
+    """
+    m = match_normalized(
+        left,
+        right,
+        nodata=nodata,
+        window=max(left.shape + right.shape),
+        grid=1,
+        max_per_window=nfeatures // 4,
+        half=half,
+        search=search,
+        min_corr=min_corr,
+        max_y_px=None,
+    )
     empty = np.zeros((0, 2))
-    if dl is None or dr is None or len(kl) < 2 or len(kr) < 2:
+    if len(m) == 0:
         return Matches(empty, empty, np.zeros(0), 0, 0, float("nan"))
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dl, dr, k=2)
-    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < ratio * m[1].distance]
-    lf, rf = left.astype(np.float32), right.astype(np.float32)
-    pl, pr, cc = [], [], []
-    seen: set[tuple[int, int]] = set()
-    for m in good:
-        xl, yl = kl[m.queryIdx].pt
-        xr, yr = kr[m.trainIdx].pt
-        cl, rl, cr, rr = round(xl), round(yl), round(xr), round(yr)
-        if (rl, cl) in seen:
-            continue
-        if (
-            min(cl, rl) < half
-            or min(cr, rr) < half + search
-            or rl + half >= lf.shape[0]
-            or cl + half >= lf.shape[1]
-            or rr + half + search >= rf.shape[0]
-            or cr + half + search >= rf.shape[1]
-        ):
-            continue
-        tpl = lf[rl - half : rl + half + 1, cl - half : cl + half + 1]
-        win = rf[
-            rr - half - search : rr + half + search + 1,
-            cr - half - search : cr + half + search + 1,
-        ]
-        if (tpl == nodata).any() or (win == nodata).any() or tpl.std() == 0:
-            continue
-        res = cv2.matchTemplate(win, tpl, cv2.TM_CCOEFF_NORMED)
-        _, peak, _, (px, py) = cv2.minMaxLoc(res)
-        if peak < min_corr or px in (0, res.shape[1] - 1) or py in (0, res.shape[0] - 1):
-            continue
-        dy = _parabola(res[py - 1, px], res[py, px], res[py + 1, px])
-        dx = _parabola(res[py, px - 1], res[py, px], res[py, px + 1])
-        seen.add((rl, cl))
-        pl.append((rl, cl))
-        pr.append((rr - search + py + dy, cr - search + px + dx))
-        cc.append(peak)
-    if not pl:
-        return Matches(empty, empty, np.zeros(0), len(good), 0, float("nan"))
-    a, b, c = np.array(pl, float), np.array(pr, float), np.array(cc, float)
+    a = np.column_stack([m.yl, m.xl])  # (line, sample)
+    b = np.column_stack([m.yr, m.xr])
     keep, thr = robust_cut(a, b)
-    return Matches(a[keep], b[keep], c[keep], len(good), len(a), thr)
+    return Matches(a[keep], b[keep], m.score[keep], len(m), len(a), thr)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -8,7 +8,6 @@ crops of tests/data/ventoux (see its README), through import -> process_bag -> e
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 from pathlib import Path
@@ -23,7 +22,7 @@ from parproj_ros import rpc
 from parproj_ros.bag import BagReader
 from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
 from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import METHODS, PipelineConfig
+from parproj_ros.pipeline import METHODS
 from parproj_ros.rpc import RPCModel
 from parproj_ros.scene_import import (
     PRINCIPAL_DISTANCE,
@@ -48,8 +47,7 @@ GRIDS = DATA / "reference_grids"
 #: Full-scene size and crop windows of the synthetic pair: (line0, sample0, lines, samples).
 CROPS = ((1900, 1900, 200, 200), (1905, 1890, 190, 196))
 FLAT_H = 500.0  # m, the synthetic ground
-HAS_TIE_POINTS = "tie_points" in {f.name for f in dataclasses.fields(PipelineConfig)}
-GCP_ONLY: dict[str, Any] = {"tie_points": False} if HAS_TIE_POINTS else {}
+GCP_ONLY: dict[str, Any] = {"tie_points": False}
 
 
 def _affine_rpc(look: float) -> RPCModel:
@@ -273,8 +271,8 @@ VENTOUX = [DATA / "left_image.tif", DATA / "right_image.tif"]
 
 @pytest.fixture(scope="module")
 def ventoux(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    if not all(p.is_file() for p in [*VENTOUX, GRIDS / "otb_left_grid.tif"]):
-        pytest.skip("Ventoux crops not in tests/data/ventoux")
+    # The crops and grids are in the repository (tests/data/ventoux/README.md).
+    assert all(p.is_file() for p in [*VENTOUX, GRIDS / "otb_left_grid.tif"])
     root = tmp_path_factory.mktemp("ventoux")
     # SRTM crop of tests/data/ventoux, heights + ~50 m geoid undulation (EGM96 at Ventoux)
     dem = rpc.grid_height(
@@ -334,7 +332,6 @@ def test_ventoux_evaluation(ventoux: dict[str, Any]) -> None:
         assert all(0.95 < v < 1.05 for v in scales)
 
 
-@pytest.mark.skipif(not HAS_TIE_POINTS, reason="the pipeline has no tie-point refinement yet")
 def test_ventoux_tie_points_reach_the_target(ventoux: dict[str, Any]) -> None:
     """With tie points (the pipeline's default), the 4.8 px RPC offset goes: mean |y| <= 0.3."""
     out = ventoux["root"] / "out_tie"
