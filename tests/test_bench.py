@@ -26,6 +26,7 @@ TINY = BenchConfig(
 #: The keys `parproj bench --json` always prints (None for parts not run).
 KEYS = (
     "resample_vs_warpaffine",
+    "resample_throughput_vs_warpaffine",
     "resample_mpx_s",
     "warpaffine_mpx_s",
     "map_coordinates_mpx_s",
