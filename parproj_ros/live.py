@@ -85,6 +85,8 @@ def replay(
             time.sleep(0.05)
         if pubs[topic].get_subscription_count() == 0:
             log(f"replay: nobody subscribes to {topic} after {wait_timeout_s} s")
+    if wait_for:
+        time.sleep(0.5)  # let the readers' side of discovery finish too (see Recorder)
     sent = 0
     start_wall = time.monotonic()
     first_log: int | None = None
@@ -156,15 +158,21 @@ class Recorder:
             self.counts[topic] += 1
             self.messages[topic].append(msg)
 
-    def wait_for_publishers(self, topics: list[str], timeout_s: float = 20.0) -> bool:
+    def wait_for_publishers(
+        self, topics: list[str], timeout_s: float = 20.0, settle_s: float = 1.0
+    ) -> bool:
         """Wait until each of ``topics`` has a matched publisher (discovery done).
 
-        From then on nothing published is missed by a volatile subscription.
+        Discovery is not symmetric: a subscription can see the publisher before the publisher
+        has matched the subscription, and a volatile sample published in between is lost (seen
+        once in CI with the 19-message Ventoux bag, whose pair comes out within a second). So,
+        after every topic shows a publisher, wait ``settle_s`` more for the writers' side.
         """
         deadline = time.monotonic() + timeout_s
         subs = dict(zip(self.counts, self._subs, strict=True))
         while time.monotonic() < deadline:
             if all(subs[t].get_publisher_count() > 0 for t in topics):
+                time.sleep(settle_s)
                 return True
             time.sleep(0.05)
         return False
