@@ -29,7 +29,6 @@ from .geometry import (
     PushbroomModel,
     SceneObservation,
     estimate_affine,
-    nonlinear_to_affine,
     normalize_pair,
     parameters_from_navigation,
     ptp_forward,
@@ -503,10 +502,3 @@ def reproduce(n_sets: int = 200, seed: int = SEED) -> dict[str, Any]:
     if n_sets > 0:
         result["spread"] = spread(n_sets, seed=seed + 1)
     return result
-
-
-def nav_affine_from_params(side: str) -> AffineModel:
-    """Convenience for tests: Table 3 affine of one side from the reference layout."""
-    models = scanner_models()
-    nav = derive_navigation(models, np.array([0.0, 0.0, CENTROID_Z]))
-    return nonlinear_to_affine(nav[side].params)
