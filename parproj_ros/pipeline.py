@@ -1115,21 +1115,18 @@ class Pipeline:
         if isinstance(geo, Issue):
             out.issues.append(geo)
             return out
-        interp = self.interpolation_flag
-        img_l = resample(
-            left.scene.image,
-            geo.left_geom,
-            geo.left_grid,
-            nodata=self.config.nodata,
-            interpolation=interp,
-        )
-        img_r = resample(
-            right.scene.image,
-            geo.right_geom,
-            geo.right_grid,
-            nodata=self.config.nodata,
-            interpolation=interp,
-        )
+
+        def warp(res: SceneResult, geom: SceneGeometry, grid: OutputGrid) -> NDArray[np.generic]:
+            return resample(
+                res.scene.image,
+                geom,
+                grid,
+                nodata=self.config.nodata,
+                interpolation=self.interpolation_flag,
+            )
+
+        img_l = warp(left, geo.left_geom, geo.left_grid)
+        img_r = warp(right, geo.right_geom, geo.right_grid)
         stamp = max(left.scene.last_line_ns, right.scene.last_line_ns)
         tie: TieRefinement | None = None
         if self.config.tie_points:
@@ -1146,13 +1143,7 @@ class Pipeline:
             else:
                 tie = refined
                 geo = tie.geometry
-                img_r = resample(
-                    right.scene.image,
-                    geo.right_geom,
-                    geo.right_grid,
-                    nodata=self.config.nodata,
-                    interpolation=interp,
-                )
+                img_r = warp(right, geo.right_geom, geo.right_grid)
                 out.issues.append(Issue("ok", f"pair {geo.pair_id}", tie.summary))
         pair = self._pair_result(left, right, geo, (img_l, img_r), stamp)
         if tie is not None:
