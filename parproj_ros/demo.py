@@ -58,21 +58,11 @@ def run_demo(
             progress=progress,
         )
         print(f"demo: replayed {res['sent']} messages in {res['seconds']:.1f} s")
-        while (
-            min(
-                recorder.counts[t]
-                for t in (
-                    "stereo_pair",
-                    "left/image_normalized",
-                    "right/image_normalized",
-                    "anaglyph",
-                )
-            )
-            < expected_pairs
-            and time.monotonic() - t0 < timeout_s
-            and node_proc.proc.poll() is None
-        ):
-            time.sleep(0.2)
+        recorder.wait_complete(
+            expected_pairs,
+            max(0.0, timeout_s - (time.monotonic() - t0)),
+            lambda: node_proc.proc.poll() is None,
+        )
         time.sleep(1.0)
     finally:
         code = node_proc.stop()

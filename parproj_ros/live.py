@@ -177,6 +177,35 @@ class Recorder:
             time.sleep(0.05)
         return False
 
+    def pairs_complete(self, pairs: int) -> bool:
+        """Whether ``pairs`` stereo pairs have arrived with every image that belongs to them.
+
+        A pair's StereoPair message comes first and its images follow it (left, right,
+        anaglyph: large messages that take a while over DDS); a streamed pair's pixels came
+        before it as NormalizedBlock messages. Stopping the node on the StereoPair alone, or on
+        the left image alone, lost the right image once in CI.
+        """
+        with self._lock:
+            done = self.messages.get("stereo_pair", [])[:pairs]
+            if len(done) < pairs:
+                return False
+            whole = sum(1 for p in done if not getattr(p, "streamed", False))
+            return all(
+                self.counts.get(t, 0) >= whole
+                for t in ("left/image_normalized", "right/image_normalized", "anaglyph")
+            )
+
+    def wait_complete(
+        self, pairs: int, timeout_s: float, alive: Callable[[], bool] = lambda: True
+    ) -> bool:
+        """Wait until :meth:`pairs_complete` (or ``timeout_s``, or ``alive()`` turns false)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and alive():
+            if self.pairs_complete(pairs):
+                return True
+            time.sleep(0.05)
+        return self.pairs_complete(pairs)
+
     def close(self) -> None:
         """Close the bag."""
         with self._lock:

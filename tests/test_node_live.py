@@ -58,20 +58,7 @@ def run_live(
             wait_for=[f"{v.name}/image_strip" for v in views],
             log=lambda s: None,
         )
-        deadline = time.monotonic() + 120
-        image_topics = ("left/image_normalized", "right/image_normalized", "anaglyph")
-
-        def complete() -> bool:
-            pairs = recorder.messages["stereo_pair"]
-            if not pairs:
-                return False
-            # A streamed pair's pixels came before it as blocks; otherwise images follow it.
-            return pairs[0].streamed or min(recorder.counts[t] for t in image_topics) >= 1
-
-        while not complete() and time.monotonic() < deadline:
-            if proc.proc.poll() is not None:
-                break
-            time.sleep(0.1)
+        recorder.wait_complete(1, 120, lambda: proc.proc.poll() is None)
         time.sleep(0.5)
     finally:
         code = proc.stop()

@@ -217,11 +217,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
             test.node, BAG, rate=0.0, max_gap_s=0.2, wait_for=["pan/image_strip"], log=print
         )
 
-        def complete() -> bool:
-            c = recorder.counts
-            return c["stereo_pair"] >= 1 and c["left/image_normalized"] >= 1
-
-        wait(complete, 60, lambda: proc.proc.poll() is None)
+        recorder.wait_complete(1, 60, lambda: proc.proc.poll() is None)
         time.sleep(1.2)  # one more 1 Hz summary after the pair
         result["alive"] = proc.proc.poll() is None
     finally:
