@@ -322,6 +322,26 @@ def cmd_ventoux_eval(args: argparse.Namespace) -> int:
     return 0 if res["methods"]["ours"].get("n", 0) > 0 else 1
 
 
+def cmd_segments(args: argparse.Namespace) -> int:
+    """``parproj segments``: a full-length RPC strip pair cut under model error bounds."""
+    from .long_scene import format_table, run
+
+    res = run(
+        args.left_rpc,
+        args.right_rpc,
+        width=args.width,
+        heights=tuple(args.heights),
+        bounds=tuple(args.bound or (1.0, 0.5, 0.3)),
+        overlap=args.overlap,
+    )
+    if args.json:
+        json.dump(res, sys.stdout, indent=1, default=float)
+        sys.stdout.write("\n")
+    else:
+        print(format_table(res))
+    return 0 if all(r["reached"] for r in res["runs"]) else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     from .paper import SEED
@@ -478,6 +498,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pair", type=int, default=0, help="which stereo_pair of the bag (from 0)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=cmd_ventoux_eval)
+
+    p = sub.add_parser(
+        "segments",
+        help="long scenes: cut a full-length RPC strip pair under model error bounds",
+    )
+    p.add_argument("left_rpc", help="RPC of the full left scene (.geom, _RPC.TXT, .RPB, XML, tif)")
+    p.add_argument("right_rpc", help="RPC of the full right scene")
+    p.add_argument("--width", type=int, default=400, help="samples of the strips (default 400)")
+    p.add_argument(
+        "--heights", type=float, nargs=2, default=[900.0, 1100.0], help="height range, m"
+    )
+    p.add_argument(
+        "--bound", type=float, action="append", help="model error bound, px (repeatable)"
+    )
+    p.add_argument("--overlap", type=float, default=0.1, help="segment overlap fraction")
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.set_defaults(func=cmd_segments, bound=None)
     return parser
 
 

@@ -239,6 +239,9 @@ def scene_to_msg(res: SceneResult, msg: Any, *, frame_id: str) -> Any:
     msg.check_rms_px = float(res.check_rms_px)
     msg.covariance = [float(v) for v in np.asarray(res.covariance).ravel()]
     msg.crab_angle = float(res.crab_angle) if np.isfinite(res.crab_angle) else 0.0
+    msg.segment_of = res.segment_of
+    msg.segment_first_line = int(res.segment_first_line)
+    msg.model_error_bound_px = float(res.model_error_bound_px)
     return msg
 
 

@@ -131,6 +131,22 @@ def evaluate_bag(
     return result
 
 
+def _observation(p: GroundPoint, params: Any) -> tuple[float, float] | None:
+    """A truth point's (line, sample) in a published scene, or None when not observed there.
+
+    A segment of a long scene (``segment_of`` set) counts its lines from
+    ``segment_first_line`` of the scene it was cut from; points outside its lines are left out.
+    """
+    sid = params.segment_of or params.scene_id
+    obs = p.observations.get(sid)
+    if obs is None:
+        return None
+    line = obs[0] - params.segment_first_line
+    if params.segment_of and not (-0.5 <= line <= params.lines - 0.5):
+        return None
+    return (line, obs[1])
+
+
 def _evaluate_pair(
     sp: Any,
     truth: list[GroundPoint],
@@ -153,11 +169,14 @@ def _evaluate_pair(
             "source": sp.y_parallax_source,
         },
     }
-    pts = [p for p in truth if lp.scene_id in p.observations and rp.scene_id in p.observations]
+    obs_l = [_observation(p, lp) for p in truth]
+    obs_r = [_observation(p, rp) for p in truth]
+    keep = [i for i in range(len(truth)) if obs_l[i] is not None and obs_r[i] is not None]
+    pts = [truth[i] for i in keep]
     if pts:
         xyz = np.array([p.xyz for p in pts])
-        ol = np.array([p.observations[lp.scene_id] for p in pts])
-        orr = np.array([p.observations[rp.scene_id] for p in pts])
+        ol = np.array([obs_l[i] for i in keep])
+        orr = np.array([obs_r[i] for i in keep])
         cl, rl = normalized_px(
             lp, sp.left_to_normalized, sp.left_x_origin, sp.y_origin, pix, ol[:, 0], ol[:, 1]
         )

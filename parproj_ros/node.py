@@ -135,6 +135,21 @@ PARAMS: tuple[Param, ...] = (
         "tie_threshold_px", 1.0, "RANSAC inlier threshold on the epipolar residual, px", 0.05, 50.0
     ),
     Param(
+        "segment_max_error_px",
+        1.0,
+        "model error bound of a long GCP/RPC scene, px: a pair whose parallel model misses its "
+        "points by more is cut along track into segment pairs (0 = never cut)",
+        0.0,
+        1000.0,
+    ),
+    Param(
+        "segment_overlap",
+        0.1,
+        "fraction of a segment's length by which it extends into its neighbours",
+        0.0,
+        0.5,
+    ),
+    Param(
         "streaming",
         True,
         "publish normalized column blocks while the scenes arrive (two views, scene_lines > 0, "
@@ -252,6 +267,8 @@ class ParprojNode(Node):
             streaming=bool(vals["streaming"]),
             tie_points=bool(vals["tie_points"]),
             tie_threshold_px=float(vals["tie_threshold_px"]),
+            segment_max_error_px=float(vals["segment_max_error_px"]),
+            segment_overlap=float(vals["segment_overlap"]),
         )
         self.pipeline = Pipeline(config)
         self.counts = {

@@ -38,6 +38,7 @@ from .geometry import (
     parameters_from_navigation,
 )
 from .geometry.navigation import virtual_points
+from .geometry.segmentation import SideCamera, segment_pair
 from .imaging.assembly import Scene, SceneAssembler, StripRejectedError
 from .imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
 from .streaming import BlockResult, SideStream, StreamPair, plan_blocks, render_block
@@ -104,6 +105,11 @@ class PipelineConfig:
             above which a scene's navigation is reported as inconsistent, metres.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
+        segment_max_error_px: model error bound of a long scene, pixels: a pair of GCP (or
+            RPC virtual GCP) scenes whose parallel model misses its points by more than this
+            is cut along track into segment pairs, each with its own parameters
+            (geometry/segmentation.py); 0 never cuts.
+        segment_overlap: each segment extends this fraction of its length into its neighbours.
     """
 
     views: tuple[ViewConfig, ...]
@@ -123,6 +129,8 @@ class PipelineConfig:
     tie_threshold_px: float = 1.0
     nav_jump_s: float = 10.0
     nav_position_tolerance_m: float = 5.0
+    segment_max_error_px: float = 1.0
+    segment_overlap: float = 0.1
 
     @property
     def single_camera(self) -> bool:
@@ -184,6 +192,9 @@ class SceneResult:
         check_rms_px: RMS check-point error, pixels (NaN without check points).
         covariance: 9x9 covariance of (A1..A8, psi) (zeros when not estimated).
         crab_angle: radians (NaN without navigation).
+        segment_of: for a segment of a long scene, the scene it was cut from ("" otherwise).
+        segment_first_line: the segment's line 0 is this line of ``segment_of``.
+        model_error_bound_px: the bound the segmentation worked to, pixels (0: not cut).
     """
 
     scene: Scene
@@ -203,6 +214,9 @@ class SceneResult:
     check_rms_px: float = float("nan")
     covariance: FloatArray = field(default_factory=lambda: np.zeros((9, 9)))
     crab_angle: float = float("nan")
+    segment_of: str = ""
+    segment_first_line: int = 0
+    model_error_bound_px: float = 0.0
 
     def geometry(self, to_normalized: FloatArray) -> SceneGeometry:
         """Resampling geometry of this scene for a given normalization affine."""
@@ -954,6 +968,7 @@ class Pipeline:
         gls: FloatArray,
         cxyz: FloatArray,
         cls: FloatArray,
+        reference: ParallelProjection | None = None,
     ) -> SceneResult:
         view = self.views[scene.view]
         cam = view.camera
@@ -982,9 +997,11 @@ class Pipeline:
             pixel_size=cam.pixel_size,
             psi=psi_in,
         )
+        if reference is None and nav is not None:
+            reference = nav.params
         inv = (
-            affine_to_nonlinear(est.affine, rule="reference", reference=nav.params)
-            if nav
+            affine_to_nonlinear(est.affine, rule="reference", reference=reference)
+            if reference is not None
             else affine_to_nonlinear(est.affine)
         )
         norms = est.residual_norms_px
@@ -1109,7 +1126,131 @@ class Pipeline:
             source,
         )
 
+    def _gcp_observed(self, scene: Scene, check: bool) -> tuple[list[str], FloatArray, FloatArray]:
+        """(ids, xyz, line/sample) of the GCP (or check points) observed in ``scene``."""
+        bad = set(self._bad_observations(scene))
+        ids = [
+            p.id
+            for p in self.gcp.values()
+            if p.check == check and scene.scene_id in p.observations and p.id not in bad
+        ]
+        xyz = np.array([self.gcp[i].xyz for i in ids]).reshape(-1, 3)
+        ls = np.array([self.gcp[i].observations[scene.scene_id] for i in ids]).reshape(-1, 2)
+        return ids, xyz, ls
+
+    def _segment(self, left: SceneResult, right: SceneResult) -> tuple[Outputs, bool]:
+        """Cut a GCP pair whose model error exceeds the bound into segment pairs.
+
+        Returns (outputs, cut): with ``cut`` the segments' scene results and pairs; otherwise
+        the whole scenes are to be paired, and the outputs hold an issue when cutting was tried
+        and did not help.
+        """
+        out = Outputs()
+        bound = self.config.segment_max_error_px
+        whole = max(left.residual_max_px, right.residual_max_px)
+        if (
+            bound <= 0
+            or whole <= bound
+            or not (left.method.startswith("gcp") and right.method.startswith("gcp"))
+            or left.scene.released
+            or right.scene.released
+        ):
+            return out, False
+        pair_id = f"pair {left.scene.scene_id}+{right.scene.scene_id}"
+        (idl, xl, ll), (idr, xr, lr) = (
+            self._gcp_observed(r.scene, check=False) for r in (left, right)
+        )
+        pos_r = {pid: k for k, pid in enumerate(idr)}
+        common = [(k, pos_r[pid]) for k, pid in enumerate(idl) if pid in pos_r]
+        ci = np.array(common, dtype=np.intp).reshape(-1, 2)
+
+        def side(r: SceneResult) -> SideCamera:
+            psi = None if r.method == "gcp_roll_estimated" else r.psi
+            return SideCamera(r.camera.principal_distance, r.camera.pixel_size, r.camera.pp, psi)
+
+        try:
+            seg = segment_pair(
+                xl,
+                ll,
+                xr,
+                lr,
+                (ci[:, 0], ci[:, 1]),
+                lines=(left.scene.lines, right.scene.lines),
+                cameras=(side(left), side(right)),
+                bound_px=bound,
+                overlap=self.config.segment_overlap,
+                min_points=max(2 * self.config.min_gcp, 10),
+            )
+        except GeometryError as err:
+            seg = None
+            why = str(err)
+        if seg is None or seg.count == 1:
+            why = seg.note if seg is not None else why
+            out.issues.append(
+                Issue(
+                    "warn",
+                    pair_id,
+                    f"model error {whole:.3f} px > bound {bound:g} px "
+                    f"(segment_max_error_px), but cutting the scenes does not help: {why}; "
+                    "the whole scenes are paired",
+                )
+            )
+            return out, False
+        out.issues.append(
+            Issue(
+                "ok" if seg.reached else "warn",
+                pair_id,
+                f"model error {seg.whole_error_px[0]:.3f} / {seg.whole_error_px[1]:.3f} px "
+                f"(left / right) > bound {bound:g} px: cut into {seg.count} segment pairs "
+                f"with {self.config.segment_overlap:.0%} overlap; largest segment error "
+                f"{seg.max_error_px:.3f} px, "
+                + ("bound met" if seg.reached else f"bound NOT met ({seg.note})"),
+            )
+        )
+        for k, (sl, sr) in enumerate(zip(seg.left, seg.right, strict=True)):
+            parts = []
+            for whole_res, fit in ((left, sl), (right, sr)):
+                sc = whole_res.scene
+                sub = replace(
+                    sc,
+                    scene_id=f"{sc.scene_id}.seg{k}",
+                    first_line_ns=sc.first_line_ns + round(fit.start * sc.line_period * 1e9),
+                    image=sc.image[fit.start : fit.stop],
+                    gaps=0,
+                )
+                for check in (False, True):
+                    ids, _, ls = self._gcp_observed(sc, check)
+                    for pid, (ln, smp) in zip(ids, ls, strict=True):
+                        if fit.start - 0.5 <= ln <= fit.stop - 0.5:
+                            self.gcp[pid].observations[sub.scene_id] = (ln - fit.start, smp)
+                gx, gl, cx, cl = self._gcp_for(sub)
+                try:
+                    res = self._from_gcp(sub, None, gx, gl, cx, cl, reference=whole_res.params)
+                except GeometryError as err:  # the segmentation fitted it: not expected
+                    out.issues.append(Issue("error", pair_id, f"segment {k}: {err}: skipped"))
+                    break
+                res = replace(
+                    res,
+                    model=None,  # the rigorous model counts lines of the whole scene
+                    segment_of=sc.scene_id,
+                    segment_first_line=fit.start,
+                    model_error_bound_px=bound,
+                    note=f"segment {k + 1} of {seg.count}, lines {fit.start}..{fit.stop - 1} "
+                    f"of {sc.scene_id}; {res.note}",
+                )
+                parts.append(res)
+            else:
+                out.scenes += parts
+                out.extend(self._make_whole_pair(parts[0], parts[1]))
+        return out, True
+
     def _make_pair(self, left: SceneResult, right: SceneResult) -> Outputs:
+        out, cut = self._segment(left, right)
+        if not cut:
+            out.extend(self._make_whole_pair(left, right))
+        return out
+
+    def _make_whole_pair(self, left: SceneResult, right: SceneResult) -> Outputs:
         out = Outputs()
         geo = self._pair_geometry(left, right, (left.scene.lines, right.scene.lines))
         if isinstance(geo, Issue):

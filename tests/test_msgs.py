@@ -93,6 +93,9 @@ EXPECTED_FIELDS: dict[type, dict[str, str]] = {
         "check_rms_px": "double",
         "covariance": "double[81]",
         "crab_angle": "double",
+        "segment_of": "string",
+        "segment_first_line": "uint32",
+        "model_error_bound_px": "double",
     },
     StereoPair: {
         "header": "std_msgs/Header",
@@ -216,6 +219,9 @@ def parallel_projection(scene_id: str, view: str, seed: int) -> ParallelProjecti
         check_rms_px=1.7,
         covariance=rng.normal(size=81),
         crab_angle=-2e-4,
+        segment_of="pan_scene_0000",
+        segment_first_line=12000,
+        model_error_bound_px=0.5,
     )
 
 
