@@ -222,3 +222,18 @@ def test_segments_command(capsys: pytest.CaptureFixture[str]) -> None:
     for r in res["runs"]:
         assert r["reached"] and r["max_error_px"] <= r["bound_px"]
         assert r["check_max_error_px"] <= 1.2 * r["bound_px"] and r["segments"] >= 2
+
+
+def test_evaluate_maps_truth_points_into_segments() -> None:
+    """`parproj evaluate` finds a truth point of the whole scene in the segment that holds it."""
+    from types import SimpleNamespace
+
+    from parproj_ros.evaluate import _observation
+
+    p = GroundPoint("t", np.zeros(3), True, {"L": (5100.0, 12.0)})
+    whole = SimpleNamespace(scene_id="L", segment_of="", segment_first_line=0, lines=9000)
+    seg1 = SimpleNamespace(scene_id="L.seg1", segment_of="L", segment_first_line=4000, lines=2000)
+    seg2 = SimpleNamespace(scene_id="L.seg2", segment_of="L", segment_first_line=5600, lines=2000)
+    assert _observation(p, whole) == (5100.0, 12.0)
+    assert _observation(p, seg1) == (1100.0, 12.0)
+    assert _observation(p, seg2) is None  # before the segment's first line
