@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -93,16 +93,21 @@ def _print_paper(r: dict[str, Any]) -> None:
             print(f"  {k:40s} {v['median']:9.3f} [{v['p05']:9.3f}, {v['p95']:9.3f}]")
 
 
+def _report(as_json: bool, result: dict[str, Any], show: Callable[[dict[str, Any]], None]) -> None:
+    """Print ``result`` as one JSON document, or for a person with ``show``."""
+    if as_json:
+        json.dump(result, sys.stdout, indent=1, default=float)
+        sys.stdout.write("\n")
+    else:
+        show(result)
+
+
 def cmd_paper(args: argparse.Namespace) -> int:
     """``parproj paper``: reproduce paper 1 section 5 and paper 2's checks."""
     from .paper import reproduce
 
     result = reproduce(n_sets=args.sets, seed=args.seed)
-    if args.json:
-        json.dump(result, sys.stdout, indent=1)
-        sys.stdout.write("\n")
-    else:
-        _print_paper(result)
+    _report(args.json, result, _print_paper)
     return 0 if result["tables23_vs_paper"]["all_match"] else 1
 
 
@@ -199,11 +204,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         plots=Path(args.plots) if args.plots else None,
         matching=not args.no_matching,
     )
-    if args.json:
-        json.dump(res, sys.stdout, indent=1, default=float)
-        sys.stdout.write("\n")
-    else:
-        _print_evaluation(res)
+    _report(args.json, res, _print_evaluation)
     return 0 if res["pair_count"] > 0 else 1
 
 
@@ -314,11 +315,7 @@ def cmd_ventoux_eval(args: argparse.Namespace) -> int:
         truth_bag=args.truth,
         pair_index=args.pair,
     )
-    if args.json:
-        json.dump(res, sys.stdout, indent=1, default=float)
-        sys.stdout.write("\n")
-    else:
-        print(format_table(res))
+    _report(args.json, res, lambda r: print(format_table(r)))
     return 0 if res["methods"]["ours"].get("n", 0) > 0 else 1
 
 
@@ -334,11 +331,7 @@ def cmd_segments(args: argparse.Namespace) -> int:
         bounds=tuple(args.bound or (1.0, 0.5, 0.3)),
         overlap=args.overlap,
     )
-    if args.json:
-        json.dump(res, sys.stdout, indent=1, default=float)
-        sys.stdout.write("\n")
-    else:
-        print(format_table(res))
+    _report(args.json, res, lambda r: print(format_table(r)))
     return 0 if all(r["reached"] for r in res["runs"]) else 1
 
 
