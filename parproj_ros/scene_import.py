@@ -86,6 +86,8 @@ START_NS = 1_375_699_339_000_000_000
 SCENE_GAP_S = 1.0
 #: GCP grid per image: (across = columns, along = rows, heights).
 GCP_GRID = (7, 7, 3)
+#: Most grid rows along a long image (the grids' rows grow with its length / width ratio).
+MAX_GRID_ROWS = 400
 #: Check-point grid per image (half a GCP step off the GCP grid).
 CHECK_GRID = (4, 4, 2)
 #: Truth points (random, seen in both images).
@@ -447,7 +449,10 @@ def virtual_points(
     for grid, check, shift in ((gcp_grid, False, 0.0), (check_grid, True, 0.5)):
         nx, ny, nz = grid
         for img in images:
-            gl, gs = _grid(img, nx, ny, shift if check else 0.0)
+            # A long image gets as many grid rows per sample of length as a square one, so that
+            # each segment of a long scene keeps enough points (up to MAX_GRID_ROWS rows).
+            rows = min(max(ny, round(ny * img.lines / max(img.samples, 1))), MAX_GRID_ROWS)
+            gl, gs = _grid(img, nx, rows, shift if check else 0.0)
             for dz in levels(nz):
                 geo = _ground(img, gl, gs, heights, np.full(gl.shape, dz))
                 # a point from the other image's grid that also falls here keeps both observations

@@ -237,3 +237,43 @@ def test_evaluate_maps_truth_points_into_segments() -> None:
     assert _observation(p, whole) == (5100.0, 12.0)
     assert _observation(p, seg1) == (1100.0, 12.0)
     assert _observation(p, seg2) is None  # before the segment's first line
+
+
+def test_long_geotiff_pair_import_process_evaluate(ventoux: dict, tmp_path: Path) -> None:
+    """The user's path on a long pair: GeoTIFFs with the RPC tag -> import -> process -> evaluate.
+
+    The strips' RPCs in tag 50844, smooth synthetic pixels (only geometry is judged), virtual GCP
+    from `parproj import` (grid rows grow with the image length), segments cut by `process`
+    under 0.5 px, truth points (random, in no fit) through the published transforms.
+    """
+    from parproj_ros.evaluate import evaluate_bag
+    from parproj_ros.offline import process_bag
+    from parproj_ros.scene_import import import_pair
+
+    strip = ventoux["strip"]
+    for name, model, n in (("L", strip.left, strip.lines[0]), ("R", strip.right, strip.lines[1])):
+        yy, xx = np.mgrid[0:n, 0:WIDTH]
+        img = ((np.sin(yy / 37.0) + np.cos(xx / 23.0)) * 60 + 128).astype(np.uint8)
+        rpc.write_geotiff_rpc(tmp_path / f"{name}.tif", model, img)
+    import_pair(
+        tmp_path / "L.tif", tmp_path / "R.tif", tmp_path / "bag", heights=HEIGHTS,
+        offsets=((0.0, 0.0), (0.0, 0.0)), log=lambda s: None,
+    )  # fmt: skip
+    summary = process_bag(
+        tmp_path / "bag",
+        tmp_path / "out",
+        progress=False,
+        overrides={"tie_points": False, "segment_max_error_px": 0.5},
+    )
+    (cut,) = [i for i in summary.issues if "cut into" in i.message]
+    assert "bound met" in cut.message, cut.message
+    assert summary.pairs >= 2 and summary.scenes == 2 + 2 * summary.pairs
+    res = evaluate_bag(tmp_path / "out", tmp_path / "bag", matching=False)
+    assert res["pair_count"] == summary.pairs
+    seen = 0
+    for p in res["pairs"]:
+        geo = p["geometric"]
+        assert geo["points"] >= 10, p["pair_id"]
+        assert geo["y_parallax_px"]["max_abs"] <= 2 * 0.5 * 1.05, p["pair_id"]
+        seen += geo["points"]
+    assert seen >= 300  # every truth point is in some segment pair (overlaps count twice)
