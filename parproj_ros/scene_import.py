@@ -28,8 +28,10 @@ the frame is exactly described by the GroundControlPoints ``header.frame_id``, e
 
 Virtual points (all exact RPC correspondences, projections of one geodetic point):
 
-* GCP: a regular grid (:data:`GCP_GRID`) over each image, localized at the ground height (DEM) and
-  ``dem_margin`` above and below it (or at evenly spaced heights without a DEM); each point is
+* GCP: a regular grid (:data:`GCP_GRID`; a long image gets proportionally more rows, up to
+  :data:`MAX_GRID_ROWS`, for the segments of a long scene) over each image, localized at the
+  ground height (DEM) and ``dem_margin`` above and below it (or at evenly spaced heights
+  without a DEM); each point is
   observed in every scene that sees it (inside the crop), so each scene's fit covers the whole
   scene, and points inside both crops also give the pair's y-parallax;
 * check points: a sparser grid (:data:`CHECK_GRID`) half a step off the GCP grid, flagged
