@@ -149,6 +149,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         "scene_lines": args.scene_lines,
         "streaming": not args.no_streaming,
         "tie_points": not args.no_tie_points,
+        "segment_max_error_px": args.segment_max_error,
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
@@ -383,6 +384,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--no-streaming",
         action="store_true",
         help="whole images after both scenes, never column blocks",
+    )
+    p.add_argument(
+        "--segment-max-error",
+        type=float,
+        default=1.0,
+        metavar="PX",
+        help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_process)
