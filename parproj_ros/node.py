@@ -103,7 +103,8 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "scene_timeout",
         2.0,
-        "close the open scenes when no strip arrived for this long, s (wall clock); 0 = never",
+        "close the open scenes when no strip arrived for this long, s (wall clock), once the "
+        "navigation has moved past them (or without navigation); 0 = never",
         0.0,
         3600.0,
     ),
@@ -372,7 +373,7 @@ class ParprojNode(Node):
                 elif kind == "gcp":
                     out = self.pipeline.add_gcp(payload)
                 elif kind == "close":
-                    out = self.pipeline.close_scenes()
+                    out = self.pipeline.close_idle_scenes()
                 else:
                     out = self.pipeline.flush()
                 self._publish(out)

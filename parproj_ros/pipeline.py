@@ -424,6 +424,29 @@ class Pipeline:
                 out.extend(self._scene_closed(scene))
         return out
 
+    def close_idle_scenes(self) -> Outputs:
+        """Close the open scenes whose strips stopped coming (the node's ``scene_timeout``).
+
+        Only a scene that the navigation has moved past, by more than ``max_gap_lines`` lines
+        after its last line, is closed: the strips stopped while the platform went on (the end
+        of a pass). When the navigation stopped with the strips (a publisher restarting, the
+        network or a replay paused), the scene is kept open, since its strips may resume where
+        they stopped. Without navigation at all, every open scene is closed.
+        """
+        out = Outputs()
+        newest = self.nav.last_ns
+        for name, asm in self.assemblers.items():
+            opened = asm.open_scene()
+            if opened is None:
+                continue
+            period_ns = self.views[name].camera.line_period * 1e9
+            after_last = opened[2] + opened[3] * period_ns
+            if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
+                continue
+            for scene in asm.flush():
+                out.extend(self._scene_closed(scene))
+        return out
+
     # ---- streaming ----------------------------------------------------------------------
     @property
     def _can_stream(self) -> bool:

@@ -271,6 +271,40 @@ def test_navigation_starting_after_the_first_line() -> None:
     assert errors[0].startswith("left/left_scene_0000: navigation starts after the scene's first")
 
 
+def test_idle_scene_closed_only_once_navigation_moves_past() -> None:
+    """close_idle_scenes (the node's scene_timeout) closes a scene whose strips stopped only
+    when the navigation went on past its last line."""
+    scn = SCENARIOS["airborne_foreaft"]()
+    images = render(scn, np.uint8)
+    events = nav_events(scn) + strip_events(scn, images)
+    cut = strip_events(scn, images)[5][0]  # the 6th strip of the left scene (384 lines in)
+    # Every input stopped at once (a publisher restarting, a replay paused): the scene stays
+    # open, and the strips that resume continue it, as if nothing had happened.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    out = feed(pipe, [e for e in events if e[0] <= cut], flush=False)
+    assert pipe.close_idle_scenes().scenes == [] and pipe.has_open_scene
+    out.extend(feed(pipe, [e for e in events if e[0] > cut]))
+    clean = run(scn, images)[1]
+    assert out.issues == []
+    assert [(s.scene.scene_id, s.scene.lines) for s in out.scenes] == [
+        (s.scene.scene_id, s.scene.lines) for s in clean.scenes
+    ]
+    assert len(out.pairs) == 1
+    np.testing.assert_array_equal(out.pairs[0].left_image, clean.pairs[0].left_image)
+    # Only the strips stopped while the navigation went on (1 s): the scene is over.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    on = [e for e in events if e[0] <= cut or (e[1] == 0 and e[0] <= cut + 10**9)]
+    feed(pipe, on, flush=False)
+    closed = pipe.close_idle_scenes()
+    assert not pipe.has_open_scene
+    assert [(s.scene.scene_id, s.scene.lines) for s in closed.scenes] == [("left_scene_0000", 384)]
+    # Without navigation at all, nothing tells: the scene is closed (and waits for navigation).
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    feed(pipe, [e for e in events if e[1] == 1 and e[0] <= cut], flush=False)
+    pipe.close_idle_scenes()
+    assert not pipe.has_open_scene
+
+
 # ---- scenes and pairs ---------------------------------------------------------------------------
 
 
