@@ -104,6 +104,12 @@ class PipelineConfig:
             above which a scene's navigation is reported as inconsistent, metres.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
+        start_margin_s: strips carry no line number, so a view's first scene is only known to
+            begin at its first strip when navigation was received from at least this long
+            before that strip (the pipeline was listening before the scene began); otherwise it
+            may be the rest of a scene already under way (a node started or restarted
+            mid-scene) and it is skipped. Without any navigation this cannot be told and the
+            scene is taken as whole. Seconds.
     """
 
     views: tuple[ViewConfig, ...]
@@ -123,6 +129,7 @@ class PipelineConfig:
     tie_threshold_px: float = 1.0
     nav_jump_s: float = 10.0
     nav_position_tolerance_m: float = 5.0
+    start_margin_s: float = 0.5
 
     @property
     def single_camera(self) -> bool:
@@ -306,6 +313,7 @@ class Pipeline:
         self.pairs_done = 0
         self._streams: dict[int, StreamPair] = {}
         self._nav_pending: NavSample | None = None
+        self._nav_first_ns: int | None = None  # earliest navigation stamp accepted
         self._no_stream: set[int] = set()
 
     # ---- inputs -------------------------------------------------------------------------
@@ -322,7 +330,7 @@ class Pipeline:
         if self._nav_pending is not None:
             pending, self._nav_pending = self._nav_pending, None
             if abs(sample.t_ns - pending.t_ns) <= jump:
-                self.nav.add(pending)  # the jump is confirmed by this sample
+                self._add_nav(pending)  # the jump is confirmed by this sample
             else:
                 out.issues.append(
                     Issue(
@@ -350,7 +358,7 @@ class Pipeline:
                 )
             )
             return out
-        self.nav.add(sample)
+        self._add_nav(sample)
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
@@ -360,6 +368,11 @@ class Pipeline:
                 still.append(scene)
         self._waiting_nav = still
         return out
+
+    def _add_nav(self, sample: NavSample) -> None:
+        self.nav.add(sample)
+        if self._nav_first_ns is None or sample.t_ns < self._nav_first_ns:
+            self._nav_first_ns = sample.t_ns
 
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
         """Add or replace ground control points (by id)."""
@@ -480,6 +493,14 @@ class Pipeline:
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
             if len(parts) < 2:
+                continue
+            if k == 0 and any(
+                not isinstance(part, SceneResult) and not self._start_seen(part[2])
+                for _, part in parts
+            ):
+                # Perhaps the rest of a scene under way when the pipeline started: it will be
+                # skipped when complete (_start_unseen), not streamed.
+                self._no_stream.add(k)
                 continue
             # Time of the line after the last one received, per open scene.
             ends = {o[0]: o[2] + o[3] * self._period(o) for o in opened.values() if o is not None}
@@ -860,9 +881,42 @@ class Pipeline:
             np.array(ci).reshape(-1, 2),
         )
 
+    def _start_seen(self, first_line_ns: int) -> bool:
+        """Whether navigation arrived from ``start_margin_s`` before ``first_line_ns``.
+
+        Also True without any navigation: it cannot be told then.
+        """
+        if self._nav_first_ns is None:
+            return True
+        return first_line_ns - self._nav_first_ns >= self.config.start_margin_s * 1e9
+
+    def _start_unseen(self, scene: Scene) -> Issue | None:
+        """An ERROR when ``scene`` may have begun before the pipeline was listening.
+
+        Only a view's first scene can (``start_margin_s``). Its line numbers (to which GCP
+        observations refer) and its place in the pairs would be guesses: it is not processed.
+        """
+        if scene.index > 0 or self._start_seen(scene.first_line_ns):
+            return None
+        lead = (scene.first_line_ns - (self._nav_first_ns or 0)) / 1e9
+        when = f"{lead:.3f} s before" if lead >= 0 else f"{-lead:.3f} s after"
+        return Issue(
+            "error",
+            f"{scene.view}/{scene.scene_id}",
+            f"first scene received on view {scene.view} ({scene.lines} lines), and navigation "
+            f"starts only {when} its first line (less than {self.config.start_margin_s} s "
+            "before): the node may have started, or restarted, while this scene was under "
+            "way, so its beginning, its line numbers (GCP observations) and its pair are "
+            "unknown: scene skipped",
+        )
+
     def _process_scene(self, scene: Scene) -> Outputs:
         out = Outputs()
         where = f"{scene.view}/{scene.scene_id}"
+        unseen = self._start_unseen(scene)
+        if unseen is not None:
+            out.issues.append(unseen)
+            return out
         view = self.views[scene.view]
         cam = view.camera
         nav_result = None

@@ -305,6 +305,34 @@ def test_idle_scene_closed_only_once_navigation_moves_past() -> None:
     assert not pipe.has_open_scene
 
 
+def test_first_scene_begun_before_the_pipeline_is_skipped() -> None:
+    """A pipeline (a node) started in the middle of a scene: strips carry no line number, so
+    the 384 lines it gets of pan_scene_0000 would be taken as a whole scene, and its GCP, whose
+    lines count from the scene's real first line, put 384 lines off. The navigation, which
+    starts with them instead of before, gives it away: that scene is skipped; the next one (its
+    start seen) is processed, and the pair is lost with the first half."""
+    scn, pts = _ikonos_gcp(hills, 12, 0)
+    images = render(scn, np.uint16)
+    events = nav_events(scn) + strip_events(scn, images)
+    start = strip_events(scn, images)[6][0]  # the 7th strip: line 384 of pan_scene_0000
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    out = feed(pipe, [e for e in events if e[0] >= start])
+    (error,) = messages(out, "error")
+    assert error.startswith("pan/pan_scene_0000: first scene received on view pan (384 lines)")
+    assert error.endswith("scene skipped")
+    assert [(s.scene.scene_id, s.method) for s in out.scenes] == [
+        ("pan_scene_0001", "gcp_roll_estimated")
+    ]
+    assert out.pairs == []
+    # Started 0.5 s before the scene (start_margin_s): all as usual.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    t0 = strip_events(scn, images)[0][0]
+    out = feed(pipe, [e for e in events if e[0] >= t0 - 500_000_000])
+    assert out.issues == [] and len(out.scenes) == 2 and len(out.pairs) == 1
+
+
 # ---- scenes and pairs ---------------------------------------------------------------------------
 
 
