@@ -423,11 +423,26 @@ class Pipeline:
             out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
             return out
         for scene in scenes:
+            if scene.reason == "gap":
+                out.issues.append(self._split(scene, stamp_ns))
             out.extend(self._scene_closed(scene))
         if self._can_stream:
             out.extend(self._stream_start())
             out.extend(self._stream_advance(view))
         return out
+
+    def _split(self, scene: Scene, next_ns: int) -> Issue:
+        """The WARN for a scene ended by a jump of more than ``max_gap_lines`` lines."""
+        jump = round((next_ns - scene.first_line_ns) / (scene.line_period * 1e9)) - scene.lines
+        opened = self.assemblers[scene.view].open_scene()
+        rest = f" ({opened[0]})" if opened is not None else ""
+        return Issue(
+            "warn",
+            f"{scene.view}/{scene.scene_id}",
+            f"{jump} lines missing after line {scene.lines - 1} (more than max_gap_lines, "
+            f"{self.config.max_gap_lines}): scene split; it ends there, with {scene.lines} "
+            f"lines, and the strips after the hole make a new scene{rest}",
+        )
 
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""
@@ -1019,7 +1034,23 @@ class Pipeline:
             )
             return out
         out.scenes.append(result)
-        self._ready[scene.view][scene.index] = result
+        if not self.config.single_camera:
+            self._ready[scene.view][scene.index] = result
+        elif scene.part == 0:
+            # Single camera: pairs are acquisitions 2k and 2k+1 (a look forward, then back),
+            # whatever parts a gap or scene_lines cut them into; each is paired by its first
+            # part, so that one split does not shift every later pair.
+            self._ready[scene.view][scene.acquisition] = result
+        else:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    where,
+                    f"part {scene.part} of an acquisition that was split: its parameters are "
+                    "published, but single-camera pairs are made of the first parts of two "
+                    "acquisitions: not paired",
+                )
+            )
         out.extend(self._try_pairs())
         return out
 

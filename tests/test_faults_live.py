@@ -349,7 +349,7 @@ def same_pair(live: dict[str, list[Any]], ref: dict[str, list[Any]], case: str) 
         by_scene(live["parallel_projection"], case),
         by_scene(ref["parallel_projection"], case),
     )
-    assert sorted(got) == sorted(want) == [f"{case}_{s}" for s in SCENES], sorted(got)
+    assert sorted(got) == sorted(want), (sorted(got), sorted(want))
     for sid, (r,) in want.items():
         assert len(got[sid]) == 1, f"{sid} published {len(got[sid])} times"
         same_scene(got[sid][0], r)
@@ -394,14 +394,16 @@ def restart(sources: dict[str, Source], topic: str, last_publish: float) -> floa
 #: Strips of the first scene lost in the best-effort case (positions in the scene, 0..11): two
 #: single strips, so that each hole (64 lines) is within max_gap_lines and is filled.
 LOST_STRIPS = (3, 8)
+#: Two strips in a row lost (128 lines, more than max_gap_lines): the scene is split.
+LOST_IN_A_ROW = (4, 5)
 #: Navigation lost around the first scene: every sample from 0.1 s before its first strip to
 #: 0.1 s after its last strip's first line (6 samples at 20 Hz: a hole of 0.35 s).
 LOST_NAV_MARGIN_S = 0.1
 
 
-def lose_strips(msgs: Sequence[Msg]) -> list[Msg]:
-    """The first scene without its strips LOST_STRIPS."""
-    lost = {strips(msgs, SCENES[0])[k] for k in LOST_STRIPS}
+def lose_strips(msgs: Sequence[Msg], which: Iterable[int] = LOST_STRIPS) -> list[Msg]:
+    """The first scene without the strips ``which`` (positions in the scene)."""
+    lost = {strips(msgs, SCENES[0])[k] for k in which}
     return [m for i, m in enumerate(msgs) if i not in lost]
 
 
@@ -417,7 +419,7 @@ def lose_navigation(msgs: Sequence[Msg]) -> list[Msg]:
     ]
 
 
-PUBLISHER_CASES = ("navrestart", "striprestart", "striploss", "navloss")
+PUBLISHER_CASES = ("navrestart", "striprestart", "striploss", "stripsplit", "navloss")
 
 
 @pytest.fixture(scope="module")
@@ -429,9 +431,10 @@ def publisher_faults(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[
     cases = {case: copy_of(base, case, k) for k, case in enumerate(PUBLISHER_CASES, start=1)}
     sent_msgs = dict(cases)
     sent_msgs["striploss"] = lose_strips(cases["striploss"])
+    sent_msgs["stripsplit"] = lose_strips(cases["stripsplit"], LOST_IN_A_ROW)
     sent_msgs["navloss"] = lose_navigation(cases["navloss"])
     clean = {c: offline(m, tmp / f"clean_{c}") for c, m in cases.items()}
-    ref = {c: offline(sent_msgs[c], tmp / f"sent_{c}") for c in ("striploss", "navloss")}
+    ref = {c: offline(sent_msgs[c], tmp / f"sent_{c}") for c in PUBLISHER_CASES[2:]}
 
     pfile, env = node_session(tmp, "params", reliable=[])  # the node's default: best effort
     proc = NodeProcess(pfile, env, tmp / "node.log")
@@ -567,6 +570,34 @@ def test_strips_lost_under_best_effort(publisher_faults: dict[str, Any]) -> None
     assert np.all(got[1][lost] == 0), "lost lines not no-data"
     assert np.count_nonzero(clean[1][lost]) > 0.99 * lost.sum()  # they held data before
     np.testing.assert_array_equal(got[1][kept], clean[1][kept])
+
+
+def test_strips_lost_in_a_row_split_the_scene(publisher_faults: dict[str, Any]) -> None:
+    """Strips 4 and 5 of the first scene lost: 128 lines, more than max_gap_lines (64), so the
+    scene is split, with a WARN naming it and the 128 lines. Its first part (256 lines) is
+    paired with the other scene, whose parameters are unchanged; the second part is published
+    and flagged as not paired (before: the two parts were paired with each other, and the
+    other scene was left without a pair, silently). All as the offline run of the messages."""
+    r, case = publisher_faults, "stripsplit"
+    first, second = f"{case}_{SCENES[0]}", f"{case}_{SCENES[1]}"
+    sts = [s for s in about(r["statuses"], case) if not s.name.startswith("parproj_node: gcp ")]
+    assert [(s.name, level(s)) for s in sts] == [
+        (f"parproj_node: pan/{first}", WARN),
+        (f"parproj_node: pan/{first}#1", WARN),
+    ], show(sts)
+    assert (
+        sts[0].message.startswith("128 lines missing after line 255") and "split" in sts[0].message
+    )
+    assert "not paired" in sts[1].message
+    same_pair(r["live"], r["ref"][case]["messages"], case)
+    live_p = by_scene(r["live"]["parallel_projection"], case)
+    assert {sid: m[0].lines for sid, m in live_p.items()} == {
+        first: 256,
+        f"{first}#1": 384,
+        second: 768,
+    }
+    clean_p = by_scene(r["clean"][case]["messages"]["parallel_projection"], case)
+    same_scene(live_p[second][0], clean_p[second][0])
 
 
 def test_navigation_lost_under_best_effort(publisher_faults: dict[str, Any]) -> None:

@@ -368,6 +368,45 @@ def test_split_scenes_get_distinct_scene_ids() -> None:
     assert len({p.pair_id for p in out.pairs}) == 3
 
 
+def test_split_acquisition_in_single_camera_mode() -> None:
+    """Two strips in a row lost (128 lines > max_gap_lines) in the forward look: the scene is
+    split, and says so; its first part is paired with the backward look (pairs are
+    acquisitions 2k, 2k+1, not parts, so one split does not shift the pairing); the second
+    part gets parameters and a WARN that it is not paired; the backward look is unchanged."""
+    scn, pts = _ikonos_gcp(hills, 12, 0)
+    images = render(scn, np.uint16)
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    out = feed(pipe, nav_events(scn) + strip_events(scn, images, skip=[(0, 256), (0, 320)]))
+    assert messages(out, "error") == []
+    warns = messages(out, "warn")
+    # GCP observed beyond the first part's 256 lines (plus a margin) are left out of it.
+    gcp = [w for w in warns if w.startswith("gcp ")]
+    assert gcp and all("is not in the scene (256 x 768): ignored" in w for w in gcp)
+    assert [w for w in warns if not w.startswith("gcp ")] == [
+        "pan/pan_scene_0000: 128 lines missing after line 255 (more than max_gap_lines, 64): "
+        "scene split; it ends there, with 256 lines, and the strips after the hole make a new "
+        "scene (pan_scene_0000#1)",
+        "pan/pan_scene_0000#1: part 1 of an acquisition that was split: its parameters are "
+        "published, but single-camera pairs are made of the first parts of two acquisitions: "
+        "not paired",
+    ]
+    got = {s.scene.scene_id: s for s in out.scenes}
+    assert [(sid, s.scene.lines) for sid, s in got.items()] == [
+        ("pan_scene_0000", 256),
+        ("pan_scene_0000#1", 384),
+        ("pan_scene_0001", 768),
+    ]
+    (pair,) = out.pairs
+    assert pair.pair_id == "pan_scene_0000+pan_scene_0001"
+    assert pair.y_parallax_stats[2] < 0.01
+    clean = Pipeline(scn.pipeline_config(tie_points=False))
+    clean.add_gcp(pts)
+    ref = feed(clean, nav_events(scn) + strip_events(scn, images)).scenes[1]
+    assert ref.scene.scene_id == "pan_scene_0001"
+    np.testing.assert_array_equal(got["pan_scene_0001"].affine.array, ref.affine.array)
+
+
 def _predicted_line(res: SceneResult, xyz: np.ndarray) -> np.ndarray:
     """Line of object points in a scene, by the scene's parameters (affine, PTP, frame)."""
     xy = res.affine.project(xyz)
