@@ -333,6 +333,25 @@ def test_first_scene_begun_before_the_pipeline_is_skipped() -> None:
     assert out.issues == [] and len(out.scenes) == 2 and len(out.pairs) == 1
 
 
+def test_scenes_begun_before_the_pipeline_are_not_streamed() -> None:
+    """Fore/aft cameras imaging at the same time, a pipeline started 0.2 s before their scenes
+    (navigation from then on): both first scenes may be the rest of scenes under way, so no
+    stream is started for them (none would be completed) and both are skipped."""
+    scn = SCENARIOS["airborne_foreaft"]()
+    left, right = scn.scenes
+    scn = dataclasses.replace(
+        scn, scenes=(left, dataclasses.replace(right, start_s=left.start_s + 0.1))
+    )
+    t0 = scn.time_ns(left.start_s) - 200_000_000
+    events = nav_events(scn) + strip_events(scn, render(scn, np.uint8))
+    pipe = Pipeline(scn.pipeline_config(tie_points=False, scene_lines=768))
+    out = feed(pipe, [e for e in events if e[0] >= t0])
+    assert out.blocks == [] and out.scenes == [] and out.pairs == []
+    errors = [(i.where, i.message) for i in out.issues if i.level != "ok"]
+    assert [w for w, _ in errors] == ["left/left_scene_0000", "right/right_scene_0001"], errors
+    assert all("first scene received" in m and m.endswith("scene skipped") for _, m in errors)
+
+
 # ---- scenes and pairs ---------------------------------------------------------------------------
 
 
