@@ -103,7 +103,8 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "scene_timeout",
         2.0,
-        "close the open scenes when no strip arrived for this long, s (wall clock); 0 = never",
+        "close the open scenes when no strip arrived for this long, s (wall clock), once the "
+        "navigation has moved past them (or without navigation); 0 = never",
         0.0,
         3600.0,
     ),
@@ -389,9 +390,10 @@ class ParprojNode(Node):
                 elif kind == "gcp":
                     out = self.pipeline.add_gcp(payload)
                 elif kind == "close":
-                    out = self.pipeline.close_scenes()
+                    out = self.pipeline.close_idle_scenes()
                 else:
-                    out = self.pipeline.flush()
+                    out = Outputs(issues=self._open_at_stop())
+                    out.extend(self.pipeline.flush())
                 self._publish(out)
             except Exception as err:
                 self._report(
@@ -405,6 +407,22 @@ class ParprojNode(Node):
                 )
             finally:
                 self._queue.task_done()
+
+    def _open_at_stop(self) -> list[Issue]:
+        """A WARN per scene still open when the node stops: the flush publishes it as it is."""
+        issues = []
+        for view, asm in self.pipeline.assemblers.items():
+            opened = asm.open_scene()
+            if opened is not None:
+                issues.append(
+                    Issue(
+                        "warn",
+                        f"{view}/{opened[0]}",
+                        f"node stopping with this scene open ({opened[3]} lines received): it "
+                        "is closed and processed as it is; lines still to come are not in it",
+                    )
+                )
+        return issues
 
     def _check_idle(self) -> None:
         idle = time.monotonic() - self._last_strip
@@ -472,6 +490,26 @@ class ParprojNode(Node):
         )
         self.pub_diag.publish(arr)
 
+    def wait_delivered(self, timeout_s: float) -> bool:
+        """Wait until every subscriber has acknowledged what was published (``timeout_s`` in all).
+
+        So that the outputs of the flush at shutdown are not lost when the process exits; says
+        which topic was not acknowledged.
+        """
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout_s
+        done = True
+        for pub in [*self.pubs.values(), self.pub_diag]:
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                done = False
+                self.get_logger().warning(
+                    f"{pub.topic_name}: not acknowledged by every subscriber within "
+                    f"{timeout_s} s of stopping"
+                )
+        return done
+
     def stop(self) -> None:
         """Stop the worker thread (after the queue drains)."""
         self._queue.put(None)
@@ -498,8 +536,7 @@ def main(args: list[str] | None = None) -> int:
             executor.spin_once(timeout_sec=0.1)
         node.get_logger().info("stopping: flushing open scenes")
         node.flush()
-        for _ in range(20):
-            executor.spin_once(timeout_sec=0.05)
+        node.wait_delivered(5.0)
     finally:
         node.stop()
         executor.shutdown()

@@ -110,6 +110,12 @@ class PipelineConfig:
             is cut along track into segment pairs, each with its own parameters
             (geometry/segmentation.py); 0 never cuts.
         segment_overlap: each segment extends this fraction of its length into its neighbours.
+        start_margin_s: strips carry no line number, so a view's first scene is only known to
+            begin at its first strip when navigation was received from at least this long
+            before that strip (the pipeline was listening before the scene began); otherwise it
+            may be the rest of a scene already under way (a node started or restarted
+            mid-scene) and it is skipped. Without any navigation this cannot be told and the
+            scene is taken as whole. Seconds.
     """
 
     views: tuple[ViewConfig, ...]
@@ -131,6 +137,7 @@ class PipelineConfig:
     nav_position_tolerance_m: float = 5.0
     segment_max_error_px: float = 1.0
     segment_overlap: float = 0.1
+    start_margin_s: float = 0.5
 
     @property
     def single_camera(self) -> bool:
@@ -320,6 +327,7 @@ class Pipeline:
         self.pairs_done = 0
         self._streams: dict[int, StreamPair] = {}
         self._nav_pending: NavSample | None = None
+        self._nav_first_ns: int | None = None  # earliest navigation stamp accepted
         self._no_stream: set[int] = set()
 
     # ---- inputs -------------------------------------------------------------------------
@@ -336,7 +344,7 @@ class Pipeline:
         if self._nav_pending is not None:
             pending, self._nav_pending = self._nav_pending, None
             if abs(sample.t_ns - pending.t_ns) <= jump:
-                self.nav.add(pending)  # the jump is confirmed by this sample
+                self._add_nav(pending)  # the jump is confirmed by this sample
             else:
                 out.issues.append(
                     Issue(
@@ -364,7 +372,7 @@ class Pipeline:
                 )
             )
             return out
-        self.nav.add(sample)
+        self._add_nav(sample)
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
@@ -374,6 +382,11 @@ class Pipeline:
                 still.append(scene)
         self._waiting_nav = still
         return out
+
+    def _add_nav(self, sample: NavSample) -> None:
+        self.nav.add(sample)
+        if self._nav_first_ns is None or sample.t_ns < self._nav_first_ns:
+            self._nav_first_ns = sample.t_ns
 
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
         """Add or replace ground control points (by id)."""
@@ -424,16 +437,54 @@ class Pipeline:
             out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
             return out
         for scene in scenes:
+            if scene.reason == "gap":
+                out.issues.append(self._split(scene, stamp_ns))
             out.extend(self._scene_closed(scene))
         if self._can_stream:
             out.extend(self._stream_start())
             out.extend(self._stream_advance(view))
         return out
 
+    def _split(self, scene: Scene, next_ns: int) -> Issue:
+        """The WARN for a scene ended by a jump of more than ``max_gap_lines`` lines."""
+        jump = round((next_ns - scene.first_line_ns) / (scene.line_period * 1e9)) - scene.lines
+        opened = self.assemblers[scene.view].open_scene()
+        rest = f" ({opened[0]})" if opened is not None else ""
+        return Issue(
+            "warn",
+            f"{scene.view}/{scene.scene_id}",
+            f"{jump} lines missing after line {scene.lines - 1} (more than max_gap_lines, "
+            f"{self.config.max_gap_lines}): scene split; it ends there, with {scene.lines} "
+            f"lines, and the strips after the hole make a new scene{rest}",
+        )
+
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""
         out = Outputs()
         for asm in self.assemblers.values():
+            for scene in asm.flush():
+                out.extend(self._scene_closed(scene))
+        return out
+
+    def close_idle_scenes(self) -> Outputs:
+        """Close the open scenes whose strips stopped coming (the node's ``scene_timeout``).
+
+        Only a scene that the navigation has moved past, by more than ``max_gap_lines`` lines
+        after its last line, is closed: the strips stopped while the platform went on (the end
+        of a pass). When the navigation stopped with the strips (a publisher restarting, the
+        network or a replay paused), the scene is kept open, since its strips may resume where
+        they stopped. Without navigation at all, every open scene is closed.
+        """
+        out = Outputs()
+        newest = self.nav.last_ns
+        for name, asm in self.assemblers.items():
+            opened = asm.open_scene()
+            if opened is None:
+                continue
+            period_ns = self.views[name].camera.line_period * 1e9
+            after_last = opened[2] + opened[3] * period_ns
+            if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
+                continue
             for scene in asm.flush():
                 out.extend(self._scene_closed(scene))
         return out
@@ -471,6 +522,14 @@ class Pipeline:
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
             if len(parts) < 2:
+                continue
+            if k == 0 and any(
+                not isinstance(part, SceneResult) and not self._start_seen(part[2])
+                for _, part in parts
+            ):
+                # Perhaps the rest of a scene under way when the pipeline started: it will be
+                # skipped when complete (_start_unseen), not streamed.
+                self._no_stream.add(k)
                 continue
             # Time of the line after the last one received, per open scene.
             ends = {o[0]: o[2] + o[3] * self._period(o) for o in opened.values() if o is not None}
@@ -851,9 +910,42 @@ class Pipeline:
             np.array(ci).reshape(-1, 2),
         )
 
+    def _start_seen(self, first_line_ns: int) -> bool:
+        """Whether navigation arrived from ``start_margin_s`` before ``first_line_ns``.
+
+        Also True without any navigation: it cannot be told then.
+        """
+        if self._nav_first_ns is None:
+            return True
+        return first_line_ns - self._nav_first_ns >= self.config.start_margin_s * 1e9
+
+    def _start_unseen(self, scene: Scene) -> Issue | None:
+        """An ERROR when ``scene`` may have begun before the pipeline was listening.
+
+        Only a view's first scene can (``start_margin_s``). Its line numbers (to which GCP
+        observations refer) and its place in the pairs would be guesses: it is not processed.
+        """
+        if scene.index > 0 or self._start_seen(scene.first_line_ns):
+            return None
+        lead = (scene.first_line_ns - (self._nav_first_ns or 0)) / 1e9
+        when = f"{lead:.3f} s before" if lead >= 0 else f"{-lead:.3f} s after"
+        return Issue(
+            "error",
+            f"{scene.view}/{scene.scene_id}",
+            f"first scene received on view {scene.view} ({scene.lines} lines), and navigation "
+            f"starts only {when} its first line (less than {self.config.start_margin_s} s "
+            "before): the node may have started, or restarted, while this scene was under "
+            "way, so its beginning, its line numbers (GCP observations) and its pair are "
+            "unknown: scene skipped",
+        )
+
     def _process_scene(self, scene: Scene) -> Outputs:
         out = Outputs()
         where = f"{scene.view}/{scene.scene_id}"
+        unseen = self._start_unseen(scene)
+        if unseen is not None:
+            out.issues.append(unseen)
+            return out
         view = self.views[scene.view]
         cam = view.camera
         nav_result = None
@@ -956,7 +1048,23 @@ class Pipeline:
             )
             return out
         out.scenes.append(result)
-        self._ready[scene.view][scene.index] = result
+        if not self.config.single_camera:
+            self._ready[scene.view][scene.index] = result
+        elif scene.part == 0:
+            # Single camera: pairs are acquisitions 2k and 2k+1 (a look forward, then back),
+            # whatever parts a gap or scene_lines cut them into; each is paired by its first
+            # part, so that one split does not shift every later pair.
+            self._ready[scene.view][scene.acquisition] = result
+        else:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    where,
+                    f"part {scene.part} of an acquisition that was split: its parameters are "
+                    "published, but single-camera pairs are made of the first parts of two "
+                    "acquisitions: not paired",
+                )
+            )
         out.extend(self._try_pairs())
         return out
 

@@ -271,6 +271,87 @@ def test_navigation_starting_after_the_first_line() -> None:
     assert errors[0].startswith("left/left_scene_0000: navigation starts after the scene's first")
 
 
+def test_idle_scene_closed_only_once_navigation_moves_past() -> None:
+    """close_idle_scenes (the node's scene_timeout) closes a scene whose strips stopped only
+    when the navigation went on past its last line."""
+    scn = SCENARIOS["airborne_foreaft"]()
+    images = render(scn, np.uint8)
+    events = nav_events(scn) + strip_events(scn, images)
+    cut = strip_events(scn, images)[5][0]  # the 6th strip of the left scene (384 lines in)
+    # Every input stopped at once (a publisher restarting, a replay paused): the scene stays
+    # open, and the strips that resume continue it, as if nothing had happened.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    out = feed(pipe, [e for e in events if e[0] <= cut], flush=False)
+    assert pipe.close_idle_scenes().scenes == [] and pipe.has_open_scene
+    out.extend(feed(pipe, [e for e in events if e[0] > cut]))
+    clean = run(scn, images)[1]
+    assert out.issues == []
+    assert [(s.scene.scene_id, s.scene.lines) for s in out.scenes] == [
+        (s.scene.scene_id, s.scene.lines) for s in clean.scenes
+    ]
+    assert len(out.pairs) == 1
+    np.testing.assert_array_equal(out.pairs[0].left_image, clean.pairs[0].left_image)
+    # Only the strips stopped while the navigation went on (1 s): the scene is over.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    on = [e for e in events if e[0] <= cut or (e[1] == 0 and e[0] <= cut + 10**9)]
+    feed(pipe, on, flush=False)
+    closed = pipe.close_idle_scenes()
+    assert not pipe.has_open_scene
+    assert [(s.scene.scene_id, s.scene.lines) for s in closed.scenes] == [("left_scene_0000", 384)]
+    # Without navigation at all, nothing tells: the scene is closed (and waits for navigation).
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    feed(pipe, [e for e in events if e[1] == 1 and e[0] <= cut], flush=False)
+    pipe.close_idle_scenes()
+    assert not pipe.has_open_scene
+
+
+def test_first_scene_begun_before_the_pipeline_is_skipped() -> None:
+    """A pipeline (a node) started in the middle of a scene: strips carry no line number, so
+    the 384 lines it gets of pan_scene_0000 would be taken as a whole scene, and its GCP, whose
+    lines count from the scene's real first line, put 384 lines off. The navigation, which
+    starts with them instead of before, gives it away: that scene is skipped; the next one (its
+    start seen) is processed, and the pair is lost with the first half."""
+    scn, pts = _ikonos_gcp(hills, 12, 0)
+    images = render(scn, np.uint16)
+    events = nav_events(scn) + strip_events(scn, images)
+    start = strip_events(scn, images)[6][0]  # the 7th strip: line 384 of pan_scene_0000
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    out = feed(pipe, [e for e in events if e[0] >= start])
+    (error,) = messages(out, "error")
+    assert error.startswith("pan/pan_scene_0000: first scene received on view pan (384 lines)")
+    assert error.endswith("scene skipped")
+    assert [(s.scene.scene_id, s.method) for s in out.scenes] == [
+        ("pan_scene_0001", "gcp_roll_estimated")
+    ]
+    assert out.pairs == []
+    # Started 0.5 s before the scene (start_margin_s): all as usual.
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    t0 = strip_events(scn, images)[0][0]
+    out = feed(pipe, [e for e in events if e[0] >= t0 - 500_000_000])
+    assert out.issues == [] and len(out.scenes) == 2 and len(out.pairs) == 1
+
+
+def test_scenes_begun_before_the_pipeline_are_not_streamed() -> None:
+    """Fore/aft cameras imaging at the same time, a pipeline started 0.2 s before their scenes
+    (navigation from then on): both first scenes may be the rest of scenes under way, so no
+    stream is started for them (none would be completed) and both are skipped."""
+    scn = SCENARIOS["airborne_foreaft"]()
+    left, right = scn.scenes
+    scn = dataclasses.replace(
+        scn, scenes=(left, dataclasses.replace(right, start_s=left.start_s + 0.1))
+    )
+    t0 = scn.time_ns(left.start_s) - 200_000_000
+    events = nav_events(scn) + strip_events(scn, render(scn, np.uint8))
+    pipe = Pipeline(scn.pipeline_config(tie_points=False, scene_lines=768))
+    out = feed(pipe, [e for e in events if e[0] >= t0])
+    assert out.blocks == [] and out.scenes == [] and out.pairs == []
+    errors = [(i.where, i.message) for i in out.issues if i.level != "ok"]
+    assert [w for w, _ in errors] == ["left/left_scene_0000", "right/right_scene_0001"], errors
+    assert all("first scene received" in m and m.endswith("scene skipped") for _, m in errors)
+
+
 # ---- scenes and pairs ---------------------------------------------------------------------------
 
 
@@ -304,6 +385,45 @@ def test_split_scenes_get_distinct_scene_ids() -> None:
     assert len(ids) == 6
     assert len(set(ids)) == 6, ids
     assert len({p.pair_id for p in out.pairs}) == 3
+
+
+def test_split_acquisition_in_single_camera_mode() -> None:
+    """Two strips in a row lost (128 lines > max_gap_lines) in the forward look: the scene is
+    split, and says so; its first part is paired with the backward look (pairs are
+    acquisitions 2k, 2k+1, not parts, so one split does not shift the pairing); the second
+    part gets parameters and a WARN that it is not paired; the backward look is unchanged."""
+    scn, pts = _ikonos_gcp(hills, 12, 0)
+    images = render(scn, np.uint16)
+    pipe = Pipeline(scn.pipeline_config(tie_points=False))
+    pipe.add_gcp(pts)
+    out = feed(pipe, nav_events(scn) + strip_events(scn, images, skip=[(0, 256), (0, 320)]))
+    assert messages(out, "error") == []
+    warns = messages(out, "warn")
+    # GCP observed beyond the first part's 256 lines (plus a margin) are left out of it.
+    gcp = [w for w in warns if w.startswith("gcp ")]
+    assert gcp and all("is not in the scene (256 x 768): ignored" in w for w in gcp)
+    assert [w for w in warns if not w.startswith("gcp ")] == [
+        "pan/pan_scene_0000: 128 lines missing after line 255 (more than max_gap_lines, 64): "
+        "scene split; it ends there, with 256 lines, and the strips after the hole make a new "
+        "scene (pan_scene_0000#1)",
+        "pan/pan_scene_0000#1: part 1 of an acquisition that was split: its parameters are "
+        "published, but single-camera pairs are made of the first parts of two acquisitions: "
+        "not paired",
+    ]
+    got = {s.scene.scene_id: s for s in out.scenes}
+    assert [(sid, s.scene.lines) for sid, s in got.items()] == [
+        ("pan_scene_0000", 256),
+        ("pan_scene_0000#1", 384),
+        ("pan_scene_0001", 768),
+    ]
+    (pair,) = out.pairs
+    assert pair.pair_id == "pan_scene_0000+pan_scene_0001"
+    assert pair.y_parallax_stats[2] < 0.01
+    clean = Pipeline(scn.pipeline_config(tie_points=False))
+    clean.add_gcp(pts)
+    ref = feed(clean, nav_events(scn) + strip_events(scn, images)).scenes[1]
+    assert ref.scene.scene_id == "pan_scene_0001"
+    np.testing.assert_array_equal(got["pan_scene_0001"].affine.array, ref.affine.array)
 
 
 def _predicted_line(res: SceneResult, xyz: np.ndarray) -> np.ndarray:

@@ -32,6 +32,9 @@ class Scene:
         reason: why the scene was closed ("length", "gap", "scene_change", "flush").
         released: lines at the start of the scene that a streaming consumer had already used
             and released; ``image`` holds lines ``released`` .. ``released + len(image) - 1``.
+        part: 0 for the first (or only) scene of a frame_id, k for ``"<frame_id>#<k>"``.
+        acquisition: sequence number within the view of the scene's frame_id (of its first
+            part), from 0: the parts of one acquisition share it.
     """
 
     view: str
@@ -43,6 +46,8 @@ class Scene:
     gaps: int = 0
     reason: str = "length"
     released: int = 0
+    part: int = 0
+    acquisition: int = 0
 
     @property
     def lines(self) -> int:
@@ -108,6 +113,7 @@ class _Open:
     first_line_ns: int
     base_id: str = ""
     part: int = 0
+    acquisition: int = 0
     data: _LineBuffer | None = None
     lines: int = 0
     gaps: int = 0
@@ -150,6 +156,8 @@ class SceneAssembler:
         self._latest_ns: int | None = None
         # next part number of each frame_id, so that scene ids never repeat
         self._parts: dict[str, int] = {}
+        # acquisition number of each frame_id (in the order of their first strips)
+        self._acquisitions: dict[str, int] = {}
 
     def _close(self, reason: str) -> Scene | None:
         op = self._open
@@ -175,6 +183,8 @@ class SceneAssembler:
             op.gaps,
             reason,
             op.released,
+            op.part,
+            op.acquisition,
         )
         self._count += 1
         return scene
@@ -283,9 +293,16 @@ class SceneAssembler:
             if self._open is None:
                 part = self._parts.get(base_id, 0)
                 self._parts[base_id] = part + 1
+                acq = self._acquisitions.setdefault(base_id, len(self._acquisitions))
                 sid = base_id if part == 0 else f"{base_id}#{part}"
                 self._open = _Open(
-                    sid, int(start_ns), base_id, part, dtype=block.dtype, width=block.shape[1]
+                    sid,
+                    int(start_ns),
+                    base_id,
+                    part,
+                    acq,
+                    dtype=block.dtype,
+                    width=block.shape[1],
                 )
             op = self._open
             room = self.scene_lines - op.lines if self.scene_lines > 0 else block.shape[0]
