@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -266,3 +267,96 @@ class NodeProcess:
     def output(self) -> str:
         """What the node printed so far."""
         return self.log_path.read_text(errors="replace")
+
+
+@dataclass
+class LiveRun:
+    """What :func:`run_through_node` saw.
+
+    Attributes:
+        output: the bag the node's outputs were recorded into.
+        counts: messages recorded per topic.
+        code: the node's exit code (0: clean stop on SIGINT).
+        log: what the node printed.
+        replay: :func:`replay`'s result (sent, seconds, recovery, skipped types).
+        discovered: whether the node's outputs were discovered before the replay.
+        complete: whether every expected pair arrived with its images.
+    """
+
+    output: Path
+    counts: dict[str, int]
+    code: int
+    log: str
+    replay: dict[str, Any]
+    discovered: bool
+    complete: bool
+
+
+def run_through_node(
+    bag: Path,
+    workdir: Path,
+    *,
+    params: dict[str, Any],
+    rate: float = 0.0,
+    max_gap_s: float = 0.2,
+    pairs: int = 1,
+    timeout_s: float = 120.0,
+    env: dict[str, str] | None = None,
+    progress: bool = False,
+    log: Callable[[str], None] = print,
+) -> LiveRun:
+    """Replay ``bag`` into parproj_node (its own process) and record the outputs.
+
+    The node gets ``params`` (plus reliable QoS on the bag's input topics: a lossless replay)
+    from ``workdir/node_params.yaml`` and logs to ``workdir/node.log``; an rclpy node of ours,
+    in its own Context, records :data:`conversions.OUTPUT_TOPICS` into ``workdir/output``,
+    waits for the outputs to be discovered, replays, waits until ``pairs`` pairs have come
+    with all their images (or ``timeout_s``, or the node died), and stops the node (SIGINT).
+    """
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
+    from .conversions import OUTPUT_TOPICS
+    from .recording import views_from_bag
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    env = env or ros_environment(log_dir=workdir / "ros_log")
+    views = views_from_bag(BagReader(bag))
+    inputs = ["/navigation"] + [f"/{v.name}/image_strip" for v in views]
+    pfile = node_params_yaml(params, workdir / "node_params.yaml", reliable_inputs=inputs)
+    proc = NodeProcess(pfile, env, workdir / "node.log")
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("parproj_recorder", context=ctx)
+    recorder = Recorder(node, workdir / "output", OUTPUT_TOPICS)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    res: dict[str, Any] = {}
+    try:
+        discovered = recorder.wait_for_publishers(list(OUTPUT_TOPICS), timeout_s=60.0)
+        if not discovered:
+            log("live: the node's output topics were not discovered in 60 s")
+        res = replay(
+            node,
+            bag,
+            rate=rate,
+            max_gap_s=max_gap_s,
+            wait_for=[f"{v.name}/image_strip" for v in views],
+            progress=progress,
+            log=log,
+        )
+        complete = recorder.wait_complete(pairs, timeout_s, lambda: proc.proc.poll() is None)
+        time.sleep(1.0)  # one more 1 Hz diagnostics summary
+    finally:
+        code = proc.stop()
+        executor.shutdown()
+        spin.join(timeout=5)
+        recorder.close()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    return LiveRun(
+        workdir / "output", dict(recorder.counts), code, proc.output(), res, discovered, complete
+    )

@@ -7,20 +7,15 @@ from the live graph and decoded both by our reader and by an independent one (ro
 from __future__ import annotations
 
 import os
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 
 from parproj_ros.bag import BagReader
-from parproj_ros.conversions import OUTPUT_TOPICS, image_to_array
+from parproj_ros.conversions import image_to_array
 from parproj_ros.evaluate import evaluate_bag
-from parproj_ros.live import NodeProcess, Recorder, node_params_yaml, replay, ros_environment
+from parproj_ros.live import run_through_node
 from parproj_ros.offline import process_bag
 from parproj_ros.recording import node_parameters, views_from_bag
 
@@ -33,42 +28,13 @@ def run_live(
 ) -> tuple[Path, dict[str, int], str]:
     """Replay ``bag`` into parproj_node (child process); record its outputs into ``out``."""
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
-    env = ros_environment(log_dir=out.parent / "ros_log")
     views = views_from_bag(BagReader(bag))
-    inputs = ["/navigation"] + [f"/{v.name}/image_strip" for v in views]
-    pfile = node_params_yaml(
-        node_parameters(views, **params), out.parent / "params.yaml", reliable_inputs=inputs
+    run = run_through_node(
+        bag, out, params=node_parameters(views, **params), rate=rate, log=lambda s: None
     )
-    proc = NodeProcess(pfile, env, out.parent / "node.log")
-    ctx = Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node("test_replay", context=ctx)
-    recorder = Recorder(node, out, OUTPUT_TOPICS)
-    executor = SingleThreadedExecutor(context=ctx)
-    executor.add_node(node)
-    spin = threading.Thread(target=executor.spin, daemon=True)
-    spin.start()
-    try:
-        assert recorder.wait_for_publishers(list(OUTPUT_TOPICS)), "node outputs not discovered"
-        replay(
-            node,
-            bag,
-            rate=rate,
-            max_gap_s=0.2,
-            wait_for=[f"{v.name}/image_strip" for v in views],
-            log=lambda s: None,
-        )
-        recorder.wait_complete(1, 120, lambda: proc.proc.poll() is None)
-        time.sleep(0.5)
-    finally:
-        code = proc.stop()
-        executor.shutdown()
-        spin.join(timeout=5)
-        recorder.close()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
-    assert code == 0, proc.output()
-    return out, dict(recorder.counts), proc.output()
+    assert run.discovered, "node outputs not discovered"
+    assert run.code == 0, run.log
+    return run.output, run.counts, run.log
 
 
 @pytest.fixture(scope="module", params=ALL_BAGS)
