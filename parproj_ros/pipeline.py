@@ -102,6 +102,9 @@ class PipelineConfig:
             confirmed when ahead, reported when behind), seconds.
         nav_position_tolerance_m: RMS of navigation positions about the constant-velocity line
             above which a scene's navigation is reported as inconsistent, metres.
+        nav_history_s: navigation kept before the earliest line that a scene may still need it
+            for (open scenes, scenes waiting for navigation, streamed pairs, the next scene of
+            each view); older samples are forgotten, so memory stays flat, seconds.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
     """
@@ -123,6 +126,7 @@ class PipelineConfig:
     tie_threshold_px: float = 1.0
     nav_jump_s: float = 10.0
     nav_position_tolerance_m: float = 5.0
+    nav_history_s: float = 10.0
 
     @property
     def single_camera(self) -> bool:
@@ -359,7 +363,53 @@ class Pipeline:
             else:
                 still.append(scene)
         self._waiting_nav = still
+        self._prune_navigation()
         return out
+
+    def _navigation_needed_from(self) -> int | None:
+        """Earliest line time (ns) for which a scene may still need navigation (None: unknown).
+
+        The first lines of the open scenes, of the scenes waiting for navigation and of the
+        streamed pairs' scenes; for a view with no open scene, the end of its data (its next
+        scene cannot start earlier). Unknown while a view has received no strip.
+        """
+        times = [s.first_line_ns for s in self._waiting_nav]
+        times += [
+            side.result.scene.first_line_ns
+            for stream in self._streams.values()
+            for side in stream.sides.values()
+        ]
+        for asm in self.assemblers.values():
+            opened = asm.open_scene()
+            if opened is not None:
+                times.append(opened[2])
+            elif asm.latest_ns is not None:
+                times.append(asm.latest_ns)
+            else:
+                return None
+        return min(times)
+
+    def _prune_navigation(self) -> None:
+        """Forget navigation no scene can need any more (``nav_history_s`` before it is kept)."""
+        needed = self._navigation_needed_from()
+        last = self.nav.last_ns
+        if needed is not None and last is not None:
+            self.nav.prune_before(min(needed, last) - round(self.config.nav_history_s * 1e9))
+
+    def _forget_gcp(self, scene_ids: tuple[str, str]) -> None:
+        """Drop the GCP observations in the scenes of a finished pair (scene ids never repeat).
+
+        A point left with no observation is dropped, so GCP sets that arrive with every
+        acquisition do not pile up.
+        """
+        for pid, p in list(self.gcp.items()):
+            if not any(s in p.observations for s in scene_ids):
+                continue
+            obs = {s: o for s, o in p.observations.items() if s not in scene_ids}
+            if obs:
+                self.gcp[pid] = replace(p, observations=obs)
+            else:
+                del self.gcp[pid]
 
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
         """Add or replace ground control points (by id)."""
@@ -1092,6 +1142,8 @@ class Pipeline:
         ypar, source = self._y_parallax(left, right, geo.left_geom, geo.right_geom)
         k = geo.normalization.parallax_per_height
         self.pairs_done += 1
+        self._forget_gcp((left.scene.scene_id, right.scene.scene_id))
+        self._no_stream.discard(left.scene.index)
         return PairResult(
             geo.pair_id,
             stamp_ns,
