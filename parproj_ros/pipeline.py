@@ -311,6 +311,9 @@ class Pipeline:
         self._streams: dict[int, StreamPair] = {}
         self._nav_pending: NavSample | None = None
         self._no_stream: set[int] = set()
+        # The latest scenes done with (processed or skipped): scene id -> (view, method), so
+        # that GCP arriving after their scene are reported, not kept.
+        self._done: dict[str, tuple[str, str]] = {}
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -412,15 +415,46 @@ class Pipeline:
                 del self.gcp[pid]
 
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
-        """Add or replace ground control points (by id)."""
+        """Add or replace ground control points (by id).
+
+        Observations in a scene already done with (processed without them, or skipped) are
+        dropped and reported, one warning per scene: they come too late to be used.
+        """
         out = Outputs()
+        late: dict[str, int] = {}
         for p in points:
             xyz = np.asarray(p.xyz, dtype=float)
             if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
                 out.issues.append(Issue("warn", f"gcp {p.id}", "non-finite coordinates: ignored"))
                 continue
+            done = [s for s in p.observations if s in self._done]
+            if done:
+                for s in done:
+                    late[s] = late.get(s, 0) + 1
+                p = replace(
+                    p, observations={s: o for s, o in p.observations.items() if s not in done}
+                )
+                if not p.observations:
+                    continue
             self.gcp[p.id] = p
+        for sid, n in late.items():
+            view, method = self._done[sid]
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{view}/{sid}",
+                    f"{n} GCP and check points observed in this scene arrived after it was "
+                    + ("skipped" if method == "skipped" else f"processed ({method})")
+                    + ": not used",
+                )
+            )
         return out
+
+    def _done_with(self, scene: Scene, method: str) -> None:
+        """Remember that a scene is done with (``method``, or "skipped"); the latest 256 kept."""
+        self._done[scene.scene_id] = (scene.view, method)
+        while len(self._done) > 256:
+            del self._done[next(iter(self._done))]
 
     def add_strip(
         self, view: str, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]
@@ -756,6 +790,7 @@ class Pipeline:
             if check is not None:
                 out.issues.append(check)
             out.scenes.append(s.result)
+            self._done_with(s.result.scene, s.result.method)
         out.pairs.append(
             self._pair_result(
                 results[0], results[1], stream.geometry, (None, None), stream.stamp_ns
@@ -807,6 +842,7 @@ class Pipeline:
             if self._gcp_for(scene)[0].shape[0] >= self.config.min_gcp:
                 out.extend(self._process_scene(scene))  # navigation ended early: GCP only
                 continue
+            self._done_with(scene, "skipped")
             out.issues.append(
                 Issue(
                     "error",
@@ -836,6 +872,7 @@ class Pipeline:
                 out.extend(self._process_scene(scene))
                 return out
             if last is not None and last >= scene.last_line_ns:
+                self._done_with(scene, "skipped")
                 out.issues.append(
                     Issue(
                         "error",
@@ -987,10 +1024,12 @@ class Pipeline:
             if nav_result.method != "navigation":
                 out.issues.append(Issue("warn", where, nav_result.note))
         if result is None:
+            self._done_with(scene, "skipped")
             out.issues.append(
                 Issue("error", where, "no parameters (no usable navigation or GCP): scene skipped")
             )
             return out
+        self._done_with(scene, result.method)
         out.scenes.append(result)
         self._ready[scene.view][scene.index] = result
         out.extend(self._try_pairs())
