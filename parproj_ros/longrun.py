@@ -7,7 +7,9 @@ stamp and log time moved forward by ``k`` times (bag duration + ``margin_s``), a
 with ``r<k>_``, so that each repetition is a new acquisition to the node. Messages go out as fast
 as the node acknowledges them (rate 0) unless a rate is given; a repetition is sent only when
 the pairs of the repetition ``in_flight`` before it have come back, so the replay runs at the
-rate the node sustains instead of filling its input queue.
+rate the node sustains instead of filling its input queue. A repetition's latched inputs (GCP,
+scanner info, truth points) are sent, and acknowledged, before its stream of navigation and
+strips, as a ground station latches them ahead of a pass.
 
 While it runs, the node's resident memory (``/proc/<pid>/status`` VmRSS) is sampled every
 second, its 1 Hz ``/diagnostics`` summary (counters, input queue length and peak, navigation
@@ -154,10 +156,17 @@ def plan_bag(bag: Path, margin_s: float = 1.0) -> BagPlan:
     )
 
 
-def repetition_messages(plan: BagPlan, rep: int) -> Iterator[tuple[str, Any, int]]:
-    """(topic, message, log time ns) of repetition ``rep``: the bag read afresh and shifted."""
+def repetition_messages(
+    plan: BagPlan, rep: int, topics: list[str] | None = None
+) -> Iterator[tuple[str, Any, int]]:
+    """(topic, message, log time ns) of repetition ``rep``: the bag read afresh and shifted.
+
+    ``topics``: only these (None: all).
+    """
+    if topics is not None and not topics:
+        return
     offset = rep * plan.shift_ns
-    for item in BagReader(plan.bag).messages():
+    for item in BagReader(plan.bag).messages(topics=topics):
         shift_message(item.topic, item.msg, rep, offset)
         yield item.topic, item.msg, item.log_time_ns + offset
 
@@ -702,21 +711,41 @@ def run_longrun(
             dynamic_ncols=True,
         )
         try:
+            # The latched inputs of a repetition (GCP, scanner info, truth: transient local) go
+            # out before its stream, with the previous repetition's acknowledgement wait, as a
+            # ground station latches them ahead of a pass. Sent together with the stream, a GCP
+            # set delayed by a DDS repair (heartbeat, about 3 s here) can reach the node after
+            # its first scene: that scene then has no GCP (seen once in 281 repetitions).
+            latched = {t for t in pubs if reader.qos(t) == "transient_local"}
+
+            def more(k: int) -> bool:
+                if repetitions is not None and k >= repetitions:
+                    return False
+                return time.monotonic() - t_replay < minutes * 60.0 and alive()
+
+            def publish(topic: str, msg: Any) -> None:
+                pubs[topic].publish(msg)
+                sent[topic] += 1
+
+            def wait_acked(k: int) -> float:
+                t_ack = time.monotonic()
+                for topic, p in pubs.items():
+                    if not p.wait_for_all_acked(Duration(seconds=10)):
+                        log(f"longrun: {topic}: not acknowledged within 10 s (repetition {k})")
+                return time.monotonic() - t_ack
+
             rep = 0
-            while True:
-                if repetitions is not None and rep >= repetitions:
-                    break
-                if time.monotonic() - t_replay >= minutes * 60.0:
-                    break
-                if not alive():
-                    aborted = f"node exited with {node_proc.proc.returncode}"
-                    break
+            planned = more(0)
+            if planned:
+                for topic, msg, _ in repetition_messages(plan, 0, sorted(latched)):
+                    publish(topic, msg)
+                ack_s += wait_acked(0)
+            while planned:
                 back = rep - in_flight
                 if back >= 0 and not wait_until(
                     lambda b=back: checker.pairs_done(b) >= len(plan.pairs), stall_timeout_s
                 ):
                     if not alive():
-                        aborted = f"node exited with {node_proc.proc.returncode}"
                         break
                     stalls.append(
                         f"repetition {back}: {checker.pairs_done(back)} of {len(plan.pairs)} "
@@ -724,22 +753,19 @@ def run_longrun(
                     )
                 t_rep = time.monotonic()
                 first_log: int | None = None
-                for topic, msg, log_ns in repetition_messages(plan, rep):
-                    pub = pubs.get(topic)
-                    if pub is None:
-                        continue
+                stream = [t for t in pubs if t not in latched]
+                for topic, msg, log_ns in repetition_messages(plan, rep, stream):
                     if rate > 0:
                         first_log = log_ns if first_log is None else first_log
                         wait = t_rep + (log_ns - first_log) / 1e9 / rate - time.monotonic()
                         if wait > 0:
                             time.sleep(wait)
-                    pub.publish(msg)
-                    sent[topic] += 1
-                t_ack = time.monotonic()
-                for topic, p in pubs.items():
-                    if not p.wait_for_all_acked(Duration(seconds=10)):
-                        log(f"longrun: {topic}: not acknowledged within 10 s (repetition {rep})")
-                ack_s += time.monotonic() - t_ack
+                    publish(topic, msg)
+                planned = more(rep + 1)
+                if planned:
+                    for topic, msg, _ in repetition_messages(plan, rep + 1, sorted(latched)):
+                        publish(topic, msg)
+                ack_s += wait_acked(rep)
                 rep += 1
                 reps_sent = rep
                 s = checker.latest_summary()
@@ -750,6 +776,8 @@ def run_longrun(
                     refresh=False,
                 )
                 bar.update(1)
+            if not alive():
+                aborted = f"node exited with {node_proc.proc.returncode}"
         except KeyboardInterrupt:
             aborted = "interrupted (Ctrl-C)"
         finally:

@@ -162,6 +162,44 @@ def test_navigation_is_kept_while_a_scene_may_need_it() -> None:
     assert [i for i in out.issues if i.level != "ok"] == []
 
 
+def test_gcp_arriving_after_their_scene_are_reported_not_kept() -> None:
+    """What the first 20-minute run met once: a GCP set delayed past its first scene.
+
+    The first scene had been processed from navigation, silently, and the set stayed in the
+    pipeline. Now the late observations are reported (WARN on the scene) and dropped; the
+    second scene, still open, uses them.
+    """
+    plan = plan_bag(IKONOS)
+    pipe = Pipeline(config_from_bag(BagReader(IKONOS), tie_points=False))
+    msgs = list(repetition_messages(plan, 0))
+    out = Outputs()
+    for topic, msg, _ in msgs:
+        if topic == "navigation":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(msg)))
+        elif topic == "pan/image_strip":
+            arr = conv.image_to_array(msg)
+            stamp = conv.stamp_to_ns(msg.header.stamp)
+            out.extend(pipe.add_strip("pan", stamp, msg.header.frame_id, arr))
+    assert [s.method for s in out.scenes] == ["navigation"]  # the second scene is open
+    gcp = next(m for t, m, _ in msgs if t == "gcp")
+    late = pipe.add_gcp(conv.gcp_from_msg(gcp))
+    seen = sum(1 for p in gcp.points if any(o.scene_id.endswith("0000") for o in p.observations))
+    assert [(i.level, i.where, i.message) for i in late.issues] == [
+        (
+            "warn",
+            "pan/r0000_pan_scene_0000",
+            f"{seen} GCP and check points observed in this scene arrived after it was "
+            "processed (navigation): not used",
+        )
+    ]
+    assert pipe.gcp and all(
+        "r0000_pan_scene_0000" not in p.observations for p in pipe.gcp.values()
+    )
+    out.extend(pipe.flush())
+    assert [s.method for s in out.scenes] == ["navigation", "gcp_roll_estimated"]
+    assert len(out.pairs) == 1 and pipe.gcp == {}
+
+
 # ---- the pair checks, offline (streamed pairs: column blocks) ------------------------------
 
 
