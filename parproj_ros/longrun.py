@@ -11,14 +11,14 @@ rate the node sustains instead of filling its input queue. A repetition's latche
 scanner info, truth points) are sent, and acknowledged, before its stream of navigation and
 strips, as a ground station latches them ahead of a pass.
 
-While it runs, the node's resident memory (``/proc/<pid>/status`` VmRSS) is sampled every
-second, its 1 Hz ``/diagnostics`` summary (counters, input queue length and peak, navigation
-samples and GCP held) is recorded, and every pair that comes back is checked
-(:class:`PairChecker`): StereoPair with its left, right and anaglyph images (or its column
-blocks), finite transforms, image sizes equal to the StereoPair's width and height, scene ids of
-one repetition, and every number of the pair (both scenes' parameters, the normalization, grids,
-y-parallax statistics), the images and the y-parallax of the bag's truth points equal to the
-first repetition's.
+While it runs, the node's resident memory (``/proc/<pid>/status`` VmRSS) is sampled every second (a
+thread of this process), its 1 Hz ``/diagnostics`` summary (counters, input queue length and peak,
+navigation samples and GCP held) is recorded, and every pair that comes back is checked
+(:class:`PairChecker`): StereoPair with its left, right and anaglyph images (or its column blocks),
+finite transforms, image sizes equal to the StereoPair's width and height, scene ids of one
+repetition, and every number of the pair (both scenes' parameters, the normalization, grids,
+y-parallax statistics), the images and the y-parallax of the bag's truth points equal to the first
+repetition's.
 
 The tolerance of that last comparison is zero (bit for bit), by design: the pipeline sees a
 repetition only through differences of integer-nanosecond stamps, which are exact, through the
@@ -31,7 +31,8 @@ The report (``longrun.json``, ``longrun.png`` with RSS and queue against time, a
 wall and simulated duration, repetitions, pairs expected / published / malformed, drops
 (``strips_rejected``, ``nav_rejected``, messages sent but not received by the node, warnings
 and errors on ``/diagnostics``), RSS start / end / max and its slope (least squares after a
-warm-up) in MB per hour and per pair, and the queue length.
+warm-up) in MB per hour and per pair, and that of the per-minute medians over the second half
+(robust to spikes and to a late allocator step), and the queue length.
 """
 
 from __future__ import annotations
@@ -566,6 +567,21 @@ def _slope(t: np.ndarray, y: np.ndarray) -> float | None:
     return float(np.polyfit(t, y, 1)[0])
 
 
+def _second_half_slope(t: np.ndarray, mb: np.ndarray, wall: float) -> float | None:
+    """Slope of the per-minute median RSS over the second half of the run, MB per hour.
+
+    Insensitive to the short spikes of a pair being processed and to a late step of the
+    allocator during warm-up, which weigh on the least-squares slope of a 20-minute run.
+    """
+    minutes = np.floor(t / 60.0)
+    sel = t >= wall / 2
+    keys = np.unique(minutes[sel])
+    if keys.size < 3:
+        return None
+    med = np.array([np.median(mb[sel & (minutes == k)]) for k in keys])
+    return float(np.polyfit(keys * 60.0, med, 1)[0] * 3600)
+
+
 def _cpu_busy_s() -> float:
     """CPU seconds the whole machine has been busy since boot (all cores, /proc/stat)."""
     vals = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
@@ -728,10 +744,16 @@ def run_longrun(
                 sent[topic] += 1
 
             def wait_acked(k: int) -> float:
+                # In slices of 50 ms: rclpy holds the GIL during the wait, which stopped the
+                # RSS sampling and the subscriptions of this process for up to 3.7 s.
                 t_ack = time.monotonic()
                 for topic, p in pubs.items():
-                    if not p.wait_for_all_acked(Duration(seconds=10)):
-                        log(f"longrun: {topic}: not acknowledged within 10 s (repetition {k})")
+                    deadline = time.monotonic() + 10.0
+                    while not p.wait_for_all_acked(Duration(nanoseconds=50_000_000)):
+                        if time.monotonic() > deadline:
+                            log(f"longrun: {topic}: not acknowledged in 10 s (repetition {k})")
+                            break
+                        time.sleep(0.001)
                 return time.monotonic() - t_ack
 
             rep = 0
@@ -921,6 +943,7 @@ def _report(
     pairs_at = np.searchsorted(pair_times, ts, side="right").astype(float)
     slope_s = _slope(ts[fit], mb[fit])
     slope_p = _slope(pairs_at[fit], mb[fit])
+    half = _second_half_slope(ts[in_run], mb[in_run], wall)
     run_mb = mb[in_run] if in_run.any() else mb
     queue = [
         (t, int(s.get("queue", 0)), int(s.get("queue_max", s.get("queue", 0))))
@@ -1001,6 +1024,8 @@ def _report(
             "hwm": rss.hwm_mb,
             "slope_mb_per_hour": None if slope_s is None else slope_s * 3600,
             "slope_mb_per_pair": slope_p,
+            "at_warmup_end": float(mb[fit][0]) if fit.any() else None,
+            "slope_second_half_mb_per_hour": half,
             "fit_from_s": warm,
             "fit_samples": int(fit.sum()),
         },
@@ -1114,11 +1139,16 @@ def format_report(r: dict[str, Any]) -> str:
             "diagnostics warn / error",
             f"{d['diagnostics_warn']} / {d['diagnostics_error']}",
         ),
-        ("RSS start / end / max", f"{f(m['start'])} / {f(m['end'])} / {f(m['max'])} MB"),
+        (
+            "RSS start / after warm-up / end / max",
+            f"{f(m['start'])} / {f(m['at_warmup_end'])} / {f(m['end'])} / {f(m['max'])} MB",
+        ),
         (
             "RSS slope",
             f"{f(m['slope_mb_per_hour'], '+.2f')} MB/h, "
-            f"{f(m['slope_mb_per_pair'], '+.4f')} MB/pair (after {m['fit_from_s']:.0f} s)",
+            f"{f(m['slope_mb_per_pair'], '+.4f')} MB/pair (after {m['fit_from_s']:.0f} s); "
+            f"second half, per-minute medians: {f(m['slope_second_half_mb_per_hour'], '+.2f')} "
+            "MB/h",
         ),
         ("queue max / last", f"{q['max']} / {q['last']}"),
         (

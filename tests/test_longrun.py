@@ -295,7 +295,16 @@ def test_longrun_live(tmp_path: Path) -> None:
     # The structure of the report (the figures themselves are measured, not asserted).
     assert rep["simulated_s"] == pytest.approx(reps * (72.3 + 1.0), abs=1e-6)
     assert rep["wall_s"] > 0 and rep["simulated_per_wall"] > 0
-    for key in ("start", "end", "max", "slope_mb_per_hour", "slope_mb_per_pair", "fit_from_s"):
+    for key in (
+        "start",
+        "at_warmup_end",
+        "end",
+        "max",
+        "slope_mb_per_hour",
+        "slope_mb_per_pair",
+        "slope_second_half_mb_per_hour",
+        "fit_from_s",
+    ):
         assert key in rep["rss_mb"], rep["rss_mb"]
     assert 0 < rep["rss_mb"]["start"] <= rep["rss_mb"]["max"]
     assert rep["queue"]["last"] == 0 and rep["queue"]["max"] is not None
