@@ -248,6 +248,36 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
 
 
+def cmd_longrun(args: argparse.Namespace) -> int:
+    """``parproj longrun``: the bag replayed for hours into the live node; memory, queue, pairs."""
+    import yaml
+
+    from .longrun import format_report, run_longrun
+
+    params = {}
+    for item in args.node_param:
+        key, sep, value = item.partition("=")
+        if not sep:
+            print(f"--node-param needs KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 2
+        params[key] = yaml.safe_load(value)
+    report = run_longrun(
+        Path(args.bag),
+        Path(args.output),
+        minutes=args.minutes,
+        repetitions=args.repetitions,
+        rate=args.rate,
+        margin_s=args.margin,
+        in_flight=args.in_flight,
+        warmup_s=args.warmup,
+        node_params=params,
+        progress=not args.quiet,
+    )
+    print(format_report(report))
+    print(f"report {Path(args.output) / 'longrun.json'}, plot {Path(args.output) / 'longrun.png'}")
+    return 0 if report["ok"] else 1
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     """``parproj bench``: resampler against its lower bounds, the live node, memory."""
     import yaml
@@ -422,6 +452,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=20.0, help="replay speed factor")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser(
+        "longrun", help="replay a bag for hours into the live node: memory, queue, every pair"
+    )
+    p.add_argument("--bag", default=str(_bags_dir() / "ikonos_agile"))
+    p.add_argument("-o", "--output", default="out/longrun", help="folder for the report")
+    p.add_argument("--minutes", type=float, default=20.0, help="wall time to replay (min)")
+    p.add_argument("--repetitions", type=int, default=None, help="stop after N repetitions")
+    p.add_argument("--rate", type=float, default=0.0, help="speed factor (0 = as acknowledged)")
+    p.add_argument("--margin", type=float, default=1.0, help="s between repetitions (simulated)")
+    p.add_argument("--in-flight", type=int, default=2, help="repetitions ahead of the pairs")
+    p.add_argument("--warmup", type=float, default=120.0, help="s left out of the RSS slope")
+    p.add_argument(
+        "--node-param", action="append", default=[], metavar="KEY=VALUE", help="node parameter"
+    )
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_longrun)
 
     p = sub.add_parser("bench", help="benchmark: resampler, live node over DDS, memory")
     p.add_argument("--quick", action="store_true", help="2048 x 2048 scenes, under a minute")

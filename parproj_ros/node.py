@@ -281,6 +281,7 @@ class ParprojNode(Node):
             "pairs": 0,
         }
         self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self._queue_peak = 0  # longest input queue since the last 1 Hz summary, items
         # Inputs: sensor-data QoS (REP 2003: best effort, volatile) with a deep queue, since a
         # strip lost is a gap in a scene; reliability can be overridden per topic
         # (qos_overrides.<topic>.subscription.reliability) for lossless replay.
@@ -351,7 +352,7 @@ class ParprojNode(Node):
     # ---- callbacks: convert and queue ----------------------------------------------------
     def _on_nav(self, msg: Odometry) -> None:
         try:
-            self._queue.put(("nav", conv.odometry_to_sample(msg)))
+            self._enqueue(("nav", conv.odometry_to_sample(msg)))
             self.counts["nav"] += 1
         except conv.ConversionError as err:
             self.counts["nav_rejected"] += 1
@@ -368,12 +369,17 @@ class ParprojNode(Node):
             return
         self.counts["strips"] += 1
         self._last_strip = time.monotonic()
-        self._queue.put(
+        self._enqueue(
             ("strip", (view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr))
         )
 
     def _on_gcp(self, msg: GroundControlPoints) -> None:
-        self._queue.put(("gcp", conv.gcp_from_msg(msg)))
+        self._enqueue(("gcp", conv.gcp_from_msg(msg)))
+
+    def _enqueue(self, item: tuple[str, Any]) -> None:
+        """Queue an input for the worker and keep the queue's peak length for the summary."""
+        self._queue.put(item)
+        self._queue_peak = max(self._queue_peak, self._queue.qsize())
 
     # ---- worker: run the pipeline, publish ------------------------------------------------
     def _work(self) -> None:
@@ -485,9 +491,18 @@ class ParprojNode(Node):
                     else ""
                 ),
                 values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
-                + [KeyValue(key="queue", value=str(self._queue.qsize()))],
+                + [
+                    KeyValue(key=k, value=str(v))
+                    for k, v in (
+                        ("queue", self._queue.qsize()),
+                        ("queue_max", max(self._queue_peak, self._queue.qsize())),
+                        ("nav_samples", len(self.pipeline.nav)),
+                        ("gcp_points", len(self.pipeline.gcp)),
+                    )
+                ],
             )
         )
+        self._queue_peak = 0
         self.pub_diag.publish(arr)
 
     def wait_delivered(self, timeout_s: float) -> bool:

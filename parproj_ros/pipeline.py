@@ -103,6 +103,9 @@ class PipelineConfig:
             confirmed when ahead, reported when behind), seconds.
         nav_position_tolerance_m: RMS of navigation positions about the constant-velocity line
             above which a scene's navigation is reported as inconsistent, metres.
+        nav_history_s: navigation kept before the earliest line that a scene may still need it
+            for (open scenes, scenes waiting for navigation, streamed pairs, the next scene of
+            each view); older samples are forgotten, so memory stays flat, seconds.
         streaming: publish normalized column blocks while the scenes arrive, when possible
             (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
         segment_max_error_px: model error bound of a long scene, pixels: a pair of GCP (or
@@ -138,6 +141,7 @@ class PipelineConfig:
     segment_max_error_px: float = 1.0
     segment_overlap: float = 0.1
     start_margin_s: float = 0.5
+    nav_history_s: float = 10.0
 
     @property
     def single_camera(self) -> bool:
@@ -329,6 +333,9 @@ class Pipeline:
         self._nav_pending: NavSample | None = None
         self._nav_first_ns: int | None = None  # earliest navigation stamp accepted
         self._no_stream: set[int] = set()
+        # The latest scenes done with (processed or skipped): scene id -> (view, method), so
+        # that GCP arriving after their scene are reported, not kept.
+        self._done: dict[str, tuple[str, str]] = {}
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -381,6 +388,7 @@ class Pipeline:
             else:
                 still.append(scene)
         self._waiting_nav = still
+        self._prune_navigation()
         return out
 
     def _add_nav(self, sample: NavSample) -> None:
@@ -388,16 +396,92 @@ class Pipeline:
         if self._nav_first_ns is None or sample.t_ns < self._nav_first_ns:
             self._nav_first_ns = sample.t_ns
 
+    def _navigation_needed_from(self) -> int | None:
+        """Earliest line time (ns) for which a scene may still need navigation (None: unknown).
+
+        The first lines of the open scenes, of the scenes waiting for navigation and of the
+        streamed pairs' scenes; for a view with no open scene, the end of its data (its next
+        scene cannot start earlier). Unknown while a view has received no strip.
+        """
+        times = [s.first_line_ns for s in self._waiting_nav]
+        times += [
+            side.result.scene.first_line_ns
+            for stream in self._streams.values()
+            for side in stream.sides.values()
+        ]
+        for asm in self.assemblers.values():
+            opened = asm.open_scene()
+            if opened is not None:
+                times.append(opened[2])
+            elif asm.latest_ns is not None:
+                times.append(asm.latest_ns)
+            else:
+                return None
+        return min(times)
+
+    def _prune_navigation(self) -> None:
+        """Forget navigation no scene can need any more (``nav_history_s`` before it is kept)."""
+        needed = self._navigation_needed_from()
+        last = self.nav.last_ns
+        if needed is not None and last is not None:
+            self.nav.prune_before(min(needed, last) - round(self.config.nav_history_s * 1e9))
+
+    def _forget_gcp(self, scene_ids: tuple[str, str]) -> None:
+        """Drop the GCP observations in the scenes of a finished pair (scene ids never repeat).
+
+        A point left with no observation is dropped, so GCP sets that arrive with every
+        acquisition do not pile up.
+        """
+        for pid, p in list(self.gcp.items()):
+            if not any(s in p.observations for s in scene_ids):
+                continue
+            obs = {s: o for s, o in p.observations.items() if s not in scene_ids}
+            if obs:
+                self.gcp[pid] = replace(p, observations=obs)
+            else:
+                del self.gcp[pid]
+
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
-        """Add or replace ground control points (by id)."""
+        """Add or replace ground control points (by id).
+
+        Observations in a scene already done with (processed without them, or skipped) are
+        dropped and reported, one warning per scene: they come too late to be used.
+        """
         out = Outputs()
+        late: dict[str, int] = {}
         for p in points:
             xyz = np.asarray(p.xyz, dtype=float)
             if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
                 out.issues.append(Issue("warn", f"gcp {p.id}", "non-finite coordinates: ignored"))
                 continue
+            done = [s for s in p.observations if s in self._done]
+            if done:
+                for s in done:
+                    late[s] = late.get(s, 0) + 1
+                p = replace(
+                    p, observations={s: o for s, o in p.observations.items() if s not in done}
+                )
+                if not p.observations:
+                    continue
             self.gcp[p.id] = p
+        for sid, n in late.items():
+            view, method = self._done[sid]
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{view}/{sid}",
+                    f"{n} GCP and check points observed in this scene arrived after it was "
+                    + ("skipped" if method == "skipped" else f"processed ({method})")
+                    + ": not used",
+                )
+            )
         return out
+
+    def _done_with(self, scene: Scene, method: str) -> None:
+        """Remember that a scene is done with (``method``, or "skipped"); the latest 256 kept."""
+        self._done[scene.scene_id] = (scene.view, method)
+        while len(self._done) > 256:
+            del self._done[next(iter(self._done))]
 
     def add_strip(
         self, view: str, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]
@@ -779,6 +863,7 @@ class Pipeline:
             if check is not None:
                 out.issues.append(check)
             out.scenes.append(s.result)
+            self._done_with(s.result.scene, s.result.method)
         out.pairs.append(
             self._pair_result(
                 results[0], results[1], stream.geometry, (None, None), stream.stamp_ns
@@ -830,6 +915,7 @@ class Pipeline:
             if self._gcp_for(scene)[0].shape[0] >= self.config.min_gcp:
                 out.extend(self._process_scene(scene))  # navigation ended early: GCP only
                 continue
+            self._done_with(scene, "skipped")
             out.issues.append(
                 Issue(
                     "error",
@@ -859,6 +945,7 @@ class Pipeline:
                 out.extend(self._process_scene(scene))
                 return out
             if last is not None and last >= scene.last_line_ns:
+                self._done_with(scene, "skipped")
                 out.issues.append(
                     Issue(
                         "error",
@@ -1043,10 +1130,12 @@ class Pipeline:
             if nav_result.method != "navigation":
                 out.issues.append(Issue("warn", where, nav_result.note))
         if result is None:
+            self._done_with(scene, "skipped")
             out.issues.append(
                 Issue("error", where, "no parameters (no usable navigation or GCP): scene skipped")
             )
             return out
+        self._done_with(scene, result.method)
         out.scenes.append(result)
         if not self.config.single_camera:
             self._ready[scene.view][scene.index] = result
@@ -1217,6 +1306,8 @@ class Pipeline:
         ypar, source = self._y_parallax(left, right, geo.left_geom, geo.right_geom)
         k = geo.normalization.parallax_per_height
         self.pairs_done += 1
+        self._forget_gcp((left.scene.scene_id, right.scene.scene_id))
+        self._no_stream.discard(left.scene.index)
         return PairResult(
             geo.pair_id,
             stamp_ns,
@@ -1350,6 +1441,7 @@ class Pipeline:
             else:
                 out.scenes += parts
                 out.extend(self._make_whole_pair(parts[0], parts[1]))
+        self._forget_gcp((left.scene.scene_id, right.scene.scene_id))  # the segments' are gone
         return out, True
 
     def _make_pair(self, left: SceneResult, right: SceneResult) -> Outputs:

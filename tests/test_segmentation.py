@@ -277,3 +277,33 @@ def test_long_geotiff_pair_import_process_evaluate(ventoux: dict, tmp_path: Path
         assert geo["y_parallax_px"]["max_abs"] <= 2 * 0.5 * 1.05, p["pair_id"]
         seen += geo["points"]
     assert seen >= 300  # every truth point is in some segment pair (overlaps count twice)
+
+
+def test_segmented_pair_leaves_no_gcp_behind(ventoux: dict) -> None:
+    """After the segment pairs, no observation of the whole scenes or their segments is held."""
+    cam = LineCamera(C, PIX, WIDTH, 7.4e-5)
+    cfg = PipelineConfig(
+        views=(ViewConfig("left", cam), ViewConfig("right", cam)),
+        tie_points=False,
+        streaming=False,
+        segment_max_error_px=1.0,
+    )
+    pipe = Pipeline(cfg)
+    g = ventoux["gcp"]
+    pipe.add_gcp(
+        [
+            GroundPoint(
+                f"g{i}", g.points[i], False, {"L": tuple(g.left[i]), "R": tuple(g.right[i])}
+            )
+            for i in range(len(g.points))
+        ]
+    )
+    pairs = []
+    for view, sid, n, t0 in (
+        ("left", "L", ventoux["lines"][0], 0),
+        ("right", "R", ventoux["lines"][1], 10**10),
+    ):
+        pairs += pipe.add_strip(view, t0, sid, np.zeros((n, WIDTH), np.uint8)).pairs
+    pairs += pipe.flush().pairs
+    assert len(pairs) >= 2
+    assert pipe.gcp == {}

@@ -194,6 +194,14 @@ class SceneAssembler:
         """Whether a scene is being assembled."""
         return self._open is not None
 
+    @property
+    def latest_ns(self) -> int | None:
+        """Time of the line after the last line received on this view, ns (None: nothing yet).
+
+        No later scene of this view can start before it: earlier strips are dropped.
+        """
+        return self._latest_ns
+
     def open_scene(self) -> tuple[str, int, int, int] | None:
         """(scene_id, index, first_line_ns, lines received) of the open scene, or None."""
         op = self._open
