@@ -248,19 +248,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
 
 
-def cmd_longrun(args: argparse.Namespace) -> int:
-    """``parproj longrun``: the bag replayed for hours into the live node; memory, queue, pairs."""
+def _node_params(items: Sequence[str]) -> dict[str, Any] | None:
+    """``--node-param KEY=VALUE`` options as parameters (values read as YAML); None if bad."""
     import yaml
 
-    from .longrun import format_report, run_longrun
-
-    params = {}
-    for item in args.node_param:
+    params: dict[str, Any] = {}
+    for item in items:
         key, sep, value = item.partition("=")
         if not sep:
             print(f"--node-param needs KEY=VALUE, got {item!r}", file=sys.stderr)
-            return 2
+            return None
         params[key] = yaml.safe_load(value)
+    return params
+
+
+def cmd_longrun(args: argparse.Namespace) -> int:
+    """``parproj longrun``: the bag replayed for hours into the live node; memory, queue, pairs."""
+    from .longrun import format_report, run_longrun
+
+    params = _node_params(args.node_param)
+    if params is None:
+        return 2
     report = run_longrun(
         Path(args.bag),
         Path(args.output),
@@ -280,17 +288,11 @@ def cmd_longrun(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     """``parproj bench``: resampler against its lower bounds, the live node, memory."""
-    import yaml
-
     from .bench import run_and_report
 
-    params = {}
-    for item in args.node_param:
-        key, sep, value = item.partition("=")
-        if not sep:
-            print(f"--node-param needs KEY=VALUE, got {item!r}", file=sys.stderr)
-            return 2
-        params[key] = yaml.safe_load(value)
+    params = _node_params(args.node_param)
+    if params is None:
+        return 2
     res = run_and_report(
         args.quick,
         json_out=args.json,

@@ -39,6 +39,25 @@ def ros_environment(domain_id: int | None = None, log_dir: Path | None = None) -
     return env
 
 
+def wait_until(
+    cond: Callable[[], bool],
+    timeout_s: float,
+    alive: Callable[[], bool] = lambda: True,
+    poll_s: float = 0.05,
+) -> bool:
+    """Poll ``cond`` until it holds; returns ``cond()`` at the end.
+
+    Polls every ``poll_s`` seconds and gives up after ``timeout_s`` seconds or as soon as
+    ``alive()`` turns false (e.g. the node process died).
+    """
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and alive():
+        if cond():
+            return True
+        time.sleep(poll_s)
+    return cond()
+
+
 def _qos(kind: str) -> Any:
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -200,12 +219,7 @@ class Recorder:
         self, pairs: int, timeout_s: float, alive: Callable[[], bool] = lambda: True
     ) -> bool:
         """Wait until :meth:`pairs_complete` (or ``timeout_s``, or ``alive()`` turns false)."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and alive():
-            if self.pairs_complete(pairs):
-                return True
-            time.sleep(0.05)
-        return self.pairs_complete(pairs)
+        return wait_until(lambda: self.pairs_complete(pairs), timeout_s, alive)
 
     def close(self) -> None:
         """Close the bag."""

@@ -56,6 +56,7 @@ from . import conversions as conv
 from .bag import BagReader, get_message_class
 from .evaluate import normalized_px
 from .live import NodeProcess, _qos, node_params_yaml, ros_environment
+from .live import wait_until as _wait_until
 from .pipeline import GroundPoint
 from .recording import node_parameters, truth_from_bag, views_from_bag
 
@@ -698,12 +699,7 @@ def run_longrun(
     alive = lambda: node_proc.proc.poll() is None  # noqa: E731
 
     def wait_until(ok: Callable[[], bool], timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline and alive():
-            if ok():
-                return True
-            time.sleep(0.02)
-        return ok()
+        return _wait_until(ok, timeout_s, alive, poll_s=0.02)
 
     try:
         outputs = [t for t in conv.OUTPUT_TOPICS if t != "/diagnostics"]

@@ -982,20 +982,9 @@ class Pipeline:
         Observations that are non-finite or far outside the scene are left out
         (:meth:`_bad_observations`).
         """
-        g, gi, c, ci = [], [], [], []
-        bad = set(self._bad_observations(scene))
-        for p in self.gcp.values():
-            obs = p.observations.get(scene.scene_id)
-            if obs is None or p.id in bad:
-                continue
-            (c if p.check else g).append(p.xyz)
-            (ci if p.check else gi).append(obs)
-        return (
-            np.array(g).reshape(-1, 3),
-            np.array(gi).reshape(-1, 2),
-            np.array(c).reshape(-1, 3),
-            np.array(ci).reshape(-1, 2),
-        )
+        _, gxyz, gls = self._gcp_observed(scene, check=False)
+        _, cxyz, cls = self._gcp_observed(scene, check=True)
+        return gxyz, gls, cxyz, cls
 
     def _start_seen(self, first_line_ns: int) -> bool:
         """Whether navigation arrived from ``start_margin_s`` before ``first_line_ns``.
@@ -1356,9 +1345,12 @@ class Pipeline:
         ):
             return out, False
         pair_id = f"pair {left.scene.scene_id}+{right.scene.scene_id}"
-        (idl, xl, ll), (idr, xr, lr) = (
-            self._gcp_observed(r.scene, check=False) for r in (left, right)
-        )
+        # (GCP, check points) observed in each whole scene
+        observed = {
+            r.scene.scene_id: [self._gcp_observed(r.scene, check) for check in (False, True)]
+            for r in (left, right)
+        }
+        (idl, xl, ll), (idr, xr, lr) = (observed[r.scene.scene_id][0] for r in (left, right))
         pos_r = {pid: k for k, pid in enumerate(idr)}
         common = [(k, pos_r[pid]) for k, pid in enumerate(idl) if pid in pos_r]
         ci = np.array(common, dtype=np.intp).reshape(-1, 2)
@@ -1417,8 +1409,7 @@ class Pipeline:
                     image=sc.image[fit.start : fit.stop],
                     gaps=0,
                 )
-                for check in (False, True):
-                    ids, _, ls = self._gcp_observed(sc, check)
+                for ids, _, ls in observed[sc.scene_id]:
                     for pid, (ln, smp) in zip(ids, ls, strict=True):
                         if fit.start - 0.5 <= ln <= fit.stop - 0.5:
                             self.gcp[pid].observations[sub.scene_id] = (ln - fit.start, smp)

@@ -47,7 +47,14 @@ from rclpy.serialization import deserialize_message, serialize_message
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader, BagWriter, get_message_class
-from parproj_ros.live import NodeProcess, Recorder, _qos, node_params_yaml, ros_environment
+from parproj_ros.live import (
+    NodeProcess,
+    Recorder,
+    _qos,
+    node_params_yaml,
+    ros_environment,
+    wait_until,
+)
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import Outputs, PairResult
 from parproj_ros.recording import node_parameters, views_from_bag
@@ -242,12 +249,7 @@ def publish(sources: dict[str, Source], msgs: Iterable[Msg], sent: Counter[str])
 
 
 def wait(cond: Callable[[], bool], timeout: float, alive: Callable[[], bool] = lambda: True):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and alive():
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
+    return wait_until(cond, timeout, alive)
 
 
 class Listener(Graph):

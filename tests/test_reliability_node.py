@@ -38,7 +38,14 @@ from sensor_msgs.msg import Image
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader
-from parproj_ros.live import NodeProcess, Recorder, node_params_yaml, replay, ros_environment
+from parproj_ros.live import (
+    NodeProcess,
+    Recorder,
+    node_params_yaml,
+    replay,
+    ros_environment,
+    wait_until,
+)
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import PipelineConfig
 from parproj_ros.recording import node_parameters, views_from_bag
@@ -60,12 +67,7 @@ def show(sts: list[DiagnosticStatus]) -> str:
 
 
 def wait(cond: Callable[[], bool], timeout: float, alive: Callable[[], bool] = lambda: True):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline and alive():
-        if cond():
-            return True
-        time.sleep(0.05)
-    return cond()
+    return wait_until(cond, timeout, alive)
 
 
 class GraphNode:
