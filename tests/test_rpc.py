@@ -289,22 +289,33 @@ def test_localize_scalar_and_shape(left: RPCModel) -> None:
 
 
 def test_validity_domain(left: RPCModel) -> None:
+    """The declared domain limits only when asked (domain="limit"); by default it is advice."""
     far_lon = left.long_off + 1.2 * left.long_scale
+    lim = {"domain": "limit"}
     with pytest.raises(rpc.RPCDomainError):
-        left.project(far_lon, left.lat_off, left.height_off)
+        left.project(far_lon, left.lat_off, left.height_off, **lim)  # type: ignore[arg-type]
     line, sample = left.project(
-        [far_lon, left.long_off], left.lat_off, left.height_off, outside="nan"
+        [far_lon, left.long_off], left.lat_off, left.height_off, outside="nan", domain="limit"
     )
     assert np.isnan(line[0]) and np.isnan(sample[0]) and np.isfinite(line[1])
-    line, _ = left.project(far_lon, left.lat_off, left.height_off, outside="ignore")
+    line, _ = left.project(far_lon, left.lat_off, left.height_off)  # advice: evaluated
     assert np.isfinite(line)
     assert not left.in_domain(left.long_off, left.lat_off, left.height_off + 2 * 885.0)
     with pytest.raises(rpc.RPCDomainError):
-        left.localize(left.line_off + 1.2 * left.line_scale, left.samp_off, left.height_off)
+        left.localize(
+            left.line_off + 1.2 * left.line_scale, left.samp_off, left.height_off, domain="limit"
+        )
     with pytest.raises(rpc.RPCDomainError):
-        left.localize(left.line_off, left.samp_off, -500.0)  # height domain is 101.5 .. 2048.5
-    lon, _ = left.localize([left.line_off, -30000.0], left.samp_off, 1000.0, outside="nan")
+        left.localize(left.line_off, left.samp_off, -500.0, domain="limit")  # 101.5 .. 2048.5
+    lon, _ = left.localize(
+        [left.line_off, -30000.0], left.samp_off, 1000.0, outside="nan", domain="limit"
+    )
     assert np.isfinite(lon[0]) and np.isnan(lon[1])
+    # advice: outside the declared domain the formula is solved all the same, exactly
+    line0, samp0 = left.line_off + 1.3 * left.line_scale, left.samp_off - 1.2 * left.samp_scale
+    lon, lat = left.localize(line0, samp0, -500.0)
+    back = left.project(lon, lat, -500.0)
+    assert abs(float(back[0]) - line0) < 1e-6 and abs(float(back[1]) - samp0) < 1e-6
 
 
 def test_shifted_is_a_crop(left: RPCModel) -> None:
