@@ -121,7 +121,8 @@ def raster_info(path: str | Path) -> RasterInfo:
                 dtype=str(src.dtypes[0]),
                 nodata=None if src.nodata is None else float(src.nodata),
                 transform=(t.a, t.b, t.c, t.d, t.e, t.f),
-                has_crs=src.crs is not None,
+                # an engineering (local) CRS, as JPEG 2000 writers leave, is no georeferencing
+                has_crs=src.crs is not None and (src.crs.is_geographic or src.crs.is_projected),
                 rpc_metadata=dict(src.tags(ns="RPC")),
                 files=tuple(str(f) for f in src.files),
             )
