@@ -602,14 +602,18 @@ def _model(
         raise RPCFormatError(f"{where}{err}") from None
 
 
-_NUMBER = re.compile(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][-+]?\d+)?)\s*(?:[A-Za-z]+)?\s*;?\s*")
+_NUMBER = re.compile(
+    r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][-+]?\d+)?)"
+    r"(?:\s+(?:pixels?|meters?|metres?|degrees?|deg|m))?\s*;?\s*",
+    re.IGNORECASE,
+)
 
 
 def _float(text: str, what: str, source: str | Path | None = None) -> float:
     """A number as RPC files write it, or an error naming file, key and value.
 
     Optional sign, decimals, exponent (E or Fortran D),
-    optionally one unit word (``+021109.50 pixels``). Anything else (``1,5``, ``12abc3``,
+    optionally a unit (``+021109.50 pixels``: pixels, meters, metres, degrees). Anything else (``1,5``, ``12abc3``,
     two numbers) is an error naming the file, the key and the value: never a partial read.
     """
     m = _NUMBER.fullmatch(text)
