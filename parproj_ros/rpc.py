@@ -612,9 +612,9 @@ _NUMBER = re.compile(
 def _float(text: str, what: str, source: str | Path | None = None) -> float:
     """A number as RPC files write it, or an error naming file, key and value.
 
-    Optional sign, decimals, exponent (E or Fortran D),
-    optionally a unit (``+021109.50 pixels``: pixels, meters, metres, degrees). Anything else (``1,5``, ``12abc3``,
-    two numbers) is an error naming the file, the key and the value: never a partial read.
+    Optional sign, decimals, exponent (E or Fortran D), optionally a unit (``+021109.50
+    pixels``: pixels, meters, metres, degrees). Anything else (``1,5``, ``12abc3``, two
+    numbers) is an error naming the file, the key and the value: never a partial read.
     """
     m = _NUMBER.fullmatch(text)
     if m is None:
