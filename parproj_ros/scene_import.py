@@ -67,6 +67,7 @@ from .rpc import (
     RPC_TIFF_TAG,
     HeightFunction,
     LocalTangentPlane,
+    RPCFormatError,
     RPCModel,
     read_rpc,
     srtm_height,
@@ -147,10 +148,18 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
     p = Path(path)
     info = raster_io.raster_info(p)
     if info.rpc_metadata:
-        return raster_io.rpc_from_metadata(info.rpc_metadata, p), raster_io.describe_rpc_source(
-            info
-        )
+        source = raster_io.describe_rpc_source(info)
+        return raster_io.rpc_from_metadata(info.rpc_metadata, f"{p} [{source}]"), source
     folder, stem = p.parent, p.stem
+    for suffix in (".RPB", ".rpb", "_RPC.TXT", "_rpc.txt"):
+        c = folder / f"{stem}{suffix}"
+        if c.is_file():
+            # GDAL skips a sidecar it cannot parse: say what is wrong with it
+            read_rpc(c)  # raises RPCFormatError naming the file and the key
+            raise RPCFormatError(
+                f"{c}: GDAL reads no RPC from this sidecar of {p.name}, though it parses as "
+                "one; check its syntax against GDAL's .RPB / _RPC.TXT"
+            )
     for suffix in (".geom", ".GEOM"):
         c = folder / f"{stem}{suffix}"
         if c.is_file():
