@@ -14,11 +14,11 @@ import pytest
 import rasterio
 import tifffile
 from rasterio.transform import from_origin
+from test_conventions import DATA, crop_rpcs, pixels, to_rasterio, write
 
 from parproj_ros import cli, rpc
 from parproj_ros.rpc import RPCFormatError, RPCModel
 from parproj_ros.scene_import import SceneImportError, import_pair
-from test_conventions import DATA, crop_rpcs, pixels, write
 
 QUIET: dict[str, Any] = {"log": lambda _: None}
 
@@ -171,7 +171,7 @@ def test_bands(pair: tuple[Path, Path], tmp_path: Path) -> None:
         height=500,
         count=3,
         dtype="uint16",
-        rpcs=__import__("test_conventions").to_rasterio(crop_rpcs()[0]),
+        rpcs=to_rasterio(crop_rpcs()[0]),
     ) as dst:
         dst.write(img, 1)
         dst.write(np.full_like(img, 7), 2)
