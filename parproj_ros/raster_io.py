@@ -156,13 +156,12 @@ def rpc_from_metadata(tags: dict[str, str], source: str | Path) -> RPCModel:
         text = upper.get(name.upper())
         if text is None:
             continue
-        items = text.replace(",", " , ").split() if "," in text else text.split()
-        if "," in items:
+        if "," in text:
             raise RPCFormatError(
                 f"{source}: {name.upper()}: not 20 numbers separated by spaces: {text[:60]!r} "
                 "(a decimal comma?)"
             )
-        values = [_float(v, name.upper(), source) for v in items]
+        values = [_float(v, name.upper(), source) for v in text.split()]
         if len(values) != 20:
             raise RPCFormatError(
                 f"{source}: {name.upper()}: 20 coefficients needed, got {len(values)}"
@@ -274,12 +273,19 @@ def out_dtype(dtype: str) -> np.dtype[Any]:
 
 def band_summary(path: str | Path, band: int, max_side: int = 1024) -> tuple[float, float, int]:
     """(min, max, valid count) of a band on a decimated read (at most max_side^2 pixels)."""
+    from rasterio.errors import RasterioError
+
     with _env(), _open(path) as src:
         if not 1 <= band <= src.count:
             raise SceneImportError(f"{path}: band {band} asked for, the raster has {src.count}")
         k = max(1, math.ceil(max(src.height, src.width) / max_side))
         shape = (max(1, src.height // k), max(1, src.width // k))
-        data = src.read(band, out_shape=shape, masked=True).astype(np.float64)
+        try:
+            data = src.read(band, out_shape=shape, masked=True).astype(np.float64)
+        except RasterioError as err:
+            raise SceneImportError(
+                f"{path}: GDAL cannot read band {band}: {str(err).splitlines()[0][:160]}"
+            ) from None
     valid = np.ma.masked_invalid(data).compressed()
     if valid.size == 0:
         return math.nan, math.nan, 0
@@ -294,6 +300,7 @@ def read_rows(
     Pixels GDAL masks (nodata, alpha, NaN) become 0; with ``width`` larger than the raster the
     block is padded on the right with 0 (no-data) columns. Only one block is held at a time.
     """
+    from rasterio.errors import RasterioError
     from rasterio.windows import Window
 
     with _env(), _open(path) as src:
@@ -302,8 +309,14 @@ def read_rows(
         for r0 in range(0, src.height, rows_per_block):
             n = min(rows_per_block, src.height - r0)
             win = Window(0, r0, src.width, n)
-            data = src.read(band, window=win)
-            mask = src.read_masks(band, window=win) == 0
+            try:
+                data = src.read(band, window=win)
+                mask = src.read_masks(band, window=win) == 0
+            except RasterioError as err:  # a truncated or corrupt file, found while reading
+                raise SceneImportError(
+                    f"{path}: GDAL cannot read rows {r0}..{r0 + n - 1} of band {band}: "
+                    f"{str(err).splitlines()[0][:160]}"
+                ) from None
             if data.dtype.kind == "f":
                 mask |= ~np.isfinite(data)
             out = np.zeros((n, w), dt)

@@ -16,9 +16,13 @@ Topics written (relative names, as ``parproj_node`` subscribes to them):
 | gcp | parproj_msgs/msg/GroundControlPoints | virtual GCP and check points, once |
 | truth/points | parproj_msgs/msg/GroundControlPoints | other virtual points, for evaluation |
 
-Image coordinates of every observation are those of the *crops* (0, 0 = centre of the crop's
-first pixel): the RPC of the full scene is shifted by the crop offset (:func:`crop_offset`, from
-the GeoTIFF ModelTransformationTag 34264) with :meth:`RPCModel.shifted`.
+Images and RPC are read through GDAL (parproj_ros/raster_io.py: any raster GDAL reads, RPC
+from every source GDAL reads, OSSIM ``.geom`` and loose DIMAP XML by parproj_ros/rpc.py), pixels
+by windows of :data:`STRIP_LINES` rows. Image coordinates of every observation are those of the
+*crops* (0, 0 = centre of the crop's first pixel): the RPC is shifted by the crop origin
+(``--crop-origin``, else GDAL's geotransform, i.e. the ModelTransformationTag 34264, else (0, 0),
+a named assumption: :func:`load_image`) with :meth:`RPCModel.shifted`. Before anything is
+written each image's RPC is checked over it (:func:`check_image`, :func:`check_overlap`).
 
 Object frame: a local east-north-up tangent plane on WGS84 (:class:`LocalTangentPlane`), origin
 at the centre of the first image on the mean ground height, rounded to 1e-7 deg and 1 cm so that

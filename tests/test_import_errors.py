@@ -41,6 +41,11 @@ def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(bad, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
     with pytest.raises(SceneImportError, match=r"missing\.tif: no such file"):
         import_pair(tmp_path / "missing.tif", pair[1], tmp_path / "o", **QUIET)
+    cut = tmp_path / "cut.tif"
+    data = pair[0].read_bytes()
+    cut.write_bytes(data[: len(data) // 2])  # header and RPC intact, pixels cut off
+    with pytest.raises(SceneImportError, match=r"cut\.tif: (GDAL cannot read|not a raster)"):
+        import_pair(cut, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
 def test_corrupt_rpc(pair: tuple[Path, Path], tmp_path: Path) -> None:
