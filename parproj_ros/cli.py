@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -310,6 +311,37 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if (res.get("live") or {}).get("error") else 0
 
 
+def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) -> tuple[Any, ...]:
+    """``--crop-origin IMAGE ROW COL`` (repeatable) -> one (row, col) or None per image.
+
+    IMAGE is matched against each image's path as given, then its file name.
+
+    Raises:
+        ValueError: IMAGE names no image (or several), ROW / COL not finite numbers.
+
+    """
+    out: list[tuple[float, float] | None] = [None] * len(images)
+    for name, row, col in given or []:
+        hits = [i for i, p in enumerate(images) if p == name] or [
+            i for i, p in enumerate(images) if Path(p).name == Path(name).name
+        ]
+        if len(hits) != 1:
+            raise ValueError(
+                f"--crop-origin {name}: names {'no' if not hits else 'more than one'} image "
+                f"of {list(images)}"
+            )
+        try:
+            r, c = float(row), float(col)
+        except ValueError:
+            raise ValueError(
+                f"--crop-origin {name} {row} {col}: ROW and COL must be numbers"
+            ) from None
+        if not (math.isfinite(r) and math.isfinite(c)):
+            raise ValueError(f"--crop-origin {name} {row} {col}: ROW and COL must be finite")
+        out[hits[0]] = (r, c)
+    return tuple(out)
+
+
 def cmd_import(args: argparse.Namespace) -> int:
     """``parproj import``: two images with RPC -> a single-camera bag with virtual GCP."""
     from .rpc import RPCError
@@ -326,6 +358,8 @@ def cmd_import(args: argparse.Namespace) -> int:
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
             scene_ids=tuple(args.ids),
+            offsets=_crop_origins(args.crop_origin, (args.left, args.right)),
+            band=args.band,
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
             overwrite=args.force,
@@ -502,7 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "import", help="two images with RPC -> a single-camera bag with virtual GCP, no navigation"
     )
-    p.add_argument("left", help="left image (GeoTIFF/TIFF; first scene)")
+    p.add_argument("left", help="left image (any raster GDAL reads; first scene)")
     p.add_argument("right", help="right image (second scene)")
     p.add_argument("-o", "--output", required=True, help="bag folder to create")
     p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
@@ -534,6 +568,17 @@ def build_parser() -> argparse.ArgumentParser:
         "--pixel-size", type=float, default=13e-6, help="detector pitch, m (default 13 um)"
     )
     p.add_argument("--force", action="store_true", help="replace an existing bag")
+    # issue 10: crop origins and band (kept apart from the image list: merge-friendly)
+    p.add_argument(
+        "--crop-origin",
+        nargs=3,
+        action="append",
+        metavar=("IMAGE", "ROW", "COL"),
+        help="pixel (0, 0) of IMAGE (its path or file name) is pixel (ROW, COL) of its RPC's "
+        "grid; repeatable; default: the file's GDAL geotransform (ModelTransformationTag), "
+        "else (0, 0) (the RPC is in the image's own grid, as GDAL assumes)",
+    )
+    p.add_argument("--band", type=int, help="band to import from each image, 1-based (default 1)")
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser(

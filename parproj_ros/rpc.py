@@ -30,6 +30,16 @@ exactly (1, 1) px (tests/test_rpc.py). GDAL's Pleiades reader makes the same cor
 of the upper-left pixel is (1, 1) in DIMAP v2, FIRST_COL of the validity domain since DIMAP v3),
 and the RPC00B offsets refer to pixel centres (GDAL issue 3946).
 
+Validity domain: an RPC declares where it was fitted (normalized |L|, |P|, |H|, |line|, |sample|
+<= 1.1). That is advice, not a limit: the formula is evaluated wherever asked, as GDAL's RPC
+transformer, rpcm and s2p do. Many distributed crops keep the parent scene's LINE_OFF / SAMP_OFF
+with scales fitted to the crop, so that every pixel lies tens of scale units outside the declared
+domain while the model is exact there. :meth:`RPCModel.project` and :meth:`RPCModel.localize`
+therefore evaluate everywhere by default (``domain="advice"``); ``domain="limit"`` restores the
+hard limit (used by :func:`virtual_gcp`, the paper-2 experiment). What is really wrong is refused
+by the importer (parproj_ros/scene_import.py): non-finite coefficients, a localization that does
+not converge, a denominator crossing zero over the image (:meth:`RPCModel.denominator_check`).
+
 Ground frames: :func:`ecef_from_geodetic` / :func:`geodetic_from_ecef` (WGS84) and
 :class:`LocalTangentPlane` (east, north, up, metres) give the local Cartesian object frame of the
 parallel projection model (Z up). Heights are always ellipsoidal here; SRTM heights are above the
@@ -58,14 +68,20 @@ FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 #: A DEM: (longitude deg, latitude deg) arrays -> WGS84 ellipsoidal height, metres (NaN = none).
 HeightFunction = Callable[[FloatArray, FloatArray], FloatArray]
-#: What to do with points outside the validity domain or not converged.
+#: What to do with points that fail (outside a limiting domain, not converged, not finite).
 Outside = Literal["raise", "nan", "ignore"]
+#: Whether the declared validity domain is advice (evaluate anywhere) or a hard limit.
+Domain = Literal["advice", "limit"]
 
 #: The 20 RPC00B terms (L longitude, P latitude, H height, all normalized).
 RPC00B_TERMS: tuple[str, ...] = (
     "1", "L", "P", "H", "LP", "LH", "PH", "LL", "PP", "HH",
     "PLH", "LLL", "LPP", "LHH", "LLP", "PPP", "PHH", "LLH", "PPH", "HHH",
 )  # fmt: skip
+#: (power of L, power of P, power of H) of each RPC00B term.
+_POWERS: tuple[tuple[int, int, int], ...] = tuple(
+    (t.count("L"), t.count("P"), t.count("H")) for t in RPC00B_TERMS
+)
 #: RPC00A order as indices into RPC00B: ``b = a[_A_TO_B]`` (A puts PLH before the squares).
 _A_TO_B = np.array([0, 1, 2, 3, 4, 5, 6, 8, 9, 10, 7, 11, 12, 13, 14, 15, 16, 17, 18, 19])
 #: Normalized coordinates beyond this magnitude are outside the validity domain.
@@ -147,7 +163,8 @@ def _coeff(values: ArrayLike, name: str) -> FloatArray:
     if a.shape != (20,):
         raise RPCFormatError(f"{name}: 20 coefficients needed, got {a.size}")
     if not np.all(np.isfinite(a)):
-        raise RPCFormatError(f"{name}: coefficients must be finite")
+        bad = [i + 1 for i in np.flatnonzero(~np.isfinite(a))]
+        raise RPCFormatError(f"{name}: coefficients must be finite, not at {bad} (1-based)")
     a.setflags(write=False)
     return a
 
@@ -272,6 +289,61 @@ class RPCModel:
         v[3] += d_sample
         return RPCModel.from_vector(v)
 
+    def renormalized(self, **offsets_scales: float) -> RPCModel:
+        """The same mapping with other offsets and scales (exact re-expansion of the cubics).
+
+        Any of ``line_off``, ..., ``height_scale`` (keywords, same units as the attributes) may
+        be given; the others stay. The ground substitution ``L = a L' + b`` (a = new scale / old
+        scale, b = (new offset - old offset) / old scale; likewise P, H) is expanded binomially
+        into the 20 RPC00B terms, so a monomial of total degree d in pure rescaling (b = 0) has
+        its coefficient multiplied by a^d. The image side: ``line = ls N / D + lo`` becomes
+        ``ls' N' / D + lo'`` with ``N' = (ls N + (lo - lo') D) / ls'``. Used for the
+        "parent offsets, crop scales" convention of distributed crops (module docstring).
+
+        Raises:
+            RPCFormatError: an unknown keyword, or a zero / non-finite value.
+
+        """
+        unknown = set(offsets_scales) - set(_SCALARS)
+        if unknown:
+            raise RPCFormatError(f"renormalized: unknown keywords {sorted(unknown)}")
+        new = {n: float(offsets_scales.get(n, getattr(self, n))) for n in _SCALARS}
+        pairs = (
+            ("long_off", "long_scale"),
+            ("lat_off", "lat_scale"),
+            ("height_off", "height_scale"),
+        )
+        subst = []
+        for off, scale in pairs:
+            a = new[scale] / getattr(self, scale)
+            b = (new[off] - getattr(self, off)) / getattr(self, scale)
+            # t[i, m]: coefficient of u'^m in (a u' + b)^i, i, m = 0..3
+            t = np.zeros((4, 4))
+            for i in range(4):
+                for m in range(i + 1):
+                    t[i, m] = math.comb(i, m) * a**m * b ** (i - m)
+            subst.append(t)
+
+        def expand(c: FloatArray) -> FloatArray:
+            dense = np.zeros((4, 4, 4))
+            for coef, (i, j, k) in zip(c, _POWERS, strict=True):
+                dense[i, j, k] += coef
+            out = np.einsum("ijk,im,jn,ko->mno", dense, *subst)
+            return np.array([out[i, j, k] for i, j, k in _POWERS])
+
+        ln, ld, sn, sd = (expand(c) for c in self.coefficients)
+        ln = (self.line_scale * ln + (self.line_off - new["line_off"]) * ld) / new["line_scale"]
+        sn = (self.samp_scale * sn + (self.samp_off - new["samp_off"]) * sd) / new["samp_scale"]
+        return RPCModel(
+            **new,
+            line_num_coeff=ln / ld[0],
+            line_den_coeff=ld / ld[0],
+            samp_num_coeff=sn / sd[0],
+            samp_den_coeff=sd / sd[0],
+            err_bias=self.err_bias,
+            err_rand=self.err_rand,
+        )
+
     # -- normalization -------------------------------------------------------------------------
 
     def normalize_ground(
@@ -306,7 +378,13 @@ class RPCModel:
         return t, num, den
 
     def project(
-        self, lon_deg: ArrayLike, lat_deg: ArrayLike, h_m: ArrayLike, *, outside: Outside = "raise"
+        self,
+        lon_deg: ArrayLike,
+        lat_deg: ArrayLike,
+        h_m: ArrayLike,
+        *,
+        outside: Outside = "raise",
+        domain: Domain = "advice",
     ) -> tuple[FloatArray, FloatArray]:
         """Ground -> image.
 
@@ -314,26 +392,76 @@ class RPCModel:
             lon_deg: longitude, degrees (WGS84), any shape (broadcast with the others).
             lat_deg: latitude, degrees (WGS84 geodetic).
             h_m: height above the WGS84 ellipsoid, metres.
-            outside: for points outside the validity domain: ``"raise"`` (RPCDomainError),
-                ``"nan"`` (NaN coordinates) or ``"ignore"`` (evaluate the polynomials anyway).
+            outside: for points that fail (outside the domain when ``domain == "limit"``, or a
+                non-finite result: a zero denominator): ``"raise"``, ``"nan"`` (NaN
+                coordinates) or ``"ignore"`` (return what the polynomials give).
+            domain: ``"advice"`` (default): evaluate everywhere, as GDAL does; ``"limit"``:
+                points outside the declared validity domain (|normalized| > 1.1) fail.
 
         Returns:
             (line, sample), pixels, this project's convention, float64, the broadcast shape.
 
         Raises:
-            RPCDomainError: a point is outside the domain and ``outside == "raise"``.
+            RPCDomainError: a point fails and ``outside == "raise"``.
 
         """
         L, P, H = self.normalize_ground(lon_deg, lat_deg, h_m)
-        bad = ~self.in_domain(lon_deg, lat_deg, h_m)
-        _handle(bad, outside, RPCDomainError, "are outside the RPC validity domain")
+        if domain == "limit":
+            bad = ~self.in_domain(lon_deg, lat_deg, h_m)
+            _handle(bad, outside, RPCDomainError, "are outside the RPC validity domain")
+        else:
+            bad = np.zeros(L.shape, dtype=bool)
         _, num, den = self._ratios(L, P, H)
-        line = num[..., 0] / den[..., 0] * self.line_scale + self.line_off
-        sample = num[..., 1] / den[..., 1] * self.samp_scale + self.samp_off
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            line = num[..., 0] / den[..., 0] * self.line_scale + self.line_off
+            sample = num[..., 1] / den[..., 1] * self.samp_scale + self.samp_off
+            inputs_ok = np.isfinite(L) & np.isfinite(P) & np.isfinite(H)
+            blown = inputs_ok & ~(np.isfinite(line) & np.isfinite(sample))
+        _handle(blown & ~bad, outside, RPCDomainError, "project to infinity (zero denominator)")
         if outside == "nan":
+            bad = bad | blown
             line = np.where(bad, np.nan, line)
             sample = np.where(bad, np.nan, sample)
         return np.asarray(line, dtype=np.float64), np.asarray(sample, dtype=np.float64)
+
+    def denominators(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, h_m: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """The line and sample denominators (dimensionless) at ground points."""
+        L, P, H = self.normalize_ground(lon_deg, lat_deg, h_m)
+        _, _, den = self._ratios(L, P, H)
+        return np.asarray(den[..., 0]), np.asarray(den[..., 1])
+
+    def denominator_check(
+        self, lon_deg: ArrayLike, lat_deg: ArrayLike, h_m: ArrayLike
+    ) -> str | None:
+        """Why the denominators make the model unusable over these ground points, or None.
+
+        A denominator that changes sign (or comes within 1e-6 of zero relative to its largest
+        magnitude) between the points crosses zero inside the area they span: the projection
+        goes through infinity there.
+        """
+        for name, d in zip(
+            ("line", "sample"), self.denominators(lon_deg, lat_deg, h_m), strict=True
+        ):
+            d = d[np.isfinite(d)]
+            if d.size == 0:
+                continue
+            big = float(np.abs(d).max())
+            if d.min() < 0.0 < d.max() or float(np.abs(d).min()) <= 1e-6 * big:
+                return (
+                    f"the {name} denominator crosses zero over the image "
+                    f"(from {float(d.min()):.3g} to {float(d.max()):.3g})"
+                )
+        return None
+
+    def normalized_image_range(
+        self, lines: tuple[float, float], samples: tuple[float, float]
+    ) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Normalized (line, sample) ranges of an image rectangle: ((lo, hi), (lo, hi))."""
+        ln = sorted((v - self.line_off) / self.line_scale for v in lines)
+        sn = sorted((v - self.samp_off) / self.samp_scale for v in samples)
+        return (ln[0], ln[-1]), (sn[0], sn[-1])
 
     # -- image -> ground -----------------------------------------------------------------------
 
@@ -344,6 +472,7 @@ class RPCModel:
         h_m: ArrayLike,
         *,
         outside: Outside = "raise",
+        domain: Domain = "advice",
         tolerance_px: float = 1e-9,
         max_iterations: int = 30,
     ) -> tuple[FloatArray, FloatArray]:
@@ -355,9 +484,11 @@ class RPCModel:
             line: line, pixels (this project's convention), any shape (broadcast).
             sample: sample, pixels.
             h_m: height above the WGS84 ellipsoid, metres.
-            outside: for inputs outside the domain (normalized line, sample or height beyond
-                1.1), solutions outside it, or points not converged to 1e-6 px: ``"raise"``,
-                ``"nan"`` or ``"ignore"`` (return the last iterate).
+            outside: for points that fail (not converged to 1e-6 px; with ``domain ==
+                "limit"`` also inputs outside the domain, normalized line, sample or height
+                beyond 1.1, and solutions outside it): ``"raise"``, ``"nan"`` or ``"ignore"``
+                (return the best iterate).
+            domain: ``"advice"`` (default: solve wherever asked, as GDAL does) or ``"limit"``.
             tolerance_px: a point stops iterating when its re-projection error is below this,
                 pixels (or stops decreasing: float64 evaluation of the polynomials is good to
                 about 1e-9 px on a 40000 px scene).
@@ -368,7 +499,8 @@ class RPCModel:
             (line, sample) to better than 1e-6 px (tolerance_px when reachable in float64).
 
         Raises:
-            RPCDomainError: input or solution outside the domain (``outside == "raise"``).
+            RPCDomainError: input or solution outside a limiting domain (``outside ==
+                "raise"``).
             RPCConvergenceError: not converged to 1e-6 px (``outside == "raise"``).
 
         """
@@ -382,6 +514,8 @@ class RPCModel:
         H = (hh - self.height_off) / self.height_scale
         with np.errstate(invalid="ignore"):
             bad_in = ~((np.abs(ln) <= _LIMIT) & (np.abs(sn) <= _LIMIT) & (np.abs(H) <= _LIMIT))
+        if domain != "limit":
+            bad_in = ~(np.isfinite(ln) & np.isfinite(sn) & np.isfinite(H))
         _handle(bad_in, outside, RPCDomainError, "(line, sample, h) are outside the domain")
         # Start: the linear part of the numerators (denominators ~ 1), solved for L, P.
         a, b = self.line_num_coeff, self.samp_num_coeff
@@ -425,7 +559,10 @@ class RPCModel:
                 P = np.where(active, P - (j11 * rs - j21 * rl) / det, P)
         L, P = best_l, best_p
         bad_conv = ~(err < 1e-6)
-        bad_out = ~((np.abs(L) <= _LIMIT) & (np.abs(P) <= _LIMIT))
+        with np.errstate(invalid="ignore"):
+            bad_out = ~((np.abs(L) <= _LIMIT) & (np.abs(P) <= _LIMIT))
+        if domain != "limit":
+            bad_out = np.zeros(L.shape, dtype=bool)
         _handle(bad_conv & ~bad_in, outside, RPCConvergenceError, "did not converge to 1e-6 px")
         _handle(bad_out & ~bad_in, outside, RPCDomainError, "localize outside the domain")
         lon = L * self.long_scale + self.long_off
@@ -446,20 +583,46 @@ _COEFF_NAMES: tuple[str, ...] = (
 )  # fmt: skip
 
 
-def _model(scalars: dict[str, float], coeffs: dict[str, FloatArray], **extra: float) -> RPCModel:
+def _model(
+    scalars: dict[str, float],
+    coeffs: dict[str, FloatArray],
+    source: str | Path | None = None,
+    **extra: float,
+) -> RPCModel:
+    where = f"{source}: " if source is not None else ""
     missing = [n for n in _SCALARS if n not in scalars] + [
         n for n in _COEFF_NAMES if n not in coeffs
     ]
     if missing:
-        raise RPCFormatError(f"missing RPC values: {', '.join(missing)}")
+        raise RPCFormatError(f"{where}missing RPC values: {', '.join(missing)}")
     kwargs: dict[str, float] = {n: scalars[n] for n in _SCALARS}
-    return RPCModel(**kwargs, **coeffs, **extra)  # type: ignore[arg-type]
+    try:
+        return RPCModel(**kwargs, **coeffs, **extra)  # type: ignore[arg-type]
+    except RPCFormatError as err:
+        raise RPCFormatError(f"{where}{err}") from None
 
 
-def _float(text: str, what: str) -> float:
-    m = re.match(r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][-+]?\d+)?)", text)
+_NUMBER = re.compile(
+    r"\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eEdD][-+]?\d+)?)"
+    r"(?:\s+(?:pixels?|meters?|metres?|degrees?|deg|m))?\s*;?\s*",
+    re.IGNORECASE,
+)
+
+
+def _float(text: str, what: str, source: str | Path | None = None) -> float:
+    """A number as RPC files write it, or an error naming file, key and value.
+
+    Optional sign, decimals, exponent (E or Fortran D), optionally a unit (``+021109.50
+    pixels``: pixels, meters, metres, degrees). Anything else (``1,5``, ``12abc3``, two
+    numbers) is an error naming the file, the key and the value: never a partial read.
+    """
+    m = _NUMBER.fullmatch(text)
     if m is None:
-        raise RPCFormatError(f"{what}: not a number: {text.strip()[:40]!r}")
+        where = f"{source}: " if source is not None else ""
+        raise RPCFormatError(
+            f"{where}{what}: not a number: {text.strip()[:40]!r} (a decimal point is needed, "
+            "e.g. 1.5, not 1,5)"
+        )
     return float(m.group(1).replace("d", "e").replace("D", "E"))
 
 
@@ -492,20 +655,20 @@ def read_geom(path: str | Path) -> RPCModel:
     flat: dict[str, str] = {}
     for key, value in kwl.items():
         flat.setdefault(key.rsplit(".", 1)[-1].lower(), value)
-    scalars = {n: _float(flat[n], n) for n in _SCALARS if n in flat}
+    scalars = {n: _float(flat[n], n, path) for n in _SCALARS if n in flat}
     coeffs: dict[str, FloatArray] = {}
     for name in _COEFF_NAMES:
         keys = [f"{name}_{i:02d}" for i in range(20)]
         if all(k in flat for k in keys):
-            coeffs[name] = np.array([_float(flat[k], k) for k in keys])
+            coeffs[name] = np.array([_float(flat[k], k, path) for k in keys])
     if flat.get("polynomial_format", "B").strip().upper() == "A":
         coeffs = {k: v[_A_TO_B] for k, v in coeffs.items()}
     extra = {}
     if "bias_error" in flat:
-        extra["err_bias"] = _float(flat["bias_error"], "bias_error")
+        extra["err_bias"] = _float(flat["bias_error"], "bias_error", path)
     if "rand_error" in flat:
-        extra["err_rand"] = _float(flat["rand_error"], "rand_error")
-    return _model(scalars, coeffs, **extra)
+        extra["err_rand"] = _float(flat["rand_error"], "rand_error", path)
+    return _model(scalars, coeffs, path, **extra)
 
 
 def write_geom(
@@ -560,18 +723,18 @@ def read_rpc_txt(path: str | Path) -> RPCModel:
         key, sep, value = raw.partition(":")
         if sep:
             values[key.strip().upper()] = value
-    scalars = {n: _float(values[k], k) for k, n in _TXT_SCALARS.items() if k in values}
+    scalars = {n: _float(values[k], k, path) for k, n in _TXT_SCALARS.items() if k in values}
     coeffs: dict[str, FloatArray] = {}
     for name in _COEFF_NAMES:
         keys = [f"{name.upper()}_{i}" for i in range(1, 21)]
         if all(k in values for k in keys):
-            coeffs[name] = np.array([_float(values[k], k) for k in keys])
+            coeffs[name] = np.array([_float(values[k], k, path) for k in keys])
     extra = {
-        n: _float(values[k], k)
+        n: _float(values[k], k, path)
         for k, n in (("ERR_BIAS", "err_bias"), ("ERR_RAND", "err_rand"))
         if k in values
     }
-    return _model(scalars, coeffs, **extra)
+    return _model(scalars, coeffs, path, **extra)
 
 
 def write_rpc_txt(path: str | Path, rpc: RPCModel) -> None:
@@ -617,11 +780,11 @@ def read_rpb(path: str | Path) -> RPCModel:
         key, value = m.group(1).lower(), m.group(2).strip()
         if key in _RPB_COEFFS:
             items = [s for s in value.strip("()").replace("\n", " ").split(",") if s.strip()]
-            coeffs[_RPB_COEFFS[key]] = np.array([_float(s, key) for s in items])
+            coeffs[_RPB_COEFFS[key]] = np.array([_float(s, key, path) for s in items])
         elif key in _RPB_SCALARS:
-            found[_RPB_SCALARS[key]] = _float(value, key)
+            found[_RPB_SCALARS[key]] = _float(value, key, path)
     extra = {k: found.pop(k) for k in ("err_bias", "err_rand") if k in found}
-    return _model(found, coeffs, **extra)
+    return _model(found, coeffs, path, **extra)
 
 
 def write_rpb(path: str | Path, rpc: RPCModel, *, sat_id: str = "UNKNOWN") -> None:
@@ -665,7 +828,7 @@ def dimap_pixel_origin(path: str | Path) -> float:
         if _local(node.tag) == "ImagetoGround_Validity_Domain":
             for child in node:
                 if _local(child.tag) == "FIRST_COL" and child.text:
-                    return _float(child.text, "FIRST_COL")
+                    return _float(child.text, "FIRST_COL", path)
     return 1.0
 
 
@@ -701,18 +864,18 @@ def read_dimap_rpc(path: str | Path, *, origin: float | None = None) -> RPCModel
     for name in _COEFF_NAMES:
         keys = [f"{name.upper()}_{i}" for i in range(1, 21)]
         if all(k in values for k in keys):
-            coeffs[name] = np.array([_float(values[k], k) for k in keys])
+            coeffs[name] = np.array([_float(values[k], k, path) for k in keys])
     scalars: dict[str, float] = {}
     for node in root.iter():
         tag = _local(node.tag).upper()
         if tag in _TXT_SCALARS and node.text and _TXT_SCALARS[tag] not in scalars:
-            scalars[_TXT_SCALARS[tag]] = _float(node.text, tag)
+            scalars[_TXT_SCALARS[tag]] = _float(node.text, tag, path)
     shift = dimap_pixel_origin(path) if origin is None else float(origin)
     if "line_off" in scalars:
         scalars["line_off"] -= shift
     if "samp_off" in scalars:
         scalars["samp_off"] -= shift
-    return _model(scalars, coeffs)
+    return _model(scalars, coeffs, path)
 
 
 def write_dimap_rpc(path: str | Path, rpc: RPCModel) -> None:
@@ -1059,7 +1222,7 @@ def _dem_heights(
     lo = rpc.height_off - DOMAIN_LIMIT * abs(rpc.height_scale)
     hi = rpc.height_off + DOMAIN_LIMIT * abs(rpc.height_scale)
     for _ in range(30):
-        lon, lat = rpc.localize(line, sample, h, outside="nan")
+        lon, lat = rpc.localize(line, sample, h, outside="nan", domain="limit")
         new = np.clip(np.asarray(dem(lon, lat), dtype=np.float64), lo, hi)
         with np.errstate(invalid="ignore"):
             done = np.all(~(np.abs(new - h) > 1e-3))
@@ -1130,11 +1293,11 @@ def virtual_gcp(
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(hh)
     ll, ss, hh = ll[ok], ss[ok], hh[ok]
-    lon, lat = left.localize(ll, ss, hh, outside="nan")
+    lon, lat = left.localize(ll, ss, hh, outside="nan", domain="limit")
     ok = np.isfinite(lon) & np.isfinite(lat)
     lon, lat, hh = lon[ok], lat[ok], hh[ok]
-    left_ls = np.stack(left.project(lon, lat, hh, outside="nan"), axis=-1)
-    right_ls = np.stack(right.project(lon, lat, hh, outside="nan"), axis=-1)
+    left_ls = np.stack(left.project(lon, lat, hh, outside="nan", domain="limit"), axis=-1)
+    right_ls = np.stack(right.project(lon, lat, hh, outside="nan", domain="limit"), axis=-1)
     with np.errstate(invalid="ignore"):
         keep = (
             np.all(np.isfinite(left_ls), axis=1)

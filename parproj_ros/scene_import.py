@@ -16,9 +16,13 @@ Topics written (relative names, as ``parproj_node`` subscribes to them):
 | gcp | parproj_msgs/msg/GroundControlPoints | virtual GCP and check points, once |
 | truth/points | parproj_msgs/msg/GroundControlPoints | other virtual points, for evaluation |
 
-Image coordinates of every observation are those of the *crops* (0, 0 = centre of the crop's
-first pixel): the RPC of the full scene is shifted by the crop offset (:func:`crop_offset`, from
-the GeoTIFF ModelTransformationTag 34264) with :meth:`RPCModel.shifted`.
+Images and RPC are read through GDAL (parproj_ros/raster_io.py: any raster GDAL reads, RPC
+from every source GDAL reads, OSSIM ``.geom`` and loose DIMAP XML by parproj_ros/rpc.py), pixels
+by windows of :data:`STRIP_LINES` rows. Image coordinates of every observation are those of the
+*crops* (0, 0 = centre of the crop's first pixel): the RPC is shifted by the crop origin
+(``--crop-origin``, else GDAL's geotransform, i.e. the ModelTransformationTag 34264, else (0, 0),
+a named assumption: :func:`load_image`) with :meth:`RPCModel.shifted`. Before anything is
+written each image's RPC is checked over it (:func:`check_image`, :func:`check_overlap`).
 
 Object frame: a local east-north-up tangent plane on WGS84 (:class:`LocalTangentPlane`), origin
 at the centre of the first image on the mean ground height, rounded to 1e-7 deg and 1 cm so that
@@ -50,6 +54,7 @@ the estimated roll.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -59,13 +64,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from . import raster_io
+from .raster_io import SceneImportError
 from .rpc import (
+    DOMAIN_LIMIT,
     RPC_TIFF_TAG,
     HeightFunction,
     LocalTangentPlane,
-    RPCError,
+    RPCFormatError,
     RPCModel,
-    read_geotiff_rpc,
     read_rpc,
     srtm_height,
 )
@@ -102,88 +109,63 @@ FRAME_PREFIX = "enu_wgs84"
 MODEL_TRANSFORMATION_TAG = 34264
 
 
-class SceneImportError(RPCError):
-    """An image or its RPC cannot be imported (missing RPC, bad offset, no overlap, ...)."""
-
-
 # ---------------------------------------------------------------------------------------------
-# Reading images, offsets and RPC
+# Reading images, offsets and RPC (through GDAL: parproj_ros/raster_io.py)
 
 
-def read_image(path: str | Path) -> NDArray[np.generic]:
-    """The first band of the first page of a TIFF as a 2-D array (rows = lines).
+def read_image(path: str | Path, band: int = 1) -> NDArray[np.generic]:
+    """One band of a raster as a 2-D array (rows = lines), no-data as 0 (small images only).
 
     uint8, uint16 and float32 stay as they are (the strip encodings mono8, mono16, 32FC1); other
-    types become float32.
+    types become float32. :func:`import_pair` never calls this: it reads by windows.
     """
-    import tifffile
-
-    with tifffile.TiffFile(Path(path)) as tif:
-        page = tif.pages.first
-        data = page.asarray()
-        if data.ndim == 3:
-            # contiguous (rows, cols, bands) or planar (bands, rows, cols)
-            data = data[..., 0] if page.planarconfig == 1 else data[0]
-    if data.ndim != 2:
-        raise SceneImportError(f"{path}: expected a single-band image, got shape {data.shape}")
-    if data.dtype not in (np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(np.float32)):
-        data = data.astype(np.float32)
-    return np.ascontiguousarray(data)
+    return raster_io.read_band(path, band)
 
 
 def crop_offset(path: str | Path) -> tuple[float, float] | None:
-    """(line, sample) of the crop's first pixel in the full scene, from the TIFF's own metadata.
+    """(line, sample) of the crop's first pixel in the full scene, from GDAL's geotransform.
 
-    Read from the GeoTIFF ModelTransformationTag (34264) when it is a pure translation with
-    unit, non-flipped pixel scale, as GDAL writes for a crop of a sensor image referenced in
-    full-scene pixels (geotransform ``(sample0, 1, 0, line0, 0, 1)``). Since both the crop and
-    the full scene use the same corner (PixelIsArea) convention, the translation is also the
-    centre-to-centre offset. None when the TIFF has no such tag.
+    A pure translation with unit, non-flipped pixels and no CRS (what GDAL makes of a GeoTIFF
+    ModelTransformationTag 34264 or tie point + pixel scale, a world file, an ``.aux.xml``); None
+    when the raster has none or a map georeferencing (:func:`parproj_ros.raster_io.crop_origin`).
 
     Raises:
-        SceneImportError: the tag is a map georeferencing (scale not 1, rotation), not an offset.
+        SceneImportError: a geotransform without CRS that is not a unit translation.
 
     """
-    import tifffile
-
-    with tifffile.TiffFile(Path(path)) as tif:
-        tag = tif.pages.first.tags.get(MODEL_TRANSFORMATION_TAG)
-        if tag is None:
-            return None
-        m = np.asarray(tag.value, dtype=np.float64).reshape(4, 4)
-    unit = m[0, 0] == 1.0 and m[1, 1] == 1.0 and m[0, 1] == 0.0 and m[1, 0] == 0.0
-    if not unit or not np.all(np.isfinite(m[:2, 3])):
-        raise SceneImportError(
-            f"{path}: ModelTransformationTag {m[:2].ravel().tolist()} is not a crop offset "
-            "(unit scale, no rotation); pass the offset explicitly"
-        )
-    return float(m[1, 3]), float(m[0, 3])
+    return raster_io.crop_origin(raster_io.raster_info(path))
 
 
 def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
-    """The RPC of an image: GeoTIFF tag 50844, else a sidecar file; and where it came from.
+    """The RPC of an image and where it came from.
 
-    Sidecars, in this order: same stem with ``.geom``, ``_RPC.TXT`` / ``_rpc.txt``, ``.RPB`` /
-    ``.rpb``; then ``RPC_*.XML`` (DIMAP) in the folder: the only one there, or the one whose name
+    First GDAL's RPC metadata (tag 50844, ``.RPB``, ``_RPC.TXT``, NITF RPC00B, JPEG 2000 boxes,
+    DIMAP products, ``.aux.xml``); then sidecars GDAL does not read: same stem with ``.geom``
+    (OSSIM); then ``RPC_*.XML`` (DIMAP) in the folder: the only one there, or the one whose name
     after ``RPC_`` starts the image's stem after ``IMG_`` (DIMAP product naming).
 
     Raises:
         SceneImportError: no RPC found.
+        RPCFormatError: an RPC found but malformed (file, key and value named).
 
     """
-    import tifffile
-
     p = Path(path)
-    with tifffile.TiffFile(p) as tif:
-        has_tag = RPC_TIFF_TAG in tif.pages.first.tags
-    if has_tag:
-        return read_geotiff_rpc(p), f"{p.name} (GeoTIFF tag {RPC_TIFF_TAG})"
+    info = raster_io.raster_info(p)
+    if info.rpc_metadata:
+        source = raster_io.describe_rpc_source(info)
+        return raster_io.rpc_from_metadata(info.rpc_metadata, f"{p} [{source}]"), source
     folder, stem = p.parent, p.stem
-    candidates = [
-        folder / f"{stem}{suffix}"
-        for suffix in (".geom", "_RPC.TXT", "_rpc.txt", ".RPB", ".rpb", ".GEOM")
-    ]
-    for c in candidates:
+    for suffix in (".RPB", ".rpb", "_RPC.TXT", "_rpc.txt"):
+        c = folder / f"{stem}{suffix}"
+        if c.is_file():
+            # GDAL skips a sidecar it cannot parse: say what is wrong with it
+            read_rpc(c)  # raises RPCFormatError naming the file and the key
+            raise RPCFormatError(
+                f"{c}: GDAL reads no RPC from this sidecar of {p.name}, though it parses as "
+                "one; check its syntax against GDAL's .RPB / _RPC.TXT"
+            )
+    for suffix in (".geom", ".GEOM"):
+        c = folder / f"{stem}{suffix}"
         if c.is_file():
             return read_rpc(c), c.name
     xmls = sorted(q for q in folder.iterdir() if re.fullmatch(r"(?i)rpc_.*\.xml", q.name))
@@ -193,43 +175,64 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
     if chosen is not None:
         return read_rpc(chosen), chosen.name
     raise SceneImportError(
-        f"{p}: no RPC (no tag {RPC_TIFF_TAG}, no {stem}.geom / {stem}_RPC.TXT / {stem}.RPB, "
-        f"{'several' if xmls else 'no'} RPC_*.XML in {folder}); pass it explicitly"
+        f"{p}: no RPC (GDAL finds none: no tag {RPC_TIFF_TAG}, no {stem}.RPB / {stem}_RPC.TXT, "
+        f"no NITF RPC00B; no {stem}.geom; {'several' if xmls else 'no'} RPC_*.XML in {folder}); "
+        "pass it with --rpc-left / --rpc-right"
     )
+
+
+#: What the log says when a crop origin is assumed.
+ASSUMED_ORIGIN = "assumed (0, 0): the RPC is in the image's own grid, as GDAL assumes"
 
 
 @dataclass(frozen=True)
 class ImportedImage:
-    """One image ready to be written as a scene.
+    """One image ready to be written as a scene (its pixels stay in the file until then).
 
     Attributes:
         path: the image file.
         scene_id: scene id (the strips' frame_id, the GCP observations' key).
-        image: (lines, samples) pixels.
         rpc: the RPC referred to this image's pixels (crop offset applied).
         rpc_source: where the RPC was read.
-        offset: (line, sample) of pixel (0, 0) in the RPC's full scene, pixels.
+        offset: (line, sample) of pixel (0, 0) in the RPC's grid, pixels.
         offset_source: where the offset came from.
+        info: what GDAL says about the raster.
+        band: the band imported (1-based, GDAL's numbering).
+        notes: warnings and named assumptions about this image, in the order found.
+        checks: figures of the import checks (round trip, normalized ranges, ...).
 
     """
 
     path: Path
     scene_id: str
-    image: NDArray[np.generic]
     rpc: RPCModel
     rpc_source: str
     offset: tuple[float, float]
     offset_source: str
+    info: raster_io.RasterInfo
+    band: int = 1
+    notes: list[str] = field(default_factory=list)
+    checks: dict[str, Any] = field(default_factory=dict)
 
     @property
     def lines(self) -> int:
         """Rows (scan lines)."""
-        return int(self.image.shape[0])
+        return self.info.lines
 
     @property
     def samples(self) -> int:
         """Columns (detectors)."""
-        return int(self.image.shape[1])
+        return self.info.samples
+
+    @property
+    def dtype(self) -> np.dtype[Any]:
+        """Pixel type of the strips."""
+        return raster_io.out_dtype(self.info.dtype)
+
+    @property
+    def image(self) -> NDArray[np.generic]:
+        """All pixels of the imported band (reads the file; small images, tests)."""
+        return raster_io.read_band(self.path, self.band)
 
     def inside(self, ls: FloatArray) -> NDArray[np.bool_]:
         """Whether (line, sample) rows (n, 2) fall on pixel centres of the image (NaN: no)."""
@@ -242,40 +245,81 @@ class ImportedImage:
             )
 
 
+def _finite_pair(value: Sequence[float], what: str) -> tuple[float, float]:
+    a, b = (float(v) for v in value)
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise SceneImportError(f"{what} must be finite, got ({a}, {b})")
+    return a, b
+
+
 def load_image(
     path: str | Path,
     scene_id: str,
     *,
     rpc_path: str | Path | None = None,
     offset: tuple[float, float] | None = None,
+    band: int | None = None,
 ) -> ImportedImage:
-    """Read an image, its RPC (:func:`find_rpc` unless given) and its crop offset.
+    """Open an image with GDAL, find its RPC (:func:`find_rpc` unless given) and crop origin.
 
     Args:
-        path: the image (TIFF / GeoTIFF).
+        path: the image (any raster GDAL reads).
         scene_id: the scene id to give it.
-        rpc_path: RPC file of the full scene (any format of :func:`parproj_ros.rpc.read_rpc`).
-        offset: (line, sample) of the crop in the full scene; default :func:`crop_offset`, or
-            (0, 0) when the TIFF has no offset.
+        rpc_path: RPC file (any format of :func:`parproj_ros.raster_io.read_rpc_file`).
+        offset: (line, sample) of the image's first pixel in the RPC's grid, pixels; default
+            :func:`crop_offset`, or (0, 0) when the raster has none (a named assumption in
+            ``notes``).
+        band: band to import (1-based); None: band 1, with a note when there are more.
+
+    Raises:
+        SceneImportError: unreadable raster, no RPC, a bad band, a constant band.
+        RPCFormatError: a malformed RPC.
 
     """
     p = Path(path)
-    image = read_image(p)
+    info = raster_io.raster_info(p)
+    notes: list[str] = []
+    if band is None:
+        band = 1
+        if info.bands > 1:
+            notes.append(
+                f"{p.name}: {info.bands} bands, band 1 imported (choose another with --band)"
+            )
+    if not 1 <= band <= info.bands:
+        raise SceneImportError(f"{p}: band {band} asked for, the raster has {info.bands}")
+    lo, hi, valid = raster_io.band_summary(p, band)
+    if valid == 0:
+        raise SceneImportError(f"{p}: band {band} is all no-data: choose another with --band")
+    if lo == hi:
+        raise SceneImportError(
+            f"{p}: band {band} is constant ({lo:g}) : nothing to match; choose another with --band"
+        )
     if rpc_path is not None:
-        full, source = read_rpc(rpc_path), str(rpc_path)
+        full, source = raster_io.read_rpc_file(rpc_path)
     else:
         full, source = find_rpc(p)
     if offset is not None:
-        off, off_source = (float(offset[0]), float(offset[1])), "given"
+        off, off_source = _finite_pair(offset, f"{p}: crop origin"), "given (--crop-origin)"
     else:
-        found = crop_offset(p)
-        off, off_source = (
-            (found, f"ModelTransformationTag {MODEL_TRANSFORMATION_TAG}")
-            if found is not None
-            else ((0.0, 0.0), "none in the TIFF: (0, 0)")
-        )
+        found = raster_io.crop_origin(info)
+        if found is not None:
+            off, off_source = found, "ModelTransformationTag or tie point (GDAL geotransform)"
+        else:
+            off, off_source = (0.0, 0.0), ASSUMED_ORIGIN
+            notes.append(
+                f"{p.name}: no crop origin in the file: {ASSUMED_ORIGIN}; if it is a crop of the "
+                f"RPC's scene, give it with --crop-origin {p.name} ROW COL"
+            )
     return ImportedImage(
-        p, scene_id, image, full.shifted(-off[0], -off[1]), source, off, off_source
+        p,
+        scene_id,
+        full.shifted(-off[0], -off[1]),
+        source,
+        off,
+        off_source,
+        info,
+        band,
+        notes,
     )
 
 
@@ -414,12 +458,144 @@ class VirtualPoints:
         ]
 
 
+def height_range(img: ImportedImage, heights: Heights, dem_margin: float) -> tuple[float, float]:
+    """Heights the virtual points of an image span, metres.
+
+    With a DEM: the ground under a coarse grid +- dem_margin; else the given range.
+    """
+    if not callable(heights):
+        return float(heights[0]), float(heights[1])
+    gl, gs = _grid(img, 5, 5)
+    g = _ground(img, gl, gs, heights, np.zeros(gl.shape))[:, 2]
+    g = g[np.isfinite(g)]
+    if g.size == 0:
+        mid = img.rpc.height_off
+        return mid - dem_margin, mid + dem_margin
+    return float(g.min()) - dem_margin, float(g.max()) + dem_margin
+
+
+def check_image(
+    img: ImportedImage, hrange: tuple[float, float], *, grid: int = 11
+) -> dict[str, Any]:
+    """Check that the RPC is usable over the image; return the figures (also in img.checks).
+
+    Over an ``grid`` x ``grid`` x 3 lattice of pixels and heights (``hrange``, metres):
+    localization converges everywhere; the denominators keep their sign; image -> ground ->
+    image and ground -> image -> ground close (px, degrees). The image's normalized range
+    against the RPC's declared validity domain is noted once when outside (advice only: the RPC
+    is evaluated there). With a map georeferencing (a CRS), the image's own footprint must
+    agree with the RPC's.
+
+    Raises:
+        SceneImportError: a check fails (the message names the file, the figure and what to do).
+
+    """
+    rpc = img.rpc
+    name = img.path
+    g_l, g_s = np.meshgrid(
+        np.linspace(0.0, img.lines - 1.0, grid),
+        np.linspace(0.0, img.samples - 1.0, grid),
+        indexing="ij",
+    )  # edges included
+    hs = np.linspace(hrange[0], hrange[1], 3)
+    ll, ss, hh = np.repeat(g_l.ravel(), 3), np.repeat(g_s.ravel(), 3), np.tile(hs, g_l.size)
+    lon, lat = rpc.localize(ll, ss, hh, outside="nan")
+    failed = ~(np.isfinite(lon) & np.isfinite(lat))
+    if failed.any():
+        k = int(np.flatnonzero(failed)[0])
+        raise SceneImportError(
+            f"{name}: localization through its RPC does not converge at {int(failed.sum())} of "
+            f"{failed.size} test points (e.g. line {ll[k]:.0f}, sample {ss[k]:.0f}, h "
+            f"{hh[k]:.0f} m): the RPC does not describe this image, or the crop origin "
+            f"{img.offset} ({img.offset_source}) is wrong; check --rpc-* and --crop-origin"
+        )
+    why = rpc.denominator_check(lon, lat, hh)
+    if why is not None:
+        raise SceneImportError(f"{name}: {why}: the RPC is unusable over this image")
+    pl, ps = rpc.project(lon, lat, hh, outside="nan")
+    img_err = float(np.nanmax(np.hypot(pl - ll, ps - ss)))
+    lon2, lat2 = rpc.localize(pl, ps, hh, outside="nan")
+    geo_err = float(np.nanmax(np.maximum(np.abs(lon2 - lon), np.abs(lat2 - lat))))
+    if not (img_err < 1e-3 and geo_err < 1e-8):
+        raise SceneImportError(
+            f"{name}: the RPC round trip misses by {img_err:.3g} px / {geo_err:.3g} deg (limit "
+            "1e-3 px, 1e-8 deg): the model is numerically unusable over this image"
+        )
+    (nl0, nl1), (ns0, ns1) = rpc.normalized_image_range(
+        (0.0, img.lines - 1.0), (0.0, img.samples - 1.0)
+    )
+    L, P, H = rpc.normalize_ground(lon, lat, hh)
+    ranges = {
+        "line": (nl0, nl1),
+        "sample": (ns0, ns1),
+        "lon": (float(L.min()), float(L.max())),
+        "lat": (float(P.min()), float(P.max())),
+        "height": (float(H.min()), float(H.max())),
+    }
+    outside = {k: v for k, v in ranges.items() if max(abs(v[0]), abs(v[1])) > DOMAIN_LIMIT + 1e-9}
+    if outside:
+        text = ", ".join(f"{k} {v[0]:.2f}..{v[1]:.2f}" for k, v in outside.items())
+        img.notes.append(
+            f"warning: {img.path.name} lies outside its RPC's declared validity domain "
+            f"(|normalized| <= {DOMAIN_LIMIT}): {text}; the RPC is evaluated there as GDAL, "
+            "rpcm and s2p do (a crop that kept its parent's offsets with its own scales is "
+            "exact there)"
+        )
+    foot = raster_io.map_footprint(img.info, ll[::3], ss[::3])
+    if foot is not None:
+        c = (0.5 * float(lon.min() + lon.max()), 0.5 * float(lat.min() + lat.max()))
+        k = 111_320.0  # metres per degree
+        d = np.hypot(
+            (foot[:, 0] - lon[::3]) * k * math.cos(math.radians(c[1])), (foot[:, 1] - lat[::3]) * k
+        )
+        size = float(
+            np.hypot(
+                (lon.max() - lon.min()) * k * math.cos(math.radians(c[1])),
+                (lat.max() - lat.min()) * k,
+            )
+        )
+        if float(np.median(d)) > max(2000.0, 0.5 * size):
+            raise SceneImportError(
+                f"{name}: the image and its RPC describe different places: the image's map "
+                f"georeferencing puts its pixels {float(np.median(d)) / 1000:.1f} km (median) "
+                f"from where the RPC puts them ({img.rpc_source}); wrong RPC file?"
+            )
+    checks = {
+        "round_trip_px": img_err,
+        "round_trip_deg": geo_err,
+        "normalized_ranges": {k: [round(v[0], 3), round(v[1], 3)] for k, v in ranges.items()},
+        "outside_declared_domain": sorted(outside),
+        "footprint_lon_lat": [
+            float(lon.min()),
+            float(lat.min()),
+            float(lon.max()),
+            float(lat.max()),
+        ],
+    }
+    img.checks.update(checks)
+    return checks
+
+
+def check_overlap(left: ImportedImage, right: ImportedImage) -> None:
+    """Refuse a pair whose ground footprints (from :func:`check_image`) do not intersect."""
+    a, b = left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"]
+    if a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]:
+        raise SceneImportError(
+            f"{left.path} and {right.path} do not overlap on the ground: footprints lon/lat "
+            f"{[round(v, 4) for v in a]} and {[round(v, 4) for v in b]}; not a stereo pair, or "
+            "a wrong RPC / crop origin"
+        )
+
+
 def make_frame(img: ImportedImage, heights: Heights) -> LocalTangentPlane:
     """Tangent plane at the ground under the image centre, rounded (see :func:`frame_id_of`)."""
     c = np.array([(img.lines - 1) / 2.0]), np.array([(img.samples - 1) / 2.0])
     geo = _ground(img, c[0], c[1], heights, np.zeros(1))[0]
     if not np.all(np.isfinite(geo)):
-        raise SceneImportError(f"{img.path}: the image centre does not localize through its RPC")
+        raise SceneImportError(
+            f"{img.path}: the image centre does not localize through its RPC on the heights "
+            f"{heights if not callable(heights) else 'of the DEM'}: check the RPC and the DEM"
+        )
     return LocalTangentPlane(round(geo[1], 7), round(geo[0], 7), round(geo[2], 2))
 
 
@@ -503,6 +679,37 @@ def default_heights(img: ImportedImage) -> tuple[float, float]:
     return r.height_off - 0.5 * abs(r.height_scale), r.height_off + 0.5 * abs(r.height_scale)
 
 
+def _check_options(
+    heights: tuple[float, float] | None,
+    geoid_undulation: float,
+    principal_distance: float,
+    pixel_size: float,
+    line_period: float,
+    dem_margin: float,
+) -> None:
+    """Refuse NaN / infinite options, a zero-width height range, non-positive sizes."""
+    named = {
+        "geoid_undulation": geoid_undulation,
+        "principal_distance": principal_distance,
+        "pixel_size": pixel_size,
+        "line_period": line_period,
+        "dem_margin": dem_margin,
+    }
+    for key, value in named.items():
+        if not math.isfinite(float(value)):
+            raise SceneImportError(f"{key} must be finite, got {value}")
+    for key in ("principal_distance", "pixel_size", "line_period"):
+        if not float(named[key]) > 0:
+            raise SceneImportError(f"{key} must be > 0, got {named[key]}")
+    if heights is not None:
+        lo, hi = _finite_pair(heights, "--heights")
+        if not hi > lo:
+            raise SceneImportError(
+                f"--heights {lo:g} {hi:g}: the height range must have HMAX > HMIN (the virtual "
+                "points need a height spread to fit a parallel projection)"
+            )
+
+
 def import_pair(
     left_path: str | Path,
     right_path: str | Path,
@@ -515,6 +722,7 @@ def import_pair(
     heights: tuple[float, float] | None = None,
     scene_ids: tuple[str, str] = ("left", "right"),
     offsets: tuple[tuple[float, float] | None, tuple[float, float] | None] = (None, None),
+    band: int | None = None,
     principal_distance: float = PRINCIPAL_DISTANCE,
     pixel_size: float = PIXEL_SIZE,
     line_period: float = LINE_PERIOD,
@@ -536,7 +744,10 @@ def import_pair(
         geoid_undulation: metres added to the SRTM heights (geoid -> ellipsoid).
         heights: (hmin, hmax) metres without a DEM (default :func:`default_heights`).
         scene_ids: the two scene ids.
-        offsets: crop offsets (line, sample) per image; None: from the TIFF (:func:`crop_offset`).
+        offsets: crop origins (line, sample) per image in its RPC's grid; None: from GDAL's
+            geotransform (:func:`crop_offset`), else (0, 0), a named assumption (logged).
+        band: the band to import from each image (1-based); None: band 1 (logged when an image
+            has more).
         principal_distance: c written in the scanner info, metres.
         pixel_size: detector pitch written in the scanner info, metres.
         line_period: seconds between lines (stamps).
@@ -546,7 +757,12 @@ def import_pair(
         log: where to report.
 
     Returns:
-        Summary (sizes, counts, frame_id, RPC and offset sources).
+        Summary (sizes, counts, frame_id, RPC and offset sources, checks, notes).
+
+    Raises:
+        SceneImportError: bad options (NaN, zero height range), an unreadable image, no RPC, a
+            failed check (:func:`check_image`, :func:`check_overlap`), no common points.
+        RPCFormatError: a malformed RPC (file, key and value named).
 
     """
     from parproj_msgs.msg import GroundControlPoints, ScannerInfo
@@ -557,10 +773,15 @@ def import_pair(
 
     if scene_ids[0] == scene_ids[1]:
         raise SceneImportError("the two scene ids must differ")
-    left = load_image(left_path, scene_ids[0], rpc_path=rpc_left, offset=offsets[0])
-    right = load_image(right_path, scene_ids[1], rpc_path=rpc_right, offset=offsets[1])
-    if left.image.dtype != right.image.dtype:
-        raise SceneImportError(f"pixel types differ: {left.image.dtype} and {right.image.dtype}")
+    _check_options(
+        heights, geoid_undulation, principal_distance, pixel_size, line_period, dem_margin
+    )
+    left = load_image(left_path, scene_ids[0], rpc_path=rpc_left, offset=offsets[0], band=band)
+    right = load_image(right_path, scene_ids[1], rpc_path=rpc_right, offset=offsets[1], band=band)
+    if left.dtype != right.dtype:
+        raise SceneImportError(
+            f"pixel types differ: {left.path} {left.dtype}, {right.path} {right.dtype}"
+        )
     h: Heights
     if dem is None:
         h = heights if heights is not None else default_heights(left)
@@ -568,6 +789,17 @@ def import_pair(
         h = dem
     else:
         h = dem_from_path(dem, geoid_undulation=geoid_undulation)
+    for img in (left, right):
+        check_image(img, height_range(img, h, dem_margin))
+        for note in img.notes:
+            log(note)
+        c = img.checks
+        log(
+            f"{img.path.name}: RPC {img.rpc_source}, crop origin {img.offset} "
+            f"({img.offset_source}); round trip {c['round_trip_px']:.1e} px, "
+            f"{c['round_trip_deg']:.1e} deg"
+        )
+    check_overlap(left, right)
     frame = make_frame(left, h)
     frame_id = frame_id_of(frame)
     gcp, truth = virtual_points(left, right, h, truth_points=truth_points, dem_margin=dem_margin)
@@ -610,19 +842,18 @@ def import_pair(
         for img, t0 in zip((left, right), starts, strict=True):
             # One camera has one detector count: a narrower crop is padded on the right with
             # no-data (0) columns, which changes no pixel's position.
-            pixels = img.image
-            if pixels.shape[1] < detectors:
-                pad = np.zeros((pixels.shape[0], detectors - pixels.shape[1]), pixels.dtype)
-                pixels = np.hstack([pixels, pad])
-            for r0 in range(0, img.lines, STRIP_LINES):
+            # Read by windows of STRIP_LINES rows: one strip in memory at a time.
+            masked = 0
+            for r0, pixels, n_masked in raster_io.read_rows(
+                img.path, img.band, STRIP_LINES, detectors
+            ):
+                masked += n_masked
                 stamp = t0 + round(r0 * period_ns)
-                msg = array_to_image(
-                    pixels[r0 : r0 + STRIP_LINES],
-                    Image(),
-                    frame_id=img.scene_id,
-                    stamp_ns=stamp,
-                )
+                msg = array_to_image(pixels, Image(), frame_id=img.scene_id, stamp_ns=stamp)
                 bw.write(f"{VIEW}/image_strip", msg, stamp)
+            img.checks["nodata_pixels"] = masked
+            if masked:
+                log(f"{img.path.name}: {masked} no-data pixels (GDAL mask) written as 0")
     size = sum(f.stat().st_size for f in Path(output).iterdir())
     n_gcp = sum(1 for c in gcp.check if not c)
     summary = {
@@ -637,6 +868,11 @@ def import_pair(
                 "rpc": img.rpc_source,
                 "offset_line_sample": list(img.offset),
                 "offset_source": img.offset_source,
+                "band": img.band,
+                "driver": img.info.driver,
+                "dtype": str(img.dtype),
+                "checks": img.checks,
+                "notes": list(img.notes),
                 "gcp": sum(
                     1
                     for o, c in zip(gcp.observations, gcp.check, strict=True)
@@ -669,6 +905,8 @@ def geodetic_of(points: Sequence[Any], frame_id: str) -> FloatArray:
 __all__ = [
     "ImportedImage",
     "SceneImportError",
+    "check_image",
+    "check_overlap",
     "crop_offset",
     "find_rpc",
     "frame_from_id",

@@ -289,22 +289,33 @@ def test_localize_scalar_and_shape(left: RPCModel) -> None:
 
 
 def test_validity_domain(left: RPCModel) -> None:
+    """The declared domain limits only when asked (domain="limit"); by default it is advice."""
     far_lon = left.long_off + 1.2 * left.long_scale
+    lim = {"domain": "limit"}
     with pytest.raises(rpc.RPCDomainError):
-        left.project(far_lon, left.lat_off, left.height_off)
+        left.project(far_lon, left.lat_off, left.height_off, **lim)  # type: ignore[arg-type]
     line, sample = left.project(
-        [far_lon, left.long_off], left.lat_off, left.height_off, outside="nan"
+        [far_lon, left.long_off], left.lat_off, left.height_off, outside="nan", domain="limit"
     )
     assert np.isnan(line[0]) and np.isnan(sample[0]) and np.isfinite(line[1])
-    line, _ = left.project(far_lon, left.lat_off, left.height_off, outside="ignore")
+    line, _ = left.project(far_lon, left.lat_off, left.height_off)  # advice: evaluated
     assert np.isfinite(line)
     assert not left.in_domain(left.long_off, left.lat_off, left.height_off + 2 * 885.0)
     with pytest.raises(rpc.RPCDomainError):
-        left.localize(left.line_off + 1.2 * left.line_scale, left.samp_off, left.height_off)
+        left.localize(
+            left.line_off + 1.2 * left.line_scale, left.samp_off, left.height_off, domain="limit"
+        )
     with pytest.raises(rpc.RPCDomainError):
-        left.localize(left.line_off, left.samp_off, -500.0)  # height domain is 101.5 .. 2048.5
-    lon, _ = left.localize([left.line_off, -30000.0], left.samp_off, 1000.0, outside="nan")
+        left.localize(left.line_off, left.samp_off, -500.0, domain="limit")  # 101.5 .. 2048.5
+    lon, _ = left.localize(
+        [left.line_off, -30000.0], left.samp_off, 1000.0, outside="nan", domain="limit"
+    )
     assert np.isfinite(lon[0]) and np.isnan(lon[1])
+    # advice: outside the declared domain the formula is solved all the same, exactly
+    line0, samp0 = left.line_off + 1.3 * left.line_scale, left.samp_off - 1.2 * left.samp_scale
+    lon, lat = left.localize(line0, samp0, -500.0)
+    back = left.project(lon, lat, -500.0)
+    assert abs(float(back[0]) - line0) < 1e-6 and abs(float(back[1]) - samp0) < 1e-6
 
 
 def test_shifted_is_a_crop(left: RPCModel) -> None:
@@ -544,3 +555,115 @@ def test_sigma0_invariant_to_pixel_size_with_psi_estimated(
     a, _ = rpc.estimate_scene(gcp, "left", pixel_size=PIXEL_PHR, **kw)
     b, _ = rpc.estimate_scene(gcp, "left", pixel_size=PIXEL_PHR * 0.5 / 0.7, **kw)
     assert b.sigma0_px == pytest.approx(a.sigma0_px, rel=1e-4)
+
+
+# ---------------------------------------------------------------------------------------------
+# Independent check: GDAL's RPC transformer (rasterio.transform.RPCTransformer)
+
+
+def _gdal_rpc(m: RPCModel) -> object:
+    from rasterio.rpc import RPC
+
+    return RPC(
+        height_off=m.height_off,
+        height_scale=m.height_scale,
+        lat_off=m.lat_off,
+        lat_scale=m.lat_scale,
+        line_den_coeff=list(m.line_den_coeff),
+        line_num_coeff=list(m.line_num_coeff),
+        line_off=m.line_off,
+        line_scale=m.line_scale,
+        long_off=m.long_off,
+        long_scale=m.long_scale,
+        samp_den_coeff=list(m.samp_den_coeff),
+        samp_num_coeff=list(m.samp_num_coeff),
+        samp_off=m.samp_off,
+        samp_scale=m.samp_scale,
+    )
+
+
+def _out_of_domain(left: RPCModel) -> RPCModel:
+    """The 500 px crop at (5000, 5000) with the parent's offsets and crop scales (~30 out)."""
+    crop = left.shifted(-5000.0, -5000.0)
+    return crop.renormalized(
+        line_scale=500.0,
+        samp_scale=500.0,
+        lat_scale=left.lat_scale * 500 / left.line_scale,
+        long_scale=left.long_scale * 500 / left.samp_scale,
+    )
+
+
+@pytest.mark.parametrize("which", ["left", "right", "dimap", "out_of_domain"])
+def test_against_gdal_rpc_transformer(which: str, left: RPCModel, right: RPCModel) -> None:
+    """Projection and localization agree with GDAL's RPC transformer to 1e-3 px / 1e-6 deg.
+
+    GDAL's pixel space is corner-based: its transformer gives RPC00B image coordinates + 0.5
+    (rowcol without rounding), and ``xy(..., offset="center")`` takes our coordinates. The
+    Ventoux full-scene RPCs over their whole image and height domains; the crop RPC with the
+    parent's offsets over the crop, 27..33 scale units outside the declared domain.
+    """
+    from rasterio.transform import RPCTransformer
+
+    model = {
+        "left": left,
+        "right": right,
+        "dimap": rpc.read_rpc(DIMAP),
+        "out_of_domain": _out_of_domain(left),
+    }[which]
+    rng = np.random.default_rng(5)
+    n = 400
+    if which == "out_of_domain":
+        line, sample = rng.uniform(0, 499, n), rng.uniform(0, 499, n)
+        norm = model.normalized_image_range((0.0, 499.0), (0.0, 499.0))
+        assert min(abs(v) for r in norm for v in r) > 25  # far outside the declared domain
+    else:
+        line = rng.uniform(-1, 1, n) * model.line_scale + model.line_off
+        sample = rng.uniform(-1, 1, n) * model.samp_scale + model.samp_off
+    h = rng.uniform(-1, 1, n) * model.height_scale + model.height_off
+    lon, lat = model.localize(line, sample, h)
+    with RPCTransformer(_gdal_rpc(model), RPC_PIXEL_ERROR_THRESHOLD=1e-9) as tr:
+        g_lon, g_lat = tr.xy(list(line), list(sample), zs=list(h), offset="center")
+        g_row, g_col = tr.rowcol(list(lon), list(lat), zs=list(h), op=lambda v: v)
+    g_row_a, g_col_a = np.asarray(g_row, float) - 0.5, np.asarray(g_col, float) - 0.5
+    p_line, p_sample = model.project(lon, lat, h)
+    d_px = float(np.hypot(p_line - g_row_a, p_sample - g_col_a).max())
+    d_deg = float(
+        np.maximum(np.abs(np.asarray(g_lon) - lon), np.abs(np.asarray(g_lat) - lat)).max()
+    )
+    print(f"{which}: projection vs GDAL {d_px:.1e} px, localization vs GDAL {d_deg:.1e} deg")
+    assert d_px < 1e-3
+    assert d_deg < 1e-6
+
+
+def test_renormalized_is_the_same_mapping(left: RPCModel) -> None:
+    """Other offsets / scales, the same ground -> image mapping (pure rescaling: c / k^d)."""
+    lon, lat, h = _ground_grid(left, 7, 1.0)
+    ref = np.stack(left.project(lon, lat, h), axis=-1)
+    k = 3.0
+    scaled = left.renormalized(long_scale=left.long_scale * k)
+    # a monomial of degree d in L gets its coefficient multiplied by k^d (L = k L')
+    powers = np.array([t.count("L") for t in rpc.RPC00B_TERMS])
+    np.testing.assert_allclose(
+        scaled.line_den_coeff, left.line_den_coeff * k**powers, rtol=1e-12, atol=1e-300
+    )
+    for model in (
+        scaled,
+        _out_of_domain(left).shifted(5000.0, 5000.0),
+        left.renormalized(line_off=0.0, height_off=0.0, height_scale=1.0, lat_off=45.0),
+    ):
+        got = np.stack(model.project(lon, lat, h), axis=-1)
+        assert np.abs(got - ref).max() < 1e-6
+
+
+@pytest.mark.parametrize("value", ["1,5", "1.5.2", "12abc", "", "1 2", "nan pixels", "0x10"])
+def test_numbers_that_do_not_parse_are_errors(value: str, tmp_path: Path) -> None:
+    """Never a partial read ("1,5" is not 1): the error names the file, the key and the value."""
+    path = tmp_path / "a_RPC.TXT"
+    rpc.write_rpc_txt(path, _random_rpc(0))
+    text = path.read_text().splitlines()
+    text = [f"SAMP_SCALE: {value}" if t.startswith("SAMP_SCALE") else t for t in text]
+    path.write_text("\n".join(text) + "\n")
+    with pytest.raises(rpc.RPCFormatError) as err:
+        rpc.read_rpc(path)
+    assert "a_RPC.TXT" in str(err.value) and "SAMP_SCALE" in str(err.value)
+    assert repr(value.strip()) in str(err.value)

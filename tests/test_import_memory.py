@@ -1,0 +1,75 @@
+"""``parproj import`` reads by windows: peak memory does not grow with the raster (issue 10).
+
+A generated 6000 x 6000 uint16 pair (72 MB per image, tiled GeoTIFF with the Ventoux RPCs of two
+crops of the full scenes) is imported in a subprocess; its peak RSS (ru_maxrss) is compared with
+the import of a 500 x 500 pair in the same kind of subprocess. Holding either image would add
+72 MB (and the old right-padding copy as much again); reading strips of 64 rows adds about one
+strip (0.8 MB) plus the bag writer's chunk buffer.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from rasterio.windows import Window
+from test_conventions import DATA, to_rasterio
+
+from parproj_ros import rpc
+
+SCRIPT = """
+import resource, sys
+from parproj_ros.scene_import import import_pair
+import_pair(sys.argv[1], sys.argv[2], sys.argv[3], heights=(500.0, 1500.0), log=lambda _: None)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def make_pair(folder: Path, size: int) -> list[Path]:
+    """Two size x size uint16 tiled GeoTIFFs (written by windows) with crop RPCs in tag 50844."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, origin in (("left", (5000.0, 5000.0)), ("right", (5162.0, 4915.0))):
+        model = rpc.read_rpc(DATA / f"{name}_image.geom").shifted(-origin[0], -origin[1])
+        p = folder / f"{name}.tif"
+        with rasterio.open(
+            p,
+            "w",
+            driver="GTiff",
+            width=size,
+            height=size,
+            count=1,
+            dtype="uint16",
+            tiled=True,
+            blockxsize=256,
+            blockysize=256,
+            rpcs=to_rasterio(model),
+        ) as dst:
+            cols = np.arange(size, dtype=np.uint32)
+            for r0 in range(0, size, 512):
+                n = min(512, size - r0)
+                rows = np.arange(r0, r0 + n, dtype=np.uint32)[:, None]
+                block = ((rows * 7 + cols[None, :] * 13) % 4096).astype(np.uint16)
+                dst.write(block, 1, window=Window(0, r0, size, n))
+        paths.append(p)
+    return paths
+
+
+def peak_rss_mb(images: list[Path], out: Path) -> float:
+    res = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(images[0]), str(images[1]), str(out)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return int(res.stdout.split()[-1]) / 1024.0  # ru_maxrss is in kB on Linux
+
+
+def test_import_peak_memory_does_not_grow_with_the_raster(tmp_path: Path) -> None:
+    small = peak_rss_mb(make_pair(tmp_path / "small", 500), tmp_path / "bag_small")
+    large = peak_rss_mb(make_pair(tmp_path / "large", 6000), tmp_path / "bag_large")
+    print(f"peak RSS: 500 x 500 pair {small:.0f} MB, 6000 x 6000 pair {large:.0f} MB")
+    assert large - small < 30.0  # one image is 72 MB
