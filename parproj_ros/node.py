@@ -686,8 +686,8 @@ class ParprojNode(Node):
                         Issue(
                             "error",
                             "stop",
-                            f"not flushed: {why}; {self._queue.qsize()} inputs still queued "
-                            "and the open scenes are lost",
+                            f"not flushed: {why}; {max(0, self._queue.qsize() - 1)} inputs "
+                            "still queued and the open scenes are lost",
                         )
                     ]
                 )
@@ -966,7 +966,8 @@ def main(args: list[str] | None = None) -> int:
             code = EXIT_NOT_FLUSHED
         node.wait_delivered(5.0)
     finally:
-        node.stop()
+        # A worker that did not flush is stuck or gone: do not wait for it.
+        node.stop(5.0 if code == EXIT_OK else 0.5)
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
