@@ -482,11 +482,12 @@ class ParprojNode(Node):
             try:
                 self._queue.put(("gcp", load_gcp_file(path)))
             except Exception as err:  # whatever the loader raises: a clear error, not a crash
+                why = f"{type(err).__name__}: {err}"
                 self._startup_issues.append(
                     Issue(
                         "error",
                         "gcp_file",
-                        f"{path}: {type(err).__name__}: {err}; continuing without it",
+                        f"{why if path in str(err) else f'{path}: {why}'}; continuing without it",
                     )
                 )
         self._report(self._startup_issues)

@@ -233,7 +233,8 @@ def values(status: Any) -> dict[str, str]:
 SESSIONS: dict[str, tuple[dict[str, Any], tuple[str, ...]]] = {
     "warn_first": ({"error_hold_s": 2.0}, ("bad_strip", "navgap", "clean")),
     "error_first": (
-        {"segment_overlap": 0.9},  # refused at start (range 0..0.5): ERROR, default used
+        # refused at start (range 0..0.5): ERROR, default used; and an unusable gcp_file
+        {"segment_overlap": 0.9},
         ("bad_strip", "raise", "bad_nav", "navgap", "bad_strip", "clean"),
     ),
 }
@@ -246,6 +247,10 @@ def sequence(
     session = request.param
     extra, steps = SESSIONS[session]
     tmp = tmp_path_factory.mktemp(session)
+    if session == "error_first":  # and a GCP file that cannot be used: ERROR at start
+        gcp_file = tmp / "gcp.csv"
+        gcp_file.write_text("id,X,Y,Z,check,scene_id,line,sample\ng01,nan,0,0,0,s,1,1\n")
+        extra = {**extra, "gcp_file": str(gcp_file)}
     base = base_messages()
     gap_msgs = navigation_gap(copy_of(base, f"{session}gap", 1))
     clean_msgs = copy_of(base, f"{session}clean", 2)
@@ -391,7 +396,10 @@ def test_every_issue_reached_diagnostics(sequence: dict[str, Any]) -> None:
     levels = [level(s) for s in summaries_of(r)]
     if r["session"] == "error_first":  # a parameter refused at start: ERROR throughout
         assert set(levels) == {ERROR}, levels
-        assert "segment_overlap" in summaries_of(r)[0].message
+        first = summaries_of(r)[0].message
+        assert "at start: parameter segment_overlap: " in first, first
+        gcp = first[first.index("gcp_file: ") :]
+        assert "gcp.csv" in gcp and "continuing without it" in gcp, first
     else:  # OK, ERROR for error_hold_s after the scene was skipped, OK again
         assert levels[0] == OK and levels[-1] == OK, levels
         errs = [s for s in summaries_of(r) if level(s) == ERROR]
