@@ -490,9 +490,30 @@ class ParprojNode(Node):
                         f"{why if path in str(err) else f'{path}: {why}'}; continuing without it",
                     )
                 )
+        self._startup_issues += self._unknown_parameters()
         self._report(self._startup_issues)
         self._worker = threading.Thread(target=self._work, name="parproj_pipeline", daemon=True)
         self._worker.start()
+
+    def _unknown_parameters(self) -> list[Issue]:
+        """An ERROR per parameter given (``--params-file``, ``-p``) that the node does not have.
+
+        A misspelt name, or a view not in ``views``: its value would be ignored silently.
+
+        ``qos_overrides.*`` are left to rclpy (those of topics the node does not have are
+        ignored).
+        """
+        given = self._parameter_overrides  # rclpy: every override for this node
+        return [
+            Issue(
+                "error",
+                f"parameter {name}",
+                f"{_shown(given[name].value)} given, but parproj_node has no such parameter "
+                "(misspelt, or a view not in views?): ignored",
+            )
+            for name in sorted(given)
+            if not name.startswith("qos_overrides.") and not self.has_parameter(name)
+        ]
 
     # ---- callbacks: convert and queue ----------------------------------------------------
     def _on_nav(self, msg: Odometry) -> None:

@@ -233,8 +233,9 @@ def values(status: Any) -> dict[str, str]:
 SESSIONS: dict[str, tuple[dict[str, Any], tuple[str, ...]]] = {
     "warn_first": ({"error_hold_s": 2.0}, ("bad_strip", "navgap", "clean")),
     "error_first": (
-        # refused at start (range 0..0.5): ERROR, default used; and an unusable gcp_file
-        {"segment_overlap": 0.9},
+        # refused at start (range 0..0.5): ERROR, default used; a misspelt parameter (ERROR,
+        # ignored); and an unusable gcp_file
+        {"segment_overlap": 0.9, "pan.principle_distance": 10.0},
         ("bad_strip", "raise", "bad_nav", "navgap", "bad_strip", "clean"),
     ),
 }
@@ -398,6 +399,9 @@ def test_every_issue_reached_diagnostics(sequence: dict[str, Any]) -> None:
         assert set(levels) == {ERROR}, levels
         first = summaries_of(r)[0].message
         assert "at start: parameter segment_overlap: " in first, first
+        assert (
+            "parameter pan.principle_distance: 10.0 given, but parproj_node has no such" in first
+        )
         gcp = first[first.index("gcp_file: ") :]
         assert "gcp.csv" in gcp and "continuing without it" in gcp, first
     else:  # OK, ERROR for error_hold_s after the scene was skipped, OK again
