@@ -574,7 +574,7 @@ class ParprojNode(Node):
                     return
                 self._handle(*item)
             except BaseException as err:  # _handle catches Exception; this is the last guard
-                _stderr(f"parproj_node: worker: unexpected {type(err).__name__}: {err}")
+                self.internal_error(f"an input ({item[0] if item else item})", err)
             finally:
                 self._busy = None
                 self._queue.task_done()
@@ -585,7 +585,10 @@ class ParprojNode(Node):
         Any exception is caught, counted (``internal_errors``) and reported as an ERROR naming
         the input and the exception; the input is dropped and the worker goes on.
         """
-        what = _describe(kind, payload)
+        try:
+            what = _describe(kind, payload)
+        except Exception:
+            what = f"an input of kind {kind!r}"
         self._busy = (what, time.monotonic())
         flush_req = payload if kind == "flush" else None
         try:

@@ -611,3 +611,75 @@ def test_checks_of_views_and_mounting() -> None:
     for m in ([0, 0], [0, 0, 0, 0], [True, 0, 0], "abc", [0, 0, float("inf")], [361.0, 0, 0]):
         with pytest.raises(StartupError, match="parameter m: "):
             check_mounting("m", m)
+
+
+# ---- 4. in process: reporting that fails, exceptions in callbacks -------------------------------
+
+
+@pytest.fixture
+def node_in_process(monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
+    """A ParprojNode in this process (its own Context; default parameters), stopped after."""
+    import os
+
+    import rclpy
+    from rclpy.context import Context
+
+    from parproj_ros.node import ParprojNode
+
+    assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = ParprojNode(context=ctx)
+    try:
+        yield node
+    finally:
+        node.stop(5.0)
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+
+
+def test_reporting_cannot_fail(node_in_process: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """Every severity in turn on one node (the old _report raised at the second); then
+    publishing /diagnostics raising: the issues go to stderr and nothing is raised."""
+    from parproj_ros.pipeline import Issue
+
+    node = node_in_process
+    for lv in ("warn", "error", "warn", "ok", "error", "ok", "warn"):
+        node._report([Issue(lv, "here", f"a {lv}")])
+    assert (node.counts["warnings"], node.counts["errors"]) == (3, 2)
+
+    def broken(msg: Any) -> None:
+        raise RuntimeError("publisher gone")
+
+    node.pub_diag.publish = broken
+    node._report([Issue("error", "there", "after the publisher broke")])
+    node.internal_error("a test input", ValueError("boom"))
+    err = capsys.readouterr().err
+    assert "reporting failed (RuntimeError: publisher gone)" in err, err
+    assert "[error] there: after the publisher broke" in err, err
+    assert "ValueError: boom" in err and node.counts["internal_errors"] == 1, err
+
+
+def test_worker_and_callbacks_survive_exceptions(node_in_process: Any) -> None:
+    """An exception in the pipeline (the worker), a message a callback cannot read, a flush
+    that raises: each counted and reported; the worker is alive and serves the next input."""
+    node = node_in_process
+    calls: list[str] = []
+
+    def add_gcp(points: Any) -> Any:
+        calls.append("gcp")
+        raise KeyError("in the pipeline")
+
+    node.pipeline.add_gcp = add_gcp
+    node._enqueue(("gcp", []))
+    node._on_gcp(object())  # no .points: AttributeError in the callback
+    node._on_strip("left", object())
+    assert wait(lambda: node._queue.unfinished_tasks == 0, 10)
+    assert calls == ["gcp"] and node.counts["internal_errors"] == 3, node.counts
+    assert node._worker.is_alive() and node.worker_problem() is None
+    level_, message = node.summary_status()
+    assert level_ == ERROR and "3 errors so far" in message, message
+    assert node.flush(timeout_s=10.0)  # the worker still works
+    node.pipeline.flush = lambda: 1 / 0
+    assert not node.flush(timeout_s=10.0)  # raised inside: not flushed, reported
+    assert node.counts["internal_errors"] == 4 and node._worker.is_alive()
