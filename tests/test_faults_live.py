@@ -681,6 +681,17 @@ def restart_node(
     try:
         listener.wait_node(exclude=old_pubs | a_pubs)
         wait_matched([sources], exclude=old_subs | a_subs)
+
+        def b_has_gcp() -> bool:  # the transient-local GCP set reached B (a summary says so)
+            return any(
+                s.name == SUMMARY
+                and int({kv.key: kv.value for kv in s.values}.get("gcp_points", "0")) > 0
+                for s in listener.statuses()[n_before[0] :]
+            )
+
+        # Under load B once got the GCP only after the rest of the scene, and skipped it for
+        # want of GCP ("navigation starts after ... no GCP") before the check meant here.
+        assert wait(b_has_gcp, 10), "node B did not get the GCP set"
         publish({t: sources for t in INPUTS}, rest, sent)
         second = f"{case}_{SCENES[1]}"
 
