@@ -12,7 +12,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -249,18 +249,23 @@ def node_params_yaml(params: dict[str, Any], path: Path, *, reliable_inputs: lis
 class NodeProcess:
     """parproj_node in a child process (its own DDS participant), stopped with SIGINT."""
 
-    def __init__(self, params_file: Path, env: dict[str, str], log_path: Path) -> None:
+    def __init__(
+        self,
+        params_file: Path,
+        env: dict[str, str],
+        log_path: Path,
+        program: Sequence[str] | None = None,
+    ) -> None:
+        """Start the node.
+
+        ``program`` is the command before ``--ros-args`` (default: ``python -m
+        parproj_ros.node``; tests give a launcher that injects faults).
+        """
         self.log_path = log_path
         self._log = log_path.open("w")
+        program = list(program or [sys.executable, "-m", "parproj_ros.node"])
         self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "parproj_ros.node",
-                "--ros-args",
-                "--params-file",
-                str(params_file),
-            ],
+            [*program, "--ros-args", "--params-file", str(params_file)],
             env=env,
             stdout=self._log,
             stderr=subprocess.STDOUT,
