@@ -462,12 +462,27 @@ class ParprojNode(Node):
             )
         self._report(out.issues)
 
+    def _log(self, level: str, text: str) -> None:
+        """Log ``text`` at ``level`` ("error", "warn", anything else: info).
+
+        One call site per severity, on purpose: rclpy fixes the severity of a logging call site
+        (function, file, line, bytecode offset) at its first call and raises ``ValueError:
+        Logger severity cannot be changed between calls`` when the same site later logs at
+        another one (``log = logger.error if ... else logger.warning; log(...)`` did).
+        """
+        logger = self.get_logger()
+        if level == "error":
+            logger.error(text)
+        elif level == "warn":
+            logger.warning(text)
+        else:
+            logger.info(text)
+
     def _report(self, issues: Sequence[Issue]) -> None:
         if not issues:
             return
         for iss in issues:
-            log = self.get_logger().error if iss.level == "error" else self.get_logger().warning
-            log(f"{iss.where}: {iss.message}")
+            self._log(iss.level, f"{iss.where}: {iss.message}")
         self.pub_diag.publish(
             conv.issues_to_diagnostics(
                 list(issues),
