@@ -150,6 +150,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         "streaming": not args.no_streaming,
         "tie_points": not args.no_tie_points,
         "segment_max_error_px": args.segment_max_error,
+        "output_extent": args.output_extent,
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
@@ -423,6 +424,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         metavar="PX",
         help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
+    )
+    p.add_argument(
+        "--output-extent",
+        choices=["overlap", "union"],
+        default="overlap",
+        help="columns of the normalized pair: the two scenes' overlap (default) or their union",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_process)

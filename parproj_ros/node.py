@@ -127,6 +127,13 @@ PARAMS: tuple[Param, ...] = (
         "max_output_pixels", 200_000_000, "larger normalized images are refused", 1, 2_000_000_000
     ),
     Param(
+        "output_extent",
+        "overlap",
+        "columns of the normalized pair: 'overlap' (ground both scenes see, heights z_avg +- "
+        "height_range) or 'union' (both footprints whole)",
+        choices=("overlap", "union"),
+    ),
+    Param(
         "tie_points",
         True,
         "refine whole-scene pairs with tie points matched between the normalized images "
@@ -264,6 +271,7 @@ class ParprojNode(Node):
             nodata=float(vals["nodata"]),
             interpolation=vals["interpolation"],
             output_pixel=float(vals["output_pixel"]),
+            output_extent=vals["output_extent"],
             max_output_pixels=int(vals["max_output_pixels"]),
             streaming=bool(vals["streaming"]),
             tie_points=bool(vals["tie_points"]),

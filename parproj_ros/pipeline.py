@@ -94,6 +94,12 @@ class PipelineConfig:
         nodata: value of output pixels outside a scene, and of filled missing lines.
         interpolation: "linear" or "cubic".
         output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
+        output_extent: columns (along the epipolar lines) the normalized pair covers:
+            "overlap", the ground both scenes see at the pair's heights (those of its GCP and
+            check points, widened by 10 %, else ``z_avg`` +- ``height_range``): the overlap of
+            the two footprints widened by the x-parallax of those heights, never beyond the
+            union; or "union", both footprints whole (the other image's area is no-data). Rows
+            always cover the overlap across the epipolar lines.
         max_output_pixels: larger normalized images are refused (the pair is skipped).
         tie_points: refine each whole-scene pair with tie points matched between the normalized
             images (RANSAC on paper 2's G1..G4, then an affine correction of the right image's
@@ -132,6 +138,7 @@ class PipelineConfig:
     nodata: float = 0.0
     interpolation: Literal["linear", "cubic"] = "linear"
     output_pixel: float = 0.0
+    output_extent: Literal["overlap", "union"] = "overlap"
     max_output_pixels: int = 200_000_000
     streaming: bool = True
     tie_points: bool = True
@@ -1266,6 +1273,16 @@ class Pipeline:
         shift = norm.parallax_per_height * self.config.z_avg + norm.parallax_offset
         xo_l = min(fl[:, 0].min(), fr[:, 0].min() + shift)
         x1 = max(fl[:, 0].max(), fr[:, 0].max() + shift)
+        if self.config.output_extent == "overlap":
+            span = self._overlap_columns(left, right, norm, fl, fr, shift)
+            if span is None:
+                return Issue(
+                    "error",
+                    f"pair {pair_id}",
+                    "the scenes do not overlap along the epipolar lines at any height of the "
+                    "pair (output_extent overlap): pair skipped",
+                )
+            xo_l, x1 = max(xo_l, span[0]), min(x1, span[1])
         width = int(np.floor((x1 - xo_l) / pix)) + 1
         height = int(np.floor((y1 - y0) / pix)) + 1
         if width * height > self.config.max_output_pixels:
@@ -1278,6 +1295,49 @@ class Pipeline:
         grid_l = OutputGrid(pix, xo_l, y0, width, height)
         grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
         return PairGeometry(pair_id, norm, gl, gr, grid_l, grid_r)
+
+    def _pair_heights(self, left: SceneResult, right: SceneResult) -> tuple[float, float]:
+        """Heights (m) of the pair's ground: its GCP and check points, else z_avg +- height_range.
+
+        With at least ``min_gcp`` points observed in either scene, their height span widened
+        by 10 % of it (at least 1 m) on each side; otherwise ``z_avg`` +- ``height_range``.
+        """
+        ids = (left.scene.scene_id, right.scene.scene_id)
+        z = np.array(
+            [p.xyz[2] for p in self.gcp.values() if any(s in p.observations for s in ids)]
+        )
+        if z.size >= self.config.min_gcp:
+            pad = max(0.1 * float(np.ptp(z)), 1.0)
+            return float(z.min()) - pad, float(z.max()) + pad
+        c = self.config
+        return c.z_avg - c.height_range, c.z_avg + c.height_range
+
+    def _overlap_columns(
+        self,
+        left: SceneResult,
+        right: SceneResult,
+        norm: Normalization,
+        fl: FloatArray,
+        fr: FloatArray,
+        shift: float,
+    ) -> tuple[float, float] | None:
+        """Normalized x range (left image metres) of the ground both scenes see (None: none).
+
+        A point at height z is at x_l in the left image and at x_l - d, d = k (z - z_avg), in
+        the right one (in the left image's x, the right grid being shifted by ``shift``). Over
+        the pair's heights (:meth:`_pair_heights`) the left image needs the x_l in its
+        footprint ``fl`` whose partner lies in the right footprint ``fr``, and the right image
+        the converse; the range is the hull of both.
+        """
+        k = norm.parallax_per_height
+        zlo, zhi = self._pair_heights(left, right)
+        d = (k * (zlo - self.config.z_avg), k * (zhi - self.config.z_avg))
+        dlo, dhi = min(d), max(d)
+        l0, l1 = float(fl[:, 0].min()), float(fl[:, 0].max())
+        r0, r1 = float(fr[:, 0].min()) + shift, float(fr[:, 0].max()) + shift
+        lo = min(max(l0, r0 + dlo), max(r0, l0 - dhi))
+        hi = max(min(l1, r1 + dhi), min(r1, l1 - dlo))
+        return (lo, hi) if hi > lo else None
 
     @property
     def interpolation_flag(self) -> int:
