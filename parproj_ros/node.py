@@ -323,6 +323,7 @@ class ParprojNode(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         self.create_subscription(GroundControlPoints, "gcp", self._on_gcp, gcp_qos)
+        self._subscribe_pairs(gcp_qos)
         # Outputs: reliable, so that every scene's parameters and every pair reach recorders.
         out_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         types = {
@@ -384,6 +385,18 @@ class ParprojNode(Node):
     def _on_gcp(self, msg: GroundControlPoints) -> None:
         self._enqueue(("gcp", conv.gcp_from_msg(msg)))
 
+    def _subscribe_pairs(self, qos: QoSProfile) -> None:
+        """The ``pairs`` topic (parproj_msgs/PairSelection; latched like ``gcp``)."""
+        from parproj_msgs.msg import PairSelection
+
+        self.create_subscription(PairSelection, "pairs", self._on_pairs, qos)
+
+    def _on_pairs(self, msg: Any) -> None:
+        try:
+            self._enqueue(("pairs", conv.pairs_from_msg(msg)))
+        except conv.ConversionError as err:
+            self._report([Issue("error", "pairs", f"{err}: pair selection dropped")])
+
     def _enqueue(self, item: tuple[str, Any]) -> None:
         """Queue an input for the worker and keep the queue's peak length for the summary."""
         self._queue.put(item)
@@ -403,6 +416,8 @@ class ParprojNode(Node):
                     out = self.pipeline.add_strip(*payload)
                 elif kind == "gcp":
                     out = self.pipeline.add_gcp(payload)
+                elif kind == "pairs":
+                    out = self.pipeline.set_pairs(payload)
                 elif kind == "close":
                     out = self.pipeline.close_idle_scenes()
                 else:

@@ -343,6 +343,11 @@ class Pipeline:
         # The latest scenes done with (processed or skipped): scene id -> (view, method), so
         # that GCP arriving after their scene are reported, not kept.
         self._done: dict[str, tuple[str, str]] = {}
+        # Single-camera pair selection (the `pairs` topic): the (left, right) scene ids of the
+        # pairs still to make, in order; None: acquisitions 2k and 2k+1 pair up.
+        self._selection: list[tuple[str, str]] | None = None
+        # single-camera pairs made (their two scene ids; an ordered set of the latest 1024)
+        self._made: dict[frozenset[str], None] = {}
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -433,12 +438,14 @@ class Pipeline:
         if needed is not None and last is not None:
             self.nav.prune_before(min(needed, last) - round(self.config.nav_history_s * 1e9))
 
-    def _forget_gcp(self, scene_ids: tuple[str, str]) -> None:
+    def _forget_gcp(self, scene_ids: tuple[str, ...]) -> None:
         """Drop the GCP observations in the scenes of a finished pair (scene ids never repeat).
 
         A point left with no observation is dropped, so GCP sets that arrive with every
-        acquisition do not pile up.
+        acquisition do not pile up. Scenes that a selected pair still needs keep theirs.
         """
+        needed = self._selected_scene_ids()
+        scene_ids = tuple(s for s in scene_ids if s not in needed)
         for pid, p in list(self.gcp.items()):
             if not any(s in p.observations for s in scene_ids):
                 continue
@@ -931,6 +938,7 @@ class Pipeline:
                 )
             )
         self._waiting_nav = []
+        out.extend(self._unmade_pairs())
         return out
 
     # ---- scenes -------------------------------------------------------------------------
@@ -1231,15 +1239,164 @@ class Pipeline:
             scene.first_line_ns, scene.last_line_ns, self.views[scene.view].mounting
         ).motion
 
+    # ---- pair selection (single camera) -------------------------------------------------
+    def set_pairs(self, pairs: Sequence[tuple[str, str]]) -> Outputs:
+        """Select which acquisitions pair up (single-camera mode; the node's ``pairs`` topic).
+
+        ``pairs`` are (left scene id, right scene id): acquisitions (strip frame_ids, their
+        first parts). A scene may be in several pairs: it is kept until every selected pair
+        that needs it is made, then released. The selection replaces any earlier one for the
+        pairs not made yet; scenes held that it no longer needs are released (WARN). Bad
+        entries are reported and left out, the others kept: an empty id, a scene paired with
+        itself, a pair listed twice (in either order), a scene already done with and released
+        (processed under an earlier rule, or skipped). Scene ids that never arrive are
+        reported when the data end (:meth:`flush`). Two-view mode ignores the selection.
+        """
+        out = Outputs()
+        if not self.config.single_camera:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    "pairs",
+                    "pair selection ignored: with two views the k-th scenes of the views pair "
+                    "up (it is for single-camera mode)",
+                )
+            )
+            return out
+        held = {r.scene.scene_id for r in self._ready[self.config.views[0].name].values()}
+        chosen: list[tuple[str, str]] = []
+        seen: set[frozenset[str]] = set()
+        for left, right in pairs:
+            name = f"{left}:{right}"
+            key = frozenset((left, right))
+            why = ""
+            if not left or not right:
+                why = "an empty scene id"
+            elif left == right:
+                why = f"scene {left} paired with itself (no base)"
+            elif key in seen:
+                why = "listed twice (in this or the reverse order): the first one kept"
+            elif key in self._made:
+                seen.add(key)
+                out.issues.append(Issue("ok", f"pair {name}", "already made: not made again"))
+                continue
+            else:
+                gone = [s for s in (left, right) if s in self._done and s not in held]
+                if gone:
+                    why = "scene " + ", ".join(
+                        f"{s} was already {self._done_how(s)} and released" for s in gone
+                    )
+            if why:
+                out.issues.append(Issue("error", f"pair {name}", f"{why}: pair left out"))
+                continue
+            seen.add(key)
+            chosen.append((left, right))
+        self._selection = chosen
+        out.issues.append(
+            Issue(
+                "ok" if chosen else "warn",
+                "pairs",
+                f"pair selection: {len(chosen)} pairs to make"
+                + (": " + ", ".join(f"{a}:{b}" for a, b in chosen[:20]) if chosen else "")
+                + (" ..." if len(chosen) > 20 else ""),
+            )
+        )
+        out.extend(self._try_selected_pairs())
+        return out
+
+    def _mark_made(self, left: str, right: str) -> None:
+        """Remember a single-camera pair as made (the latest 1024), for later selections."""
+        self._made[frozenset((left, right))] = None
+        while len(self._made) > 1024:
+            del self._made[next(iter(self._made))]
+
+    def _done_how(self, scene_id: str) -> str:
+        method = self._done[scene_id][1]
+        return "skipped" if method == "skipped" else f"processed ({method})"
+
+    def _selected_scene_ids(self) -> set[str]:
+        """Scene ids that a selected pair not made yet still needs."""
+        return {s for pair in self._selection or () for s in pair}
+
+    def _try_selected_pairs(self, warn_unpaired: bool = True) -> Outputs:
+        """Make the selected pairs whose scenes are both ready; release scenes no pair needs.
+
+        ``warn_unpaired``: a WARN for each released scene that no pair used.
+        """
+        out = Outputs()
+        ready = self._ready[self.config.views[0].name]
+        by_id = {r.scene.scene_id: r for r in ready.values()}
+        remaining: list[tuple[str, str]] = []
+        for left, right in self._selection or ():
+            if left in by_id and right in by_id:
+                self._mark_made(left, right)
+                out.extend(self._make_pair(by_id[left], by_id[right]))
+                continue
+            gone = [s for s in (left, right) if s in self._done and s not in by_id]
+            if gone:
+                out.issues.append(
+                    Issue(
+                        "error",
+                        f"pair {left}:{right}",
+                        "scene "
+                        + ", ".join(f"{s} was {self._done_how(s)}" for s in gone)
+                        + ": pair not made",
+                    )
+                )
+                continue
+            remaining.append((left, right))
+        self._selection = remaining
+        needed = self._selected_scene_ids()
+        for acq, res in list(ready.items()):
+            sid = res.scene.scene_id
+            if sid in needed:
+                continue
+            del ready[acq]  # every pair that needed it is made: its pixels are released
+            if warn_unpaired and not any(sid in pair for pair in self._made):
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"{res.scene.view}/{sid}",
+                        "in no selected pair (pairs topic): parameters published, not paired",
+                    )
+                )
+            self._forget_gcp((sid,))
+        return out
+
+    def _unmade_pairs(self) -> Outputs:
+        """End of data: an ERROR per selected pair not made (a scene never arrived)."""
+        out = Outputs()
+        ready = self._ready[self.config.views[0].name] if self.config.single_camera else {}
+        have = {r.scene.scene_id for r in ready.values()}
+        for left, right in self._selection or ():
+            missing = [s for s in (left, right) if s not in have]
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"pair {left}:{right}",
+                    "scene "
+                    + ", ".join(missing)
+                    + " never received (unknown scene id?): selected pair not made",
+                )
+            )
+        if self._selection:
+            self._selection = []
+            out.extend(self._try_selected_pairs(warn_unpaired=False))  # release their scenes
+        return out
+
     # ---- pairs --------------------------------------------------------------------------
     def _try_pairs(self) -> Outputs:
         out = Outputs()
         names = [v.name for v in self.config.views]
-        if self.config.single_camera:
+        if self.config.single_camera and self._selection is not None:
+            out.extend(self._try_selected_pairs())
+        elif self.config.single_camera:
             ready = self._ready[names[0]]
             for i in sorted(ready):
                 if i % 2 == 0 and i + 1 in ready:
-                    out.extend(self._make_pair(ready.pop(i), ready.pop(i + 1)))
+                    left, right = ready.pop(i), ready.pop(i + 1)
+                    self._mark_made(left.scene.scene_id, right.scene.scene_id)
+                    out.extend(self._make_pair(left, right))
         else:
             left, right = self._ready[names[0]], self._ready[names[1]]
             for i in sorted(set(left) & set(right)):
