@@ -303,9 +303,13 @@ def import_scenes(
         else:
             row["selected"] = True
         row["why"] = (
-            "given"
+            ("given" if in_window else "given, B/H outside the useful window")
             if not isinstance(pairs, str)
-            else ("no overlap" if not overlap else ("" if in_window else "B/H outside window"))
+            else (
+                "no overlap"
+                if not overlap
+                else ("B/H in window" if in_window else "B/H outside window")
+            )
         )
         if row["selected"]:
             truth.ids += t.ids
@@ -315,7 +319,8 @@ def import_scenes(
         table.append(row)
         log(
             f"pair {a}:{b}: B/H {bh:.3f}, convergence {conv:.2f} deg, {len(t.ids)} common "
-            f"points: {'selected' if row['selected'] else 'not selected (' + row['why'] + ')'}"
+            f"points: "
+            + (f"selected ({row['why']})" if row["selected"] else f"not selected ({row['why']})")
         )
     chosen = [r for r in table if r["selected"]]
     if not chosen:

@@ -7,6 +7,7 @@ helpers) looking at different along-track angles: B/H 0.08 (A:B), 0.8 (A:C) and 
 from __future__ import annotations
 
 import itertools
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -308,3 +309,24 @@ def test_selected_pairs_through_the_live_node(all_bag: dict[str, Any], tmp_path:
     ]
     for text in ("paired with itself", "listed twice", "zzz never received"):
         assert any(text in d for d in diag), (text, diag)
+
+
+def test_cli_import_process_evaluate_three_images(
+    tifs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The user's path: parproj import A B C -> process -> evaluate, every pair evaluated."""
+    from parproj_ros import cli
+
+    imgs = [str(tifs[n]) for n in "abc"]
+    bag, out = str(tmp_path / "bag"), str(tmp_path / "out")
+    heights = ["--heights", str(FLAT_H - 100.0), str(FLAT_H + 100.0)]
+    assert cli.main(["import", *imgs, "-o", bag, "--pairs", "a:zzz", *heights]) == 2
+    assert "unknown scene id zzz" in capsys.readouterr().err
+    assert cli.main(["import", *imgs, "-o", bag, *heights]) == 0  # default: --pairs bh
+    assert "pair a:b: B/H 0.08" in capsys.readouterr().out
+    assert cli.main(["process", bag, "-o", out, "-q", "--no-tie-points"]) == 0
+    assert "3 scenes, 2 pairs" in capsys.readouterr().out
+    assert cli.main(["evaluate", out, "--truth", bag, "--json", "--no-matching"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert [p["pair_id"] for p in res["pairs"]] == ["a+c", "b+c"]
+    assert all(p["geometric"]["y_parallax_px"]["max_abs"] < 0.05 for p in res["pairs"])
