@@ -222,18 +222,11 @@ def pairs_from_msg(msg: Any) -> list[tuple[str, str]]:
     return list(zip(left, right, strict=True))
 
 
-def pairs_to_msg(
-    pairs: list[tuple[str, str]],
-    msg: Any,
-    *,
-    stamp_ns: int,
-    base_to_height: list[float] | None = None,
-) -> Any:
-    """(left, right) scene ids (and each pair's B/H, optional) -> parproj_msgs/PairSelection."""
+def pairs_to_msg(pairs: list[tuple[str, str]], msg: Any, *, stamp_ns: int) -> Any:
+    """(left, right) scene ids -> parproj_msgs/PairSelection (filled and returned)."""
     ns_to_stamp(stamp_ns, msg.header.stamp)
     msg.left_scene_ids = [a for a, _ in pairs]
     msg.right_scene_ids = [b for _, b in pairs]
-    msg.base_to_height = [float(v) for v in (base_to_height or [])]
     return msg
 
 

@@ -23,7 +23,8 @@ ground), each image's viewing direction d is the ray of P's projection, from P t
 image point localized ``DIRECTION_DH`` metres higher, in the local east-north-up frame. With t =
 (d_e / d_u, d_n / d_u) the ray's horizontal displacement per metre of height, B/H = |t_1 - t_2|
 (the base on a plane at height H above P over H); the convergence angle is the angle between
-d_1 and d_2. Both go into the import summary; B/H into the PairSelection message.
+d_1 and d_2. Both go into the import summary and its log; B/H also into the bag's metadata
+(``custom_data`` "pairs").
 
 Scene ids: the file stems (``left_image.tif`` -> ``left_image``), made unique with ``_2``,
 ``_3`` ... when repeated; or given (``scene_ids``).
@@ -343,7 +344,9 @@ def import_scenes(
         "images": ", ".join(f"{img.path.name} ({img.scene_id})" for img in images),
         "rpc": "; ".join(img.rpc_source for img in images),
         "crop_offsets_line_sample": "; ".join(str(img.offset) for img in images),
-        "pairs": ", ".join(f"{r['left']}:{r['right']}" for r in chosen),
+        "pairs": ", ".join(
+            f"{r['left']}:{r['right']} (B/H {r['base_to_height']:.3f})" for r in chosen
+        ),
     }
     with BagWriter(
         Path(output), compression="zstd", overwrite=overwrite, custom_data=custom
@@ -370,10 +373,7 @@ def import_scenes(
             )
             bw.write(topic, msg, t_info)
         sel = pairs_to_msg(
-            [(r["left"], r["right"]) for r in chosen],
-            PairSelection(),
-            stamp_ns=t_info,
-            base_to_height=[r["base_to_height"] for r in chosen],
+            [(r["left"], r["right"]) for r in chosen], PairSelection(), stamp_ns=t_info
         )
         bw.write("pairs", sel, t_info)
         for img, t0 in zip(images, starts, strict=True):

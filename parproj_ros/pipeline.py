@@ -87,7 +87,8 @@ class PipelineConfig:
         scene_lines: lines per scene (0: scenes end only on a gap or a scene-id change).
         max_gap_lines: a larger jump between strips ends the scene; a smaller one is filled.
         z_avg: average terrain height, metres (Eq 12; zero-disparity height of the output).
-        height_range: half range of terrain heights, metres (virtual points, checks).
+        height_range: half range of terrain heights, metres (virtual points, checks, and the
+            overlap output extent of a pair without GCP).
         crab_tolerance_px: largest predicted crab error accepted from Eqs 10-13, pixels.
         gcp_roll: with GCP, "estimate" the roll (Eq 8), use the "navigation" roll, or "none".
         min_gcp: GCP (non-check) observed in a scene needed to use them instead of navigation.

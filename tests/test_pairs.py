@@ -85,7 +85,6 @@ def test_bh_selection_leaves_out_the_narrow_pair(tifs: dict[str, Path], tmp_path
     assert not narrow["selected"] and narrow["why"] == "B/H outside window"
     msg = next(BagReader(tmp_path / "bh").messages(topics=["pairs"])).msg
     assert list(msg.left_scene_ids) == ["a", "b"] and list(msg.right_scene_ids) == ["c", "c"]
-    assert len(msg.base_to_height) == 2 and 0.7 < msg.base_to_height[1] < 0.75
     with pytest.raises(SceneImportError, match="no pair selected"):
         _import(tifs, tmp_path / "none", "bh", bh_range=(2.0, 3.0))
 
@@ -230,9 +229,8 @@ def test_two_view_mode_ignores_selection() -> None:
 def test_pair_selection_message_round_trip() -> None:
     from parproj_msgs.msg import PairSelection
 
-    msg = pairs_to_msg([("a", "b"), ("a", "c")], PairSelection(), stamp_ns=5, base_to_height=[0.3])
+    msg = pairs_to_msg([("a", "b"), ("a", "c")], PairSelection(), stamp_ns=5)
     assert pairs_from_msg(msg) == [("a", "b"), ("a", "c")]
-    assert list(msg.base_to_height) == [0.3]
     msg.right_scene_ids = ["b"]
     with pytest.raises(ConversionError, match="2 left_scene_ids but 1"):
         pairs_from_msg(msg)
