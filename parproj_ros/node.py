@@ -129,8 +129,8 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "output_extent",
         "overlap",
-        "columns of the normalized pair: 'overlap' (ground both scenes see, heights z_avg +- "
-        "height_range) or 'union' (both footprints whole)",
+        "columns of the normalized pair: 'overlap' (the ground both scenes see, at the heights "
+        "of the pair's GCP, else z_avg +- height_range) or 'union' (both footprints whole)",
         choices=("overlap", "union"),
     ),
     Param(
