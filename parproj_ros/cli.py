@@ -151,6 +151,7 @@ def cmd_process(args: argparse.Namespace) -> int:
         "streaming": not args.no_streaming,
         "tie_points": not args.no_tie_points,
         "segment_max_error_px": args.segment_max_error,
+        "output_extent": args.output_extent,
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
@@ -347,6 +348,10 @@ def cmd_import(args: argparse.Namespace) -> int:
     from .rpc import RPCError
     from .scene_import import import_pair
 
+    if args.more or args.pairs is not None or (args.ids and len(args.ids) != 2):
+        from .multi_import import cmd_import_many  # more than two images, or a pair selection
+
+        return cmd_import_many(args)
     try:
         import_pair(
             args.left,
@@ -357,7 +362,7 @@ def cmd_import(args: argparse.Namespace) -> int:
             dem=args.dem,
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
-            scene_ids=tuple(args.ids),
+            scene_ids=tuple(args.ids or ("left", "right")),
             offsets=_crop_origins(args.crop_origin, (args.left, args.right)),
             band=args.band,
             principal_distance=args.principal_distance,
@@ -458,6 +463,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
     )
+    p.add_argument(
+        "--output-extent",
+        choices=["overlap", "union"],
+        default="overlap",
+        help="columns of the normalized pair: the two scenes' overlap (default) or their union",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_process)
 
@@ -534,10 +545,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser(
-        "import", help="two images with RPC -> a single-camera bag with virtual GCP, no navigation"
+        "import",
+        help="two or more images with RPC -> a single-camera bag with virtual GCP, no navigation",
     )
     p.add_argument("left", help="left image (any raster GDAL reads; first scene)")
     p.add_argument("right", help="right image (second scene)")
+    p.add_argument("more", nargs="*", help="further images (scenes 3, 4, ...; see --pairs)")
+    p.add_argument(
+        "--pairs",
+        help="which acquisitions pair up, written on the bag's `pairs` topic: 'bh' (default with "
+        "3+ images: overlapping pairs with B/H in --bh-range), 'all', or LEFT:RIGHT,... "
+        "scene ids; without it two images pair up by order",
+    )
+    p.add_argument(
+        "--bh-range",
+        type=float,
+        nargs=2,
+        default=[0.1, 1.0],
+        metavar=("LO", "HI"),
+        help="useful base-to-height ratios for --pairs bh (default 0.1 1.0)",
+    )
     p.add_argument("-o", "--output", required=True, help="bag folder to create")
     p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
     p.add_argument("--rpc-right", help="RPC of the right full scene")
@@ -556,7 +583,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="ellipsoidal heights without a DEM (default: RPC height_off +- height_scale / 2)",
     )
     p.add_argument(
-        "--ids", nargs=2, default=["left", "right"], metavar=("LEFT", "RIGHT"), help="scene ids"
+        "--ids",
+        nargs="+",
+        default=None,
+        metavar="ID",
+        help="scene ids, one per image (default: left right for two images, else file stems)",
     )
     p.add_argument(
         "--principal-distance",

@@ -208,6 +208,28 @@ def gcp_to_msg(points: list[GroundPoint], msg: Any, *, frame_id: str, stamp_ns: 
     return msg
 
 
+def pairs_from_msg(msg: Any) -> list[tuple[str, str]]:
+    """parproj_msgs/PairSelection -> (left scene id, right scene id) per pair.
+
+    Raises:
+        ConversionError: the left and right lists differ in length (nothing can be paired).
+    """
+    left, right = [str(s) for s in msg.left_scene_ids], [str(s) for s in msg.right_scene_ids]
+    if len(left) != len(right):
+        raise ConversionError(
+            f"{len(left)} left_scene_ids but {len(right)} right_scene_ids (one each per pair)"
+        )
+    return list(zip(left, right, strict=True))
+
+
+def pairs_to_msg(pairs: list[tuple[str, str]], msg: Any, *, stamp_ns: int) -> Any:
+    """(left, right) scene ids -> parproj_msgs/PairSelection (filled and returned)."""
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    msg.left_scene_ids = [a for a, _ in pairs]
+    msg.right_scene_ids = [b for _, b in pairs]
+    return msg
+
+
 def scene_to_msg(res: SceneResult, msg: Any, *, frame_id: str) -> Any:
     """SceneResult -> parproj_msgs/ParallelProjection (filled and returned)."""
     sc = res.scene

@@ -152,6 +152,13 @@ PARAMS: tuple[Param, ...] = (
         "max_output_pixels", 200_000_000, "larger normalized images are refused", 1, 2_000_000_000
     ),
     Param(
+        "output_extent",
+        "overlap",
+        "columns of the normalized pair: 'overlap' (the ground both scenes see, at the heights "
+        "of the pair's GCP, else z_avg +- height_range) or 'union' (both footprints whole)",
+        choices=("overlap", "union"),
+    ),
+    Param(
         "tie_points",
         True,
         "refine whole-scene pairs with tie points matched between the normalized images "
@@ -390,6 +397,7 @@ class ParprojNode(Node):
             nodata=float(vals["nodata"]),
             interpolation=vals["interpolation"],
             output_pixel=float(vals["output_pixel"]),
+            output_extent=vals["output_extent"],
             max_output_pixels=int(vals["max_output_pixels"]),
             streaming=bool(vals["streaming"]),
             tie_points=bool(vals["tie_points"]),
@@ -459,6 +467,7 @@ class ParprojNode(Node):
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         )
         self.create_subscription(GroundControlPoints, "gcp", self._on_gcp, gcp_qos)
+        self._subscribe_pairs(gcp_qos)
         # Outputs: reliable, so that every scene's parameters and every pair reach recorders.
         out_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         types = {
@@ -554,6 +563,20 @@ class ParprojNode(Node):
             return
         self._enqueue(("gcp", points))
 
+    def _subscribe_pairs(self, qos: QoSProfile) -> None:
+        """The ``pairs`` topic (parproj_msgs/PairSelection; latched like ``gcp``)."""
+        from parproj_msgs.msg import PairSelection
+
+        self.create_subscription(PairSelection, "pairs", self._on_pairs, qos)
+
+    def _on_pairs(self, msg: Any) -> None:
+        try:
+            self._enqueue(("pairs", conv.pairs_from_msg(msg)))
+        except conv.ConversionError as err:
+            self._report([Issue("error", "pairs", f"{err}: pair selection dropped")])
+        except Exception as err:
+            self.internal_error("a pair selection (callback)", err)
+
     def _enqueue(self, item: tuple[str, Any]) -> None:
         """Queue an input for the worker and keep the queue's peak length for the summary."""
         self._queue.put(item)
@@ -598,6 +621,8 @@ class ParprojNode(Node):
                 out = self.pipeline.add_strip(*payload)
             elif kind == "gcp":
                 out = self.pipeline.add_gcp(payload)
+            elif kind == "pairs":
+                out = self.pipeline.set_pairs(payload)
             elif kind == "close":
                 out = self.pipeline.close_idle_scenes()
             else:
@@ -893,6 +918,8 @@ def _describe(kind: str, payload: Any) -> str:
         return "a navigation sample"
     if kind == "gcp":
         return f"a GCP set ({len(payload)} points)"
+    if kind == "pairs":
+        return "a pair selection"
     if kind == "close":
         return "the scene timeout"
     return "the flush at stop"

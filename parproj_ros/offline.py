@@ -126,6 +126,8 @@ def process_bag(
                     )
                 elif item.topic == "gcp":
                     out = pipe.add_gcp(conv.gcp_from_msg(item.msg))
+                elif item.topic == "pairs":
+                    out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
             except conv.ConversionError as err:
                 out.issues.append(Issue("warn", item.topic, f"{err}: message dropped"))
             emit(out, item.log_time_ns)

@@ -87,13 +87,20 @@ class PipelineConfig:
         scene_lines: lines per scene (0: scenes end only on a gap or a scene-id change).
         max_gap_lines: a larger jump between strips ends the scene; a smaller one is filled.
         z_avg: average terrain height, metres (Eq 12; zero-disparity height of the output).
-        height_range: half range of terrain heights, metres (virtual points, checks).
+        height_range: half range of terrain heights, metres (virtual points, checks, and the
+            overlap output extent of a pair without GCP).
         crab_tolerance_px: largest predicted crab error accepted from Eqs 10-13, pixels.
         gcp_roll: with GCP, "estimate" the roll (Eq 8), use the "navigation" roll, or "none".
         min_gcp: GCP (non-check) observed in a scene needed to use them instead of navigation.
         nodata: value of output pixels outside a scene, and of filled missing lines.
         interpolation: "linear" or "cubic".
         output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
+        output_extent: columns (along the epipolar lines) the normalized pair covers:
+            "overlap", the ground both scenes see at the pair's heights (those of its GCP and
+            check points, widened by 10 %, else ``z_avg`` +- ``height_range``): the overlap of
+            the two footprints widened by the x-parallax of those heights, never beyond the
+            union; or "union", both footprints whole (the other image's area is no-data). Rows
+            always cover the overlap across the epipolar lines.
         max_output_pixels: larger normalized images are refused (the pair is skipped).
         tie_points: refine each whole-scene pair with tie points matched between the normalized
             images (RANSAC on paper 2's G1..G4, then an affine correction of the right image's
@@ -132,6 +139,7 @@ class PipelineConfig:
     nodata: float = 0.0
     interpolation: Literal["linear", "cubic"] = "linear"
     output_pixel: float = 0.0
+    output_extent: Literal["overlap", "union"] = "overlap"
     max_output_pixels: int = 200_000_000
     streaming: bool = True
     tie_points: bool = True
@@ -336,6 +344,11 @@ class Pipeline:
         # The latest scenes done with (processed or skipped): scene id -> (view, method), so
         # that GCP arriving after their scene are reported, not kept.
         self._done: dict[str, tuple[str, str]] = {}
+        # Single-camera pair selection (the `pairs` topic): the (left, right) scene ids of the
+        # pairs still to make, in order; None: acquisitions 2k and 2k+1 pair up.
+        self._selection: list[tuple[str, str]] | None = None
+        # single-camera pairs made (their two scene ids; an ordered set of the latest 1024)
+        self._made: dict[frozenset[str], None] = {}
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -426,12 +439,14 @@ class Pipeline:
         if needed is not None and last is not None:
             self.nav.prune_before(min(needed, last) - round(self.config.nav_history_s * 1e9))
 
-    def _forget_gcp(self, scene_ids: tuple[str, str]) -> None:
+    def _forget_gcp(self, scene_ids: tuple[str, ...]) -> None:
         """Drop the GCP observations in the scenes of a finished pair (scene ids never repeat).
 
         A point left with no observation is dropped, so GCP sets that arrive with every
-        acquisition do not pile up.
+        acquisition do not pile up. Scenes that a selected pair still needs keep theirs.
         """
+        needed = self._selected_scene_ids()
+        scene_ids = tuple(s for s in scene_ids if s not in needed)
         for pid, p in list(self.gcp.items()):
             if not any(s in p.observations for s in scene_ids):
                 continue
@@ -924,6 +939,7 @@ class Pipeline:
                 )
             )
         self._waiting_nav = []
+        out.extend(self._unmade_pairs())
         return out
 
     # ---- scenes -------------------------------------------------------------------------
@@ -1224,15 +1240,164 @@ class Pipeline:
             scene.first_line_ns, scene.last_line_ns, self.views[scene.view].mounting
         ).motion
 
+    # ---- pair selection (single camera) -------------------------------------------------
+    def set_pairs(self, pairs: Sequence[tuple[str, str]]) -> Outputs:
+        """Select which acquisitions pair up (single-camera mode; the node's ``pairs`` topic).
+
+        ``pairs`` are (left scene id, right scene id): acquisitions (strip frame_ids, their
+        first parts). A scene may be in several pairs: it is kept until every selected pair
+        that needs it is made, then released. The selection replaces any earlier one for the
+        pairs not made yet; scenes held that it no longer needs are released (WARN). Bad
+        entries are reported and left out, the others kept: an empty id, a scene paired with
+        itself, a pair listed twice (in either order), a scene already done with and released
+        (processed under an earlier rule, or skipped). Scene ids that never arrive are
+        reported when the data end (:meth:`flush`). Two-view mode ignores the selection.
+        """
+        out = Outputs()
+        if not self.config.single_camera:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    "pairs",
+                    "pair selection ignored: with two views the k-th scenes of the views pair "
+                    "up (it is for single-camera mode)",
+                )
+            )
+            return out
+        held = {r.scene.scene_id for r in self._ready[self.config.views[0].name].values()}
+        chosen: list[tuple[str, str]] = []
+        seen: set[frozenset[str]] = set()
+        for left, right in pairs:
+            name = f"{left}:{right}"
+            key = frozenset((left, right))
+            why = ""
+            if not left or not right:
+                why = "an empty scene id"
+            elif left == right:
+                why = f"scene {left} paired with itself (no base)"
+            elif key in seen:
+                why = "listed twice (in this or the reverse order): the first one kept"
+            elif key in self._made:
+                seen.add(key)
+                out.issues.append(Issue("ok", f"pair {name}", "already made: not made again"))
+                continue
+            else:
+                gone = [s for s in (left, right) if s in self._done and s not in held]
+                if gone:
+                    why = "scene " + ", ".join(
+                        f"{s} was already {self._done_how(s)} and released" for s in gone
+                    )
+            if why:
+                out.issues.append(Issue("error", f"pair {name}", f"{why}: pair left out"))
+                continue
+            seen.add(key)
+            chosen.append((left, right))
+        self._selection = chosen
+        out.issues.append(
+            Issue(
+                "ok" if chosen else "warn",
+                "pairs",
+                f"pair selection: {len(chosen)} pairs to make"
+                + (": " + ", ".join(f"{a}:{b}" for a, b in chosen[:20]) if chosen else "")
+                + (" ..." if len(chosen) > 20 else ""),
+            )
+        )
+        out.extend(self._try_selected_pairs())
+        return out
+
+    def _mark_made(self, left: str, right: str) -> None:
+        """Remember a single-camera pair as made (the latest 1024), for later selections."""
+        self._made[frozenset((left, right))] = None
+        while len(self._made) > 1024:
+            del self._made[next(iter(self._made))]
+
+    def _done_how(self, scene_id: str) -> str:
+        method = self._done[scene_id][1]
+        return "skipped" if method == "skipped" else f"processed ({method})"
+
+    def _selected_scene_ids(self) -> set[str]:
+        """Scene ids that a selected pair not made yet still needs."""
+        return {s for pair in self._selection or () for s in pair}
+
+    def _try_selected_pairs(self, warn_unpaired: bool = True) -> Outputs:
+        """Make the selected pairs whose scenes are both ready; release scenes no pair needs.
+
+        ``warn_unpaired``: a WARN for each released scene that no pair used.
+        """
+        out = Outputs()
+        ready = self._ready[self.config.views[0].name]
+        by_id = {r.scene.scene_id: r for r in ready.values()}
+        remaining: list[tuple[str, str]] = []
+        for left, right in self._selection or ():
+            if left in by_id and right in by_id:
+                self._mark_made(left, right)
+                out.extend(self._make_pair(by_id[left], by_id[right]))
+                continue
+            gone = [s for s in (left, right) if s in self._done and s not in by_id]
+            if gone:
+                out.issues.append(
+                    Issue(
+                        "error",
+                        f"pair {left}:{right}",
+                        "scene "
+                        + ", ".join(f"{s} was {self._done_how(s)}" for s in gone)
+                        + ": pair not made",
+                    )
+                )
+                continue
+            remaining.append((left, right))
+        self._selection = remaining
+        needed = self._selected_scene_ids()
+        for acq, res in list(ready.items()):
+            sid = res.scene.scene_id
+            if sid in needed:
+                continue
+            del ready[acq]  # every pair that needed it is made: its pixels are released
+            if warn_unpaired and not any(sid in pair for pair in self._made):
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"{res.scene.view}/{sid}",
+                        "in no selected pair (pairs topic): parameters published, not paired",
+                    )
+                )
+            self._forget_gcp((sid,))
+        return out
+
+    def _unmade_pairs(self) -> Outputs:
+        """End of data: an ERROR per selected pair not made (a scene never arrived)."""
+        out = Outputs()
+        ready = self._ready[self.config.views[0].name] if self.config.single_camera else {}
+        have = {r.scene.scene_id for r in ready.values()}
+        for left, right in self._selection or ():
+            missing = [s for s in (left, right) if s not in have]
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"pair {left}:{right}",
+                    "scene "
+                    + ", ".join(missing)
+                    + " never received (unknown scene id?): selected pair not made",
+                )
+            )
+        if self._selection:
+            self._selection = []
+            out.extend(self._try_selected_pairs(warn_unpaired=False))  # release their scenes
+        return out
+
     # ---- pairs --------------------------------------------------------------------------
     def _try_pairs(self) -> Outputs:
         out = Outputs()
         names = [v.name for v in self.config.views]
-        if self.config.single_camera:
+        if self.config.single_camera and self._selection is not None:
+            out.extend(self._try_selected_pairs())
+        elif self.config.single_camera:
             ready = self._ready[names[0]]
             for i in sorted(ready):
                 if i % 2 == 0 and i + 1 in ready:
-                    out.extend(self._make_pair(ready.pop(i), ready.pop(i + 1)))
+                    left, right = ready.pop(i), ready.pop(i + 1)
+                    self._mark_made(left.scene.scene_id, right.scene.scene_id)
+                    out.extend(self._make_pair(left, right))
         else:
             left, right = self._ready[names[0]], self._ready[names[1]]
             for i in sorted(set(left) & set(right)):
@@ -1266,6 +1431,16 @@ class Pipeline:
         shift = norm.parallax_per_height * self.config.z_avg + norm.parallax_offset
         xo_l = min(fl[:, 0].min(), fr[:, 0].min() + shift)
         x1 = max(fl[:, 0].max(), fr[:, 0].max() + shift)
+        if self.config.output_extent == "overlap":
+            span = self._overlap_columns(left, right, norm, fl, fr, shift)
+            if span is None:
+                return Issue(
+                    "error",
+                    f"pair {pair_id}",
+                    "the scenes do not overlap along the epipolar lines at any height of the "
+                    "pair (output_extent overlap): pair skipped",
+                )
+            xo_l, x1 = max(xo_l, span[0]), min(x1, span[1])
         width = int(np.floor((x1 - xo_l) / pix)) + 1
         height = int(np.floor((y1 - y0) / pix)) + 1
         if width * height > self.config.max_output_pixels:
@@ -1278,6 +1453,49 @@ class Pipeline:
         grid_l = OutputGrid(pix, xo_l, y0, width, height)
         grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
         return PairGeometry(pair_id, norm, gl, gr, grid_l, grid_r)
+
+    def _pair_heights(self, left: SceneResult, right: SceneResult) -> tuple[float, float]:
+        """Heights (m) of the pair's ground: its GCP and check points, else z_avg +- height_range.
+
+        With at least ``min_gcp`` points observed in either scene, their height span widened
+        by 10 % of it (at least 1 m) on each side; otherwise ``z_avg`` +- ``height_range``.
+        """
+        ids = (left.scene.scene_id, right.scene.scene_id)
+        z = np.array(
+            [p.xyz[2] for p in self.gcp.values() if any(s in p.observations for s in ids)]
+        )
+        if z.size >= self.config.min_gcp:
+            pad = max(0.1 * float(np.ptp(z)), 1.0)
+            return float(z.min()) - pad, float(z.max()) + pad
+        c = self.config
+        return c.z_avg - c.height_range, c.z_avg + c.height_range
+
+    def _overlap_columns(
+        self,
+        left: SceneResult,
+        right: SceneResult,
+        norm: Normalization,
+        fl: FloatArray,
+        fr: FloatArray,
+        shift: float,
+    ) -> tuple[float, float] | None:
+        """Normalized x range (left image metres) of the ground both scenes see (None: none).
+
+        A point at height z is at x_l in the left image and at x_l - d, d = k (z - z_avg), in
+        the right one (in the left image's x, the right grid being shifted by ``shift``). Over
+        the pair's heights (:meth:`_pair_heights`) the left image needs the x_l in its
+        footprint ``fl`` whose partner lies in the right footprint ``fr``, and the right image
+        the converse; the range is the hull of both.
+        """
+        k = norm.parallax_per_height
+        zlo, zhi = self._pair_heights(left, right)
+        d = (k * (zlo - self.config.z_avg), k * (zhi - self.config.z_avg))
+        dlo, dhi = min(d), max(d)
+        l0, l1 = float(fl[:, 0].min()), float(fl[:, 0].max())
+        r0, r1 = float(fr[:, 0].min()) + shift, float(fr[:, 0].max()) + shift
+        lo = min(max(l0, r0 + dlo), max(r0, l0 - dhi))
+        hi = max(min(l1, r1 + dhi), min(r1, l1 - dlo))
+        return (lo, hi) if hi > lo else None
 
     @property
     def interpolation_flag(self) -> int:

@@ -526,7 +526,8 @@ def test_float32_strips_give_float32_images() -> None:
     images = [im.astype(np.float32) / 7.0 for im in render(scn, np.uint8)]
     # The scenario's cameras deliver uint8; these views accept whatever the strips carry.
     views = tuple(dataclasses.replace(v, dtype=None) for v in scn.views)
-    pipe = Pipeline(scn.pipeline_config(views=views, nodata=float("nan")))
+    # union: the footprints whole, so that the outputs have area outside each scene
+    pipe = Pipeline(scn.pipeline_config(views=views, nodata=float("nan"), output_extent="union"))
     nav = nav_events(scn, offset=lambda t: np.array([20.0 if t > t_mid else 0.0, 0.0, 0.0]))
     out = feed(pipe, nav + strip_events(scn, images))
     (pair,) = out.pairs
@@ -562,7 +563,7 @@ def _source_coordinates(pair: PairResult, side: str) -> tuple[np.ndarray, np.nda
 def test_nodata_outside_the_footprint(name: str, dtype: type, shift_m: float) -> None:
     scn = SCENARIOS[name]()
     t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
-    pipe = Pipeline(scn.pipeline_config(nodata=5.0))
+    pipe = Pipeline(scn.pipeline_config(nodata=5.0, output_extent="union"))
     nav = nav_events(scn, offset=lambda t: np.array([shift_m if t > t_mid else 0.0, 0.0, 0.0]))
     out = feed(pipe, nav + strip_events(scn, render(scn, dtype, low=20)))
     (pair,) = out.pairs
