@@ -288,7 +288,7 @@ class PairChecker:
     digests of the first repetition and the numbers of the first repetition is kept.
     """
 
-    IMAGE_TOPICS = ("left/image_normalized", "right/image_normalized", "anaglyph")
+    IMAGE_TOPICS = conv.PAIR_IMAGE_TOPICS
 
     def __init__(
         self, plan: BagPlan, truth: list[GroundPoint], t0: float, rtol: float = 0.0
