@@ -315,3 +315,11 @@ def test_longrun_live(tmp_path: Path) -> None:
     png = (tmp_path / "longrun.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert np.isfinite(saved["cpu"]["machine_busy_cores"])
+
+
+def test_longrun_options() -> None:
+    from tools.longrun.run import build_parser
+
+    args = build_parser().parse_args(["--repetitions", "3", "-o", "x", "--node-param", "a=1"])
+    assert args.repetitions == 3 and args.output == "x" and args.node_param == ["a=1"]
+    assert args.bag.endswith("bags/ikonos_agile") and args.minutes == 20.0
