@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# The full benchmark (about 10 minutes on the 2-core machine). Runs `parproj bench --quick`, then
-# the full `parproj bench` (IKONOS-size scenes, 10 pairs through the live node over DDS), and
-# rewrites bench/BENCHMARKS.md from that run (tables, machine, date, targets met or not), with
-# the JSON of both runs beside it (bench/last_quick.json, bench/last_run.json).
+# The full benchmark (about 10 minutes on the 2-core machine). Runs `python -m tools.bench
+# --quick`, then the full `python -m tools.bench` (IKONOS-size scenes, 10 pairs through the live
+# node over DDS), and rewrites bench/BENCHMARKS.md from that run (tables, machine, date, targets
+# met or not), with the JSON of both runs beside it (bench/last_quick.json, bench/last_run.json).
 # Extra arguments go to the full run (e.g. --pairs 3, --node-param streaming=false).
 # py-spy, when on PATH or named by PY_SPY, samples the node during the live part.
 set -euo pipefail
@@ -24,14 +24,14 @@ if [ -n "$PY_SPY" ]; then
   spy=(--py-spy "$PY_SPY")
 fi
 
-echo "== quick run (parproj bench --quick --json)" >&2
+echo "== quick run (python -m tools.bench --quick --json)" >&2
 start=$SECONDS
-"$VENV/bin/parproj" bench --quick --json > "$ROOT/bench/last_quick.json"
+"$VENV/bin/python" -m tools.bench --quick --json > "$ROOT/bench/last_quick.json"
 echo "== quick run took $((SECONDS - start)) s" >&2
 
 echo "== full run" >&2
 start=$SECONDS
-"$VENV/bin/parproj" bench --json --markdown "$ROOT/bench/BENCHMARKS.md" \
+"$VENV/bin/python" -m tools.bench --json --markdown "$ROOT/bench/BENCHMARKS.md" \
   --include-quick "$ROOT/bench/last_quick.json" ${spy[@]+"${spy[@]}"} "$@" \
   > "$ROOT/bench/last_run.json"
 echo "== full run took $((SECONDS - start)) s; report: bench/BENCHMARKS.md" >&2

@@ -250,68 +250,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
 
 
-def _node_params(items: Sequence[str]) -> dict[str, Any] | None:
-    """``--node-param KEY=VALUE`` options as parameters (values read as YAML); None if bad."""
-    import yaml
-
-    params: dict[str, Any] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep:
-            print(f"--node-param needs KEY=VALUE, got {item!r}", file=sys.stderr)
-            return None
-        params[key] = yaml.safe_load(value)
-    return params
-
-
-def cmd_longrun(args: argparse.Namespace) -> int:
-    """``parproj longrun``: the bag replayed for hours into the live node; memory, queue, pairs."""
-    from .longrun import format_report, run_longrun
-
-    params = _node_params(args.node_param)
-    if params is None:
-        return 2
-    report = run_longrun(
-        Path(args.bag),
-        Path(args.output),
-        minutes=args.minutes,
-        repetitions=args.repetitions,
-        rate=args.rate,
-        margin_s=args.margin,
-        in_flight=args.in_flight,
-        warmup_s=args.warmup,
-        node_params=params,
-        progress=not args.quiet,
-    )
-    print(format_report(report))
-    print(f"report {Path(args.output) / 'longrun.json'}, plot {Path(args.output) / 'longrun.png'}")
-    return 0 if report["ok"] else 1
-
-
-def cmd_bench(args: argparse.Namespace) -> int:
-    """``parproj bench``: resampler against its lower bounds, the live node, memory."""
-    from .bench import run_and_report
-
-    params = _node_params(args.node_param)
-    if params is None:
-        return 2
-    res = run_and_report(
-        args.quick,
-        json_out=args.json,
-        markdown=Path(args.markdown) if args.markdown else None,
-        include_quick=Path(args.include_quick) if args.include_quick else None,
-        workdir=Path(args.workdir) if args.workdir else None,
-        live=not args.no_live,
-        offline=not args.no_offline,
-        domain_id=args.domain_id,
-        py_spy=args.py_spy,
-        pairs=args.pairs,
-        check_fields=args.check_fields,
-        node_params=params,
-    )
-    return 1 if (res.get("live") or {}).get("error") else 0
-
-
 def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) -> tuple[Any, ...]:
     """``--crop-origin IMAGE ROW COL`` (repeatable) -> one (row, col) or None per image.
 
@@ -499,50 +437,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=20.0, help="replay speed factor")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
-
-    p = sub.add_parser(
-        "longrun", help="replay a bag for hours into the live node: memory, queue, every pair"
-    )
-    p.add_argument("--bag", default=str(_bags_dir() / "ikonos_agile"))
-    p.add_argument("-o", "--output", default="out/longrun", help="folder for the report")
-    p.add_argument("--minutes", type=float, default=20.0, help="wall time to replay (min)")
-    p.add_argument("--repetitions", type=int, default=None, help="stop after N repetitions")
-    p.add_argument("--rate", type=float, default=0.0, help="speed factor (0 = as acknowledged)")
-    p.add_argument("--margin", type=float, default=1.0, help="s between repetitions (simulated)")
-    p.add_argument("--in-flight", type=int, default=2, help="repetitions ahead of the pairs")
-    p.add_argument("--warmup", type=float, default=120.0, help="s left out of the RSS slope")
-    p.add_argument(
-        "--node-param", action="append", default=[], metavar="KEY=VALUE", help="node parameter"
-    )
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_longrun)
-
-    p = sub.add_parser("bench", help="benchmark: resampler, live node over DDS, memory")
-    p.add_argument("--quick", action="store_true", help="2048 x 2048 scenes, under a minute")
-    p.add_argument("--json", action="store_true", help="print one JSON document")
-    p.add_argument("--markdown", help="write the report (bench/BENCHMARKS.md) to this file")
-    p.add_argument("--include-quick", help="JSON of a --quick run to include in the report")
-    p.add_argument("--workdir", help="folder for the node's files and bags (default: temporary)")
-    p.add_argument("--pairs", type=int, default=None, help="pairs through the live node")
-    p.add_argument("--no-live", action="store_true", help="skip the live node over DDS")
-    p.add_argument("--no-offline", action="store_true", help="skip the offline process")
-    p.add_argument(
-        "--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)"
-    )
-    p.add_argument(
-        "--check-fields",
-        action="store_true",
-        help="run the node with ROS_PYTHON_CHECK_FIELDS=1, as the tests do",
-    )
-    p.add_argument(
-        "--node-param",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="extra node parameter (YAML value), e.g. streaming=false; repeatable",
-    )
-    p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
-    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser(
         "import",

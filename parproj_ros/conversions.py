@@ -431,3 +431,6 @@ OUTPUT_TOPICS = {
     "right/normalized_block": "parproj_msgs/msg/NormalizedBlock",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
+#: The images of a pair sent whole, published after its StereoPair (a streamed pair's pixels
+#: come before it, as NormalizedBlock messages).
+PAIR_IMAGE_TOPICS = ("left/image_normalized", "right/image_normalized", "anaglyph")

@@ -56,7 +56,17 @@ def normalized_px(
     return (xn - x_origin) / pixel, (yn - y_origin) / pixel
 
 
-def _stats(v: FloatArray) -> dict[str, float]:
+def error_stats(v: FloatArray, *, finite_only: bool = False) -> dict[str, float]:
+    """Statistics of signed errors (pixels or metres), ``{"n": 0}`` for none.
+
+    n, mean |e|, median |e|, RMS, 95th percentile of |e|, max |e|, signed mean and standard
+    deviation (mean removed, ddof 0). With ``finite_only``, NaN and inf are left out first (``n``
+    counts the rest): the Ventoux comparison, where a grid may not cover a point. Otherwise a
+    non-finite error shows as a non-finite figure, as a defect should.
+    """
+    v = np.asarray(v, dtype=float)
+    if finite_only:
+        v = v[np.isfinite(v)]
     if v.size == 0:
         return {"n": 0}
     a = np.abs(v)
@@ -68,6 +78,7 @@ def _stats(v: FloatArray) -> dict[str, float]:
         "p95_abs": float(np.percentile(a, 95)),
         "max_abs": float(a.max()),
         "mean": float(v.mean()),
+        "std": float(v.std()),
     }
 
 
@@ -86,15 +97,15 @@ def match_y_parallax(
     """
     m = match_normalized(left, right, nodata=nodata, detector="orb")
     if len(m) == 0:
-        return {"matches": 0, "y_parallax_px": _stats(np.zeros(0))}
+        return {"matches": 0, "y_parallax_px": error_stats(np.zeros(0))}
     best = np.argsort(-m.score)[:max_matches]
     y = (m.yl - m.yr)[best]
     x = (m.xl - m.xr)[best]
     return {
         "matches": int(y.size),
         "detected": len(m),
-        "y_parallax_px": _stats(y),
-        "x_disparity_px": _stats(x),
+        "y_parallax_px": error_stats(y),
+        "x_disparity_px": error_stats(x),
     }
 
 
@@ -190,12 +201,12 @@ def _evaluate_pair(
         z_pub = sp.height_per_disparity_px * disp + sp.height_offset_m
         out["geometric"] = {
             "points": len(pts),
-            "y_parallax_px": _stats(ypar),
+            "y_parallax_px": error_stats(ypar),
             "x_parallax_line_rms_px": float(np.sqrt(np.mean(line_res**2))),
             "x_parallax_line_max_px": float(np.abs(line_res).max()),
             "disparity_px_per_m": float(coef[0]),
             "published_px_per_m": float(1.0 / sp.height_per_disparity_px),
-            "height_from_disparity_error_m": _stats(z_pub - xyz[:, 2]),
+            "height_from_disparity_error_m": error_stats(z_pub - xyz[:, 2]),
         }
         scenes = []
         for prm, obs in ((lp, ol), (rp, orr)):

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from .bag import BagReader, BagWriter, get_message_class
+from .conversions import PAIR_IMAGE_TOPICS
 
 
 def ros_environment(domain_id: int | None = None, log_dir: Path | None = None) -> dict[str, str]:
@@ -210,10 +211,7 @@ class Recorder:
             if len(done) < pairs:
                 return False
             whole = sum(1 for p in done if not getattr(p, "streamed", False))
-            return all(
-                self.counts.get(t, 0) >= whole
-                for t in ("left/image_normalized", "right/image_normalized", "anaglyph")
-            )
+            return all(self.counts.get(t, 0) >= whole for t in PAIR_IMAGE_TOPICS)
 
     def wait_complete(
         self, pairs: int, timeout_s: float, alive: Callable[[], bool] = lambda: True

@@ -470,15 +470,15 @@ class ParprojNode(Node):
         self._subscribe_pairs(gcp_qos)
         # Outputs: reliable, so that every scene's parameters and every pair reach recorders.
         out_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        types = {
-            "parallel_projection": ParallelProjection,
-            "stereo_pair": StereoPair,
-            "left/image_normalized": Image,
-            "right/image_normalized": Image,
-            "anaglyph": Image,
-            "left/normalized_block": NormalizedBlock,
-            "right/normalized_block": NormalizedBlock,
+        # The topics are conv.OUTPUT_TOPICS (the offline process writes the same), /diagnostics
+        # apart (below).
+        classes = {
+            "parproj_msgs/msg/ParallelProjection": ParallelProjection,
+            "parproj_msgs/msg/StereoPair": StereoPair,
+            "sensor_msgs/msg/Image": Image,
+            "parproj_msgs/msg/NormalizedBlock": NormalizedBlock,
         }
+        types = {t: classes[m] for t, m in conv.OUTPUT_TOPICS.items() if t != "/diagnostics"}
         self.pubs = {t: self.create_publisher(cls, t, out_qos) for t, cls in types.items()}
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.create_timer(1.0, self._summary)

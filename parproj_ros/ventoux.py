@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .bag import BagReader
-from .evaluate import normalized_px
+from .evaluate import error_stats, normalized_px
 from .imaging.matching import match_normalized
 from .scene_import import MODEL_TRANSFORMATION_TAG, crop_offset, read_image
 
@@ -315,24 +315,6 @@ def match_images(
 # Evaluation
 
 
-def stats(y: FloatArray) -> dict[str, float]:
-    """Mean |y|, RMS, 95th percentile of |y|, signed mean, std (mean removed), n; pixels."""
-    y = np.asarray(y, float)
-    y = y[np.isfinite(y)]
-    if y.size == 0:
-        return {"n": 0}
-    a = np.abs(y)
-    return {
-        "n": int(y.size),
-        "mean_abs": float(a.mean()),
-        "rms": float(np.sqrt(np.mean(y**2))),
-        "p95_abs": float(np.percentile(a, 95)),
-        "max_abs": float(a.max()),
-        "mean": float(y.mean()),
-        "std": float(y.std()),
-    }
-
-
 def read_stereo_pair(out_bag: str | Path, index: int = 0) -> Any:
     """The ``index``-th StereoPair message of an output bag.
 
@@ -434,10 +416,10 @@ def rpc_points_y_parallax(
     ll = np.array([p.observations[lid] for p in pts])
     rr = np.array([p.observations[rid] for p in pts])
     a, b = ours_rows(sp, ll, rr)
-    out = {"ours": stats(a - b)}
+    out = {"ours": error_stats(a - b, finite_only=True)}
     for name, g in grids.items():
         a, b = grid_rows(g, ll, rr, offsets)
-        out[name] = stats(a - b)
+        out[name] = error_stats(a - b, finite_only=True)
     return out
 
 
@@ -465,7 +447,7 @@ def evaluate_against_grids(
 
     Returns:
         ``{"pair_id", "methods": {name: stats}, "matches": {...}, "differences": {...},
-        "rpc_points": {...}}``; stats in pixels (:func:`stats`).
+        "rpc_points": {...}}``; stats in pixels (:func:`~parproj_ros.evaluate.error_stats`).
 
     Raises:
         ValueError: the crops do not have the sizes of the StereoPair's scenes.
@@ -507,7 +489,7 @@ def evaluate_against_grids(
             "after_cut": len(m),
             "cut_threshold_px": m.cut_threshold_px,
         },
-        "methods": {name: stats(y) for name, y in ypar.items()},
+        "methods": {name: error_stats(y, finite_only=True) for name, y in ypar.items()},
         "y_axis_sense": sense,
         "grid_scale": {name: [grid_scale(g[0]), grid_scale(g[1])] for name, g in grids.items()},
         "differences": {},

@@ -1,4 +1,6 @@
-"""`parproj bench`: the resampling part at a tiny size (keys, finite geometric error, report).
+"""The benchmark (`python -m tools.bench`): the resampling part at a tiny size.
+
+Keys, finite geometric error, report.
 
 Speed is measured by the benchmark, never asserted here.
 """
@@ -8,8 +10,9 @@ from __future__ import annotations
 import json
 import math
 
-from parproj_ros.bench import BenchConfig, format_markdown, format_text, run_bench, targets
-from parproj_ros.cli import build_parser, cmd_bench
+from tools.bench.config import BenchConfig
+from tools.bench.report import format_markdown, format_text, targets
+from tools.bench.run import build_parser, run_bench
 
 TINY = BenchConfig(
     name="test",
@@ -23,7 +26,7 @@ TINY = BenchConfig(
     scaling=((128, 160), (256, 160)),
 )
 
-#: The keys `parproj bench --json` always prints (None for parts not run).
+#: The keys `python -m tools.bench --json` always prints (None for parts not run).
 KEYS = (
     "resample_vs_warpaffine",
     "resample_throughput_vs_warpaffine",
@@ -60,9 +63,7 @@ def test_resampling_part_keys_and_geometric_error() -> None:
     assert "Resampling one scene" in format_text(doc)
 
 
-def test_cli_has_bench() -> None:
-    args = build_parser().parse_args(
-        ["bench", "--quick", "--json", "--node-param", "streaming=false"]
-    )
-    assert args.func is cmd_bench and args.quick and args.json
+def test_bench_options() -> None:
+    args = build_parser().parse_args(["--quick", "--json", "--node-param", "streaming=false"])
+    assert args.quick and args.json
     assert args.node_param == ["streaming=false"]

@@ -1,4 +1,4 @@
-"""The long run (``parproj longrun``): repetitions of a bag, the pair checks, flat memory.
+"""The long run (``python -m tools.longrun``): repetitions of a bag, the pair checks, flat memory.
 
 ``test_longrun_live`` runs the command's function for real (parproj_node in its own process,
 rclpy and Fast DDS on localhost) for a few repetitions: every pair published, well formed and
@@ -19,18 +19,18 @@ import pytest
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader
-from parproj_ros.longrun import (
+from parproj_ros.pipeline import Outputs, Pipeline
+from parproj_ros.recording import config_from_bag, truth_from_bag
+from tools.longrun.checks import (
     PairChecker,
     compare_pairs,
     pair_numbers,
     plan_bag,
     repetition_id,
     repetition_messages,
-    run_longrun,
     split_repetition,
 )
-from parproj_ros.pipeline import Outputs, Pipeline
-from parproj_ros.recording import config_from_bag, truth_from_bag
+from tools.longrun.run import run_longrun
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 IKONOS = BAGS / "ikonos_agile"
@@ -315,3 +315,11 @@ def test_longrun_live(tmp_path: Path) -> None:
     png = (tmp_path / "longrun.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert np.isfinite(saved["cpu"]["machine_busy_cores"])
+
+
+def test_longrun_options() -> None:
+    from tools.longrun.run import build_parser
+
+    args = build_parser().parse_args(["--repetitions", "3", "-o", "x", "--node-param", "a=1"])
+    assert args.repetitions == 3 and args.output == "x" and args.node_param == ["a=1"]
+    assert args.bag.endswith("bags/ikonos_agile") and args.minutes == 20.0

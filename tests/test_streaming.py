@@ -117,8 +117,8 @@ def test_a_view_delivered_late_still_streams(delay_s: float) -> None:
     arrive 0.08 s (two strips) after the other's. Both pairs must still stream: a view
     that is merely late is not a short scene."""
     from parproj_ros import conversions as conv
-    from parproj_ros.bench import StripMessages, acquisition, make_platform, nav_message
     from parproj_ros.pipeline import PipelineConfig
+    from parproj_ros.synthetic import StripMessages, acquisition, make_platform, nav_message
 
     # 2048 lines: the platform's fore/aft angle follows the scene length (base/height 0.0025);
     # 256 detectors keep the test fast.

@@ -1,0 +1,96 @@
+"""Sizes and limits of a benchmark run (full and quick), and its log."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+Log = Callable[[str], None]
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Sizes and limits of one benchmark run.
+
+    Attributes:
+        name: "full" or "quick" (or a test's name).
+        lines: lines per scene (micro-benchmark input and end-to-end scenes).
+        detectors: detectors per line.
+        pairs: stereo pairs sent through the live node.
+        offline_pairs: stereo pairs run through ``process_bag``.
+        strip_lines: lines per image message.
+        map_coordinates_rows: output rows resampled with scipy (then scaled to the grid).
+        repeats: timed repetitions of each micro-benchmark (the fastest is kept).
+        scaling: (lines, detectors) sizes of the scaling table.
+        nav_rate_hz: navigation samples per second.
+        pairs_ahead: flow control: before sending the data of scene slot j, the publisher waits
+            until pair j - 1 - pairs_ahead has been received (never when the node keeps up).
+        inflight_strips: strips per view published before waiting for their acknowledgement.
+        stall_s: give up when no pair arrives for this long, seconds.
+        rss_cap_mb: the publisher also waits while the node's resident memory exceeds this, MB.
+        kill_above_mb: the node is killed (and the live run ends) above this, MB: with the
+            bench process, the run stays within about 10 GB.
+        min_available_mb: ... or while the machine has less memory available than this, MB.
+        check_fields: run the node with ROS_PYTHON_CHECK_FIELDS=1 (as the tests do) instead of
+            as deployed.
+    """
+
+    name: str
+    lines: int
+    detectors: int
+    pairs: int
+    offline_pairs: int
+    strip_lines: int
+    map_coordinates_rows: int
+    repeats: int
+    scaling: tuple[tuple[int, int], ...]
+    nav_rate_hz: float = 50.0
+    pairs_ahead: int = 1
+    inflight_strips: int = 4
+    stall_s: float = 300.0
+    rss_cap_mb: float = 6000.0
+    kill_above_mb: float = 8500.0
+    min_available_mb: float = 1500.0
+    check_fields: bool = False
+
+
+FULL = BenchConfig(
+    name="full",
+    lines=14000,
+    detectors=13816,
+    pairs=10,
+    offline_pairs=3,
+    strip_lines=500,
+    map_coordinates_rows=512,
+    repeats=3,
+    scaling=(
+        (3500, 13816),
+        (7000, 13816),
+        (14000, 13816),
+        (28000, 13816),
+        (14000, 3454),
+        (14000, 6908),
+    ),
+)
+
+QUICK = BenchConfig(
+    name="quick",
+    lines=2048,
+    detectors=2048,
+    pairs=2,
+    offline_pairs=2,
+    strip_lines=256,
+    map_coordinates_rows=256,
+    repeats=7,
+    scaling=((512, 2048), (1024, 2048), (2048, 2048), (2048, 512), (2048, 1024)),
+    stall_s=60.0,
+    rss_cap_mb=3000.0,
+    kill_above_mb=4000.0,
+)
+
+
+def log_stderr(msg: str) -> None:
+    """A progress line on stderr, with the time (the default ``log`` of every part)."""
+    print(f"[bench {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)

@@ -1,0 +1,601 @@
+"""Part 2: strips over DDS into parproj_node, and the DDS ceiling (a counting sink)."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from parproj_ros.synthetic import (
+    LINE_RATE_HZ,
+    VIEWS,
+    StripMessages,
+    acquisition,
+    make_platform,
+    nav_message,
+)
+from tools.harness import (
+    ROOT,
+    RssMonitor,
+    join_ros_domain,
+    mem_available_mb,
+    proc_status,
+)
+
+from .config import BenchConfig, Log, log_stderr
+
+
+class BenchAbortError(RuntimeError):
+    """The live run cannot go on (node died, memory guard, stall); says why."""
+
+
+@dataclass
+class _Observer:
+    """What the bench process receives from the node."""
+
+    pairs: dict[str, float] = field(default_factory=dict)
+    pair_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    summary: dict[str, str] = field(default_factory=dict)
+    summary_t: float = 0.0
+    queue_max: int = 0
+    streamed_pairs: set[str] = field(default_factory=set)
+    issues: list[str] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_pair(self, msg: Any) -> None:
+        now = time.time()
+        with self.lock:
+            self.pairs[msg.pair_id] = now
+            w = int(getattr(msg, "width", 0) or msg.left.width)
+            h = int(getattr(msg, "height", 0) or msg.left.height)
+            self.pair_sizes[msg.pair_id] = (w, h)
+            if getattr(msg, "streamed", False):
+                self.streamed_pairs.add(msg.pair_id)
+
+    def on_diag(self, msg: Any) -> None:
+        now = time.time()
+        with self.lock:
+            for st in msg.status:
+                if st.name == "parproj_node: summary":
+                    self.summary = {kv.key: kv.value for kv in st.values}
+                    self.summary_t = now
+                    self.queue_max = max(self.queue_max, int(self.summary.get("queue", 0)))
+                else:
+                    self.issues.append(f"{st.name}: {st.message}")
+
+
+_LOG_PAIR = re.compile(r"\[(\d+\.\d+)\] \[parproj_node\]: pair (\S+):")
+
+
+def _slope(y: list[float]) -> float | None:
+    """Least-squares slope of y against its index (None for fewer than 2 values)."""
+    if len(y) < 2:
+        return None
+    return float(np.polyfit(np.arange(len(y), dtype=float), np.asarray(y, dtype=float), 1)[0])
+
+
+def latency_stats(v: list[float]) -> dict[str, Any]:
+    """Median, max, min and the values (rounded) of latencies, seconds.
+
+    Not :func:`parproj_ros.evaluate.error_stats`: that one describes signed errors (mean |e|,
+    RMS, percentiles); latencies are positive and few, and the report lists each pair's.
+    """
+    if not v:
+        return {"median": None, "max": None, "min": None, "per_pair": []}
+    return {
+        "median": float(np.median(v)),
+        "max": float(np.max(v)),
+        "min": float(np.min(v)),
+        "per_pair": [round(x, 4) for x in v],
+    }
+
+
+def bench_live(
+    cfg: BenchConfig,
+    workdir: Path,
+    *,
+    domain_id: int | None = None,
+    py_spy: str | None = None,
+    node_params: dict[str, Any] | None = None,
+    log: Log = log_stderr,
+) -> dict[str, Any]:
+    """Part 2: strips at 6500 lines/s per view into parproj_node over DDS (see module doc).
+
+    ``node_params`` are extra node parameters (e.g. ``{"streaming": False}``). Returns
+    real-time factors, latencies (s), strips dropped, the node's memory (MB) and the
+    publisher's pacing figures; ``error`` says why a run ended early.
+    """
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from parproj_msgs.msg import StereoPair
+    from rclpy.context import Context
+    from rclpy.duration import Duration
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from parproj_ros.live import NodeProcess, node_params_yaml
+    from parproj_ros.recording import node_parameters
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    plat = make_platform(cfg.lines, cfg.detectors)
+    env = join_ros_domain(domain_id, workdir / "ros_log", check_fields=cfg.check_fields)
+    inputs = ["/navigation"] + [f"/{v}/image_strip" for v in VIEWS]
+    pfile = node_params_yaml(
+        node_parameters(
+            plat.views,
+            scene_lines=cfg.lines,
+            scene_timeout=0.0,
+            z_avg=0.0,
+            height_range=500.0,
+            **(node_params or {}),
+        ),
+        workdir / "params.yaml",
+        reliable_inputs=inputs,
+    )
+    events = acquisition(plat, cfg.pairs, cfg.strip_lines, cfg.nav_rate_hz)
+    strips = StripMessages(plat, cfg.strip_lines)
+    raw_pair_mb = 2 * cfg.lines * cfg.detectors * 2 / 2**20
+    sensor_s = (cfg.pairs + plat.lag_scenes) * plat.scene_s
+    res: dict[str, Any] = {
+        "pairs": cfg.pairs,
+        "strip_lines": cfg.strip_lines,
+        "strip_mb": cfg.strip_lines * cfg.detectors * 2 / 2**20,
+        "strips_per_s_per_view": LINE_RATE_HZ / cfg.strip_lines,
+        "input_mb_s": 2 * LINE_RATE_HZ * cfg.detectors * 2 / 2**20,
+        "scene_s": plat.scene_s,
+        "sensor_s": sensor_s,
+        "camera_pitch_deg": math.degrees(plat.theta),
+        "node_check_fields": cfg.check_fields,
+        "pairs_ahead": cfg.pairs_ahead,
+        "node_params": dict(node_params or {}),
+        "error": None,
+    }
+    log(
+        f"live: {cfg.pairs} pairs of {cfg.lines} x {cfg.detectors} uint16, {cfg.strip_lines}-line "
+        f"strips, {sensor_s:.2f} s of sensor data at {res['input_mb_s']:.0f} MB/s"
+    )
+    node = NodeProcess(pfile, env, workdir / "node.log")
+    mon = RssMonitor(node.proc.pid, kill_above_mb=cfg.kill_above_mb)
+    spy = None
+    ctx = Context()
+    rclpy.init(context=ctx)
+    rnode = rclpy.create_node("parproj_bench", context=ctx)
+    obs = _Observer()
+    strip_qos = QoSProfile(
+        depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+    )
+    pubs = {v: rnode.create_publisher(Image, f"{v}/image_strip", strip_qos) for v in VIEWS}
+    nav_pub = rnode.create_publisher(
+        Odometry,
+        "navigation",
+        QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE),
+    )
+    pair_sub = rnode.create_subscription(
+        StereoPair,
+        "stereo_pair",
+        obs.on_pair,
+        QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE),
+    )
+    rnode.create_subscription(DiagnosticArray, "/diagnostics", obs.on_diag, 100)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(rnode)
+    spinning = threading.Event()
+    spinning.set()
+
+    def spin_loop() -> None:
+        while spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    spin = threading.Thread(target=spin_loop, name="bench_spin", daemon=True)
+    spin.start()
+    sent_strips = 0
+    sent_nav = 0
+    ack_wait = 0.0
+    t_sent = math.nan
+    last_sent: dict[int, float] = {}
+    throttled = 0.0
+    lag_max = 0.0
+    start = math.nan
+
+    def node_idle() -> bool:
+        """The node has counted every strip sent, its queue is empty and it uses no CPU."""
+        with obs.lock:
+            got = int(obs.summary.get("strips", -1)) + int(obs.summary.get("strips_rejected", 0))
+            counted = (
+                got >= sent_strips
+                and obs.summary.get("queue") == "0"
+                and time.time() - obs.summary_t < 1.5
+            )
+        rate = mon.cpu_rate(5.0)
+        return counted and rate is not None and rate < 0.1
+
+    try:
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            if node.proc.poll() is not None:
+                raise BenchAbortError("node exited at start:\n" + node.output()[-2000:])
+            ready = all(p.get_subscription_count() > 0 for p in pubs.values())
+            ready &= nav_pub.get_subscription_count() > 0 and bool(obs.summary)
+            ready &= pair_sub.get_publisher_count() > 0
+            if ready:
+                break
+            time.sleep(0.05)
+        else:
+            raise BenchAbortError("node not discovered within 60 s")
+        time.sleep(1.0)
+        res["node_base_rss_mb"] = mon.rss_mb
+        if py_spy:
+            spy = subprocess.Popen(
+                [
+                    py_spy,
+                    "record",
+                    "--pid",
+                    str(node.proc.pid),
+                    "--format",
+                    "raw",
+                    "--rate",
+                    "20",
+                    "--threads",
+                    "-o",
+                    str(workdir / "node_py_spy.txt"),
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+            time.sleep(1.0)
+
+        def wait_until(ok: Callable[[], bool], why: str, idle_s: float | None = None) -> float:
+            """Sleep until ok(); abort on a dead node or a stall; the time waited, s.
+
+            With ``idle_s``, also abort when no pair came for that long while the node was idle.
+            """
+            if ok():
+                return 0.0
+            t = time.time()
+            last = (len(obs.pairs), t)
+            while not ok():
+                if node.proc.poll() is not None:
+                    raise BenchAbortError(mon.killed or f"node exited while {why}")
+                if mem_available_mb() < 0.5 * cfg.min_available_mb:
+                    raise BenchAbortError(f"machine memory nearly exhausted while {why}")
+                quiet = time.time() - last[1]
+                if len(obs.pairs) != last[0]:
+                    last = (len(obs.pairs), time.time())
+                elif quiet > cfg.stall_s:
+                    raise BenchAbortError(f"no pair for {cfg.stall_s:.0f} s while {why}")
+                elif idle_s is not None and quiet > idle_s and node_idle():
+                    raise BenchAbortError(
+                        f"node idle with {len(obs.pairs)} of {cfg.pairs} pairs while {why}"
+                    )
+                time.sleep(0.01)
+            return time.time() - t
+
+        def pairs_at_least(n: int) -> Callable[[], bool]:
+            return lambda: len(obs.pairs) >= n
+
+        def memory_ok() -> bool:
+            return mon.rss_mb <= cfg.rss_cap_mb and mem_available_mb() >= cfg.min_available_mb
+
+        start = time.time()
+        offset = 0.0
+        slot_seen = -1
+        unacked = [0, 0]
+        for ev in events:
+            due = start + ev.due_s + offset
+            w = 0.0
+            if ev.kind == "strip" and ev.slot > slot_seen:
+                slot_seen = ev.slot
+                need = ev.slot - 1 - cfg.pairs_ahead
+                w += wait_until(pairs_at_least(need), "waiting for pairs")
+            if ev.kind == "strip" and not memory_ok():
+                w += wait_until(memory_ok, "waiting for memory")
+            if w > 0:
+                late = max(0.0, time.time() - due)
+                throttled += w
+                offset += min(w, late)
+                due = start + ev.due_s + offset
+            now = time.time()
+            if due > now:
+                time.sleep(due - now)
+            else:
+                lag_max = max(lag_max, now - due)
+            if ev.kind == "nav":
+                nav_pub.publish(nav_message(plat, ev.t_s))
+                sent_nav += 1
+            else:
+                pub = pubs[VIEWS[ev.view]]
+                pub.publish(strips.get(ev))
+                sent_strips += 1
+                # Bounded in-flight window: a free-running reliable KEEP_LAST publisher loses
+                # messages when the transport falls behind (shared/ROS2_WHEELS.md).
+                unacked[ev.view] += 1
+                if unacked[ev.view] >= cfg.inflight_strips:
+                    t_ack = time.time()
+                    if not pub.wait_for_all_acked(Duration(seconds=cfg.stall_s)):
+                        raise BenchAbortError(f"strips not acknowledged in {cfg.stall_s:.0f} s")
+                    ack_wait += time.time() - t_ack
+                    unacked[ev.view] = 0
+                if ev.last_of_pair:
+                    last_sent[ev.scene] = time.time()
+        t_sent = time.time()
+        log(f"live: all sent after {t_sent - start:.1f} s (held back {throttled:.1f} s)")
+        wait_until(lambda: len(obs.pairs) >= cfg.pairs, "waiting for the last pairs", idle_s=20.0)
+    except BenchAbortError as err:
+        res["error"] = str(err)
+        log(f"live: aborted: {err}")
+    finally:
+        # A summary counted after the last strip (the node publishes one per second).
+        t_done = time.time()
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and node.proc.poll() is None:
+            with obs.lock:
+                fresh = obs.summary_t > t_done + 0.05
+            if fresh and node_idle():
+                break
+            time.sleep(0.05)
+        res["node_peak_rss_mb"] = max(mon.hwm_mb, proc_status(node.proc.pid).get("VmHWM", 0.0))
+        if spy is not None:
+            spy.send_signal(signal.SIGINT)
+            try:
+                spy.wait(30)
+            except subprocess.TimeoutExpired:
+                spy.kill()
+        mon.stop()
+        code = node.stop(timeout=120.0)
+        spinning.clear()
+        spin.join(timeout=5)
+        executor.shutdown()
+        rnode.destroy_node()
+        rclpy.shutdown(context=ctx)
+    res["node_exit_code"] = code
+    if mon.killed and not res["error"]:
+        res["error"] = mon.killed
+    # Figures.
+    ids = {f"{VIEWS[0]}_{k:04d}+{VIEWS[1]}_{k:04d}": k for k in range(cfg.pairs)}
+    rx = {ids[p]: t for p, t in obs.pairs.items() if p in ids}
+    published: dict[int, float] = {}
+    for m in _LOG_PAIR.finditer(node.output()):
+        if m.group(2) in ids:
+            published[ids[m.group(2)]] = float(m.group(1))
+    lat = [rx[k] - last_sent[k] for k in sorted(rx) if k in last_sent]
+    lat_pub = [published[k] - last_sent[k] for k in sorted(published) if k in last_sent]
+    got = int(obs.summary.get("strips", 0)) + int(obs.summary.get("strips_rejected", 0))
+    res.update(
+        {
+            "pairs_received": len(rx),
+            "output_size": next(iter(obs.pair_sizes.values()), None),
+            "streamed": bool(obs.streamed_pairs),
+            "pairs_streamed": len(obs.streamed_pairs),
+            "strips_sent": sent_strips,
+            "nav_sent": sent_nav,
+            "strips_received_by_node": got,
+            "dropped_strips": sent_strips - got if obs.summary else None,
+            "node_queue_max": obs.queue_max,
+            "node_issues": obs.issues[:20],
+            "held_back_s": throttled,
+            "publisher_max_lag_s": lag_max,
+            "publisher_ack_wait_s": ack_wait,
+            "publisher_send_s": t_sent - start if math.isfinite(t_sent) else None,
+        }
+    )
+    if rx and len(rx) == cfg.pairs and math.isfinite(start):
+        wall = max(rx.values()) - start
+        res["wall_s"] = wall
+        res["realtime_factor"] = sensor_s / wall
+    else:
+        res["wall_s"] = None
+        res["realtime_factor"] = None
+    ordered = [rx[k] for k in sorted(rx)]
+    res["sustained_realtime_factor"] = (
+        (len(ordered) - 1) * plat.scene_s / (ordered[-1] - ordered[0])
+        if len(ordered) >= 2 and ordered[-1] > ordered[0]
+        else None
+    )
+    res["latency_s"] = latency_stats(lat)
+    res["latency_published_s"] = latency_stats(lat_pub)
+    # Memory per pair: the peak between consecutive pairs' receptions.
+    peaks: list[float] = []
+    prev = start
+    for k in sorted(rx):
+        p = mon.peak_between(prev, rx[k])
+        if p is not None:
+            peaks.append(p)
+        prev = rx[k]
+    base = res.get("node_base_rss_mb") or 0.0
+    peak = res.get("node_peak_rss_mb") or 0.0
+    steady = peaks[1:] if len(peaks) >= 3 else peaks
+    res["rss"] = {
+        "base_mb": base,
+        "peak_mb": peak,
+        "raw_pair_mb": raw_pair_mb,
+        "per_pair_peak_mb": [round(p, 1) for p in peaks],
+        "slope_mb_per_pair": _slope(steady),
+        "peak_over_pair": peak / raw_pair_mb if peak else None,
+        "peak_above_base_over_pair": (peak - base) / raw_pair_mb if peak else None,
+        "samples": len(mon.samples),
+    }
+    if py_spy and (workdir / "node_py_spy.txt").exists():
+        res["py_spy"] = summarize_collapsed(workdir / "node_py_spy.txt")
+    return res
+
+
+def sink_main() -> None:
+    """A subscriber that only counts the strips it takes; prints ``{"strips": n}`` at SIGINT.
+
+    The peer of :func:`bench_transport`: the same QoS as the node's inputs, no processing.
+    """
+    import rclpy
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.signals import SignalHandlerOptions
+    from sensor_msgs.msg import Image
+
+    from parproj_ros.conversions import image_to_array
+
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = rclpy.create_node("parproj_bench_sink")
+    count = [0]
+
+    def on_strip(msg: Any) -> None:
+        image_to_array(msg)
+        count[0] += 1
+
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    for v in VIEWS:
+        node.create_subscription(Image, f"{v}/image_strip", on_strip, qos)
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    while not stop.is_set():
+        rclpy.spin_once(node, timeout_sec=0.05)
+    # Take what the reader has acknowledged but not yet handed over.
+    last = (count[0], time.monotonic())
+    while time.monotonic() - last[1] < 0.5:
+        rclpy.spin_once(node, timeout_sec=0.05)
+        if count[0] != last[0]:
+            last = (count[0], time.monotonic())
+    print(json.dumps({"strips": count[0]}), flush=True)
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+def bench_transport(
+    cfg: BenchConfig,
+    workdir: Path,
+    *,
+    scenes: int = 2,
+    domain_id: int | None = None,
+    log: Log = log_stderr,
+) -> dict[str, Any]:
+    """The DDS ceiling: ``scenes`` scenes per view of strips, unpaced, into a counting sink.
+
+    Same messages, QoS and in-flight window as the live run, but the subscriber (its own
+    process) does nothing with the strips. Returns strips/s and the real-time factor the
+    transport alone allows (strips/s over the 2 x 6500 / strip_lines the sensor sends).
+    """
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.duration import Duration
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    plat = make_platform(cfg.lines, cfg.detectors)
+    env = join_ros_domain(domain_id, workdir / "ros_log", check_fields=cfg.check_fields)
+    strips = StripMessages(plat, cfg.strip_lines)
+    events = [e for e in acquisition(plat, scenes, cfg.strip_lines, 1.0) if e.kind == "strip"]
+    # The sink runs this module: the repository goes on its path (tools/ is not installed).
+    path = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    sink = subprocess.Popen(
+        [sys.executable, "-m", "tools.bench.dds"],
+        env={**env, "PYTHONPATH": path},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    ctx = Context()
+    rclpy.init(context=ctx)
+    rnode = rclpy.create_node("parproj_bench_source", context=ctx)
+    qos = QoSProfile(
+        depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+    )
+    pubs = [rnode.create_publisher(Image, f"{v}/image_strip", qos) for v in VIEWS]
+    res: dict[str, Any] = {"strips_sent": 0, "error": None}
+    try:
+        deadline = time.monotonic() + 60.0
+        while any(p.get_subscription_count() == 0 for p in pubs):
+            if time.monotonic() > deadline or sink.poll() is not None:
+                raise BenchAbortError("transport sink not discovered within 60 s")
+            time.sleep(0.05)
+        time.sleep(0.5)
+        unacked = [0, 0]
+        cpu0 = time.process_time()
+        t0 = time.perf_counter()
+        for ev in events:
+            pubs[ev.view].publish(strips.get(ev))
+            res["strips_sent"] += 1
+            unacked[ev.view] += 1
+            if unacked[ev.view] >= cfg.inflight_strips:
+                pubs[ev.view].wait_for_all_acked(Duration(seconds=cfg.stall_s))
+                unacked[ev.view] = 0
+        for p in pubs:
+            p.wait_for_all_acked(Duration(seconds=cfg.stall_s))
+        wall = time.perf_counter() - t0
+        res["publisher_cpu_s"] = time.process_time() - cpu0
+    except BenchAbortError as err:
+        res["error"] = str(err)
+        wall = math.nan
+    finally:
+        sink.send_signal(signal.SIGINT)
+        try:
+            out, _ = sink.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            sink.kill()
+            out, _ = sink.communicate()
+        rnode.destroy_node()
+        rclpy.shutdown(context=ctx)
+    try:
+        got = int(json.loads(out.strip().splitlines()[-1])["strips"])
+    except (ValueError, IndexError, KeyError):
+        got = None
+    need = 2 * LINE_RATE_HZ / cfg.strip_lines
+    rate = res["strips_sent"] / wall if wall > 0 else math.nan
+    res.update(
+        {
+            "strips_received": got,
+            "wall_s": wall,
+            "strips_per_s": rate,
+            "mb_per_s": rate * cfg.strip_lines * cfg.detectors * 2 / 2**20,
+            "needed_strips_per_s": need,
+            "realtime_factor": rate / need,
+        }
+    )
+    log(
+        f"transport: {res['strips_sent']} strips in {wall:.1f} s = {rate:.1f} strips/s "
+        f"({res['mb_per_s']:.0f} MB/s; the sensor sends {need:.1f}/s)"
+    )
+    return res
+
+
+def summarize_collapsed(path: Path, top: int = 25) -> dict[str, Any]:
+    """Summary of py-spy's raw (collapsed) stacks: per thread, the functions by inclusive share.
+
+    Returns ``{thread: {"samples": n, "top": [[function, share], ...]}}`` with shares of that
+    thread's samples in [0, 1].
+    """
+    threads: dict[str, dict[str, Any]] = {}
+    for line in path.read_text(errors="replace").splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        n = int(count)
+        frames = stack.split(";")
+        name = frames[0]
+        th = threads.setdefault(name, {"samples": 0, "funcs": {}})
+        th["samples"] += n
+        for f in dict.fromkeys(re.sub(r" \(.*?:\d+\)$", "", f) for f in frames[1:]):
+            th["funcs"][f] = th["funcs"].get(f, 0) + n
+    out = {}
+    for name, th in sorted(threads.items(), key=lambda kv: -kv[1]["samples"]):
+        funcs = sorted(th["funcs"].items(), key=lambda kv: -kv[1])[:top]
+        out[name] = {
+            "samples": th["samples"],
+            "top": [[f, round(c / th["samples"], 3)] for f, c in funcs],
+        }
+    return out
+
+
+if __name__ == "__main__":
+    sink_main()

@@ -1,0 +1,185 @@
+"""Part 3: the same acquisition through ``process_bag``, under cProfile."""
+
+from __future__ import annotations
+
+import cProfile
+import gc
+import pstats
+import time
+from pathlib import Path
+from typing import Any
+
+from parproj_ros.synthetic import (
+    T0_NS,
+    VIEWS,
+    Platform,
+    StripMessages,
+    acquisition,
+    make_platform,
+    nav_message,
+)
+
+from .config import BenchConfig, Log, log_stderr
+from .dds import latency_stats
+
+
+def write_input_bag(
+    plat: Platform, pairs: int, strip_lines: int, path: Path, nav_hz: float
+) -> int:
+    """The acquisition of ``pairs`` pairs as a bag (what ``parproj process`` reads); messages."""
+    from rclpy.serialization import serialize_message
+
+    from parproj_ros import conversions as conv
+    from parproj_ros.bag import BagWriter
+
+    events = acquisition(plat, pairs, strip_lines, nav_hz)
+    strips = StripMessages(plat, strip_lines)
+    n = 0
+    with BagWriter(path, compression="zstd", overwrite=True) as bw:
+        bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
+        for v in plat.views:
+            bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
+            bw.add_topic(
+                f"{v.name}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local"
+            )
+        t_first = T0_NS - 2_000_000_000
+        for v in plat.views:
+            info = conv.scanner_info_msg(v, stamp_ns=t_first)
+            bw.write(f"{v.name}/scanner_info", info, t_first)
+            n += 1
+        for ev in events:
+            log_ns = T0_NS + round(ev.due_s * 1e9)
+            if ev.kind == "nav":
+                bw.write("navigation", nav_message(plat, ev.t_s), log_ns)
+            else:
+                data = serialize_message(strips.get(ev))
+                bw.write_raw(f"{VIEWS[ev.view]}/image_strip", data, log_ns)
+            n += 1
+    return n
+
+
+#: (label, file name, function) of the cProfile breakdown of the offline run; rows whose
+#: function is not found (the code changed, or the path was not taken) are left out.
+PROFILE_ROWS = (
+    ("pipeline.add_strip (everything after conversion)", "pipeline.py", "add_strip"),
+    ("  scene assembly (SceneAssembler.add, concatenation)", "assembly.py", "add"),
+    ("  whole-image pair (_make_pair)", "pipeline.py", "_make_pair"),
+    ("  streamed blocks (_stream_advance)", "pipeline.py", "_stream_advance"),
+    ("    render_block", "streaming.py", "render_block"),
+    ("  resample()", "resample.py", "resample"),
+    ("  plan_tiles (tile affines)", "resample.py", "plan_tiles"),
+    ("outputs_to_messages (conversion, anaglyph)", "conversions.py", "outputs_to_messages"),
+    ("  anaglyph (preview)", "preview.py", "anaglyph"),
+    ("  array_to_image (Image.data)", "conversions.py", "array_to_image"),
+    ("  block_to_msg", "conversions.py", "block_to_msg"),
+    ("bag write (serialize + zstd)", "bag.py", "write"),
+    ("image_to_array (input strips)", "conversions.py", "image_to_array"),
+    ("rclpy serialize_message", "serialization.py", "serialize_message"),
+    ("rclpy deserialize_message", "serialization.py", "deserialize_message"),
+)
+
+
+def _profile_breakdown(prof: cProfile.Profile, pairs: int, top: int = 12) -> dict[str, Any]:
+    """Labelled cumulative times (PROFILE_ROWS) and the functions with most own time, s."""
+    stats = pstats.Stats(prof)
+    cum: dict[tuple[str, str], float] = {}
+    own: list[tuple[float, str]] = []
+    for (fname, line, func), row in stats.stats.items():  # type: ignore[attr-defined]
+        key = (Path(fname).name, func)
+        cum[key] = cum.get(key, 0.0) + float(row[3])
+        where = func if fname == "~" else f"{Path(fname).name}:{line} {func}"
+        own.append((float(row[2]), where))
+    n = max(pairs, 1)
+    labelled = [
+        {"what": label, "seconds": cum[(f, fn)], "seconds_per_pair": cum[(f, fn)] / n}
+        for label, f, fn in PROFILE_ROWS
+        if (f, fn) in cum
+    ]
+    own.sort(reverse=True)
+    return {
+        "labelled": labelled,
+        "top_own_time": [
+            {"what": w, "seconds": t, "seconds_per_pair": t / n} for t, w in own[:top]
+        ],
+    }
+
+
+def bench_offline(
+    cfg: BenchConfig,
+    workdir: Path,
+    *,
+    node_params: dict[str, Any] | None = None,
+    log: Log = log_stderr,
+) -> dict[str, Any]:
+    """Part 3: ``process_bag`` over a bag of ``offline_pairs`` pairs, under cProfile.
+
+    ``node_params`` that are pipeline settings (PipelineConfig fields) apply here too.
+
+    Returns the real-time factor (sensor time / wall time of ``process_bag``), per-pair latency
+    from reading a pair's last strip to its outputs written (s), and the profile breakdown.
+    """
+    from parproj_ros.offline import process_bag
+    from parproj_ros.pipeline import Outputs, PipelineConfig
+
+    plat = make_platform(cfg.lines, cfg.detectors)
+    pairs = cfg.offline_pairs
+    src, dst = workdir / "offline_input", workdir / "offline_output"
+    t = time.perf_counter()
+    nmsg = write_input_bag(plat, pairs, cfg.strip_lines, src, cfg.nav_rate_hz)
+    t_write = time.perf_counter() - t
+    log(f"offline: input bag of {pairs} pairs ({nmsg} messages) written in {t_write:.1f} s")
+    gc.collect()
+    marks: list[float] = []
+    pair_marks: list[tuple[int, float]] = []
+
+    def on_outputs(out: Outputs) -> None:
+        now = time.perf_counter()
+        for _ in out.pairs:
+            pair_marks.append((len(marks), now))
+        marks.append(now)
+
+    prof = cProfile.Profile()
+    t0 = time.perf_counter()
+    prof.enable()
+    summary = process_bag(
+        src,
+        dst,
+        progress=False,
+        overrides={
+            "scene_lines": cfg.lines,
+            "z_avg": 0.0,
+            "height_range": 500.0,
+            **{
+                k: v
+                for k, v in (node_params or {}).items()
+                if k in PipelineConfig.__dataclass_fields__
+            },
+        },
+        on_outputs=on_outputs,
+    )
+    prof.disable()
+    wall = time.perf_counter() - t0
+    prof.dump_stats(str(workdir / "offline.pstats"))
+    lat = [now - marks[i - 1] for i, now in pair_marks if i >= 1]
+    sensor_s = (pairs + plat.lag_scenes) * plat.scene_s
+    size = sum(f.stat().st_size for f in dst.iterdir()) / 2**20 if dst.exists() else 0.0
+    res = {
+        "pairs": pairs,
+        "pairs_out": summary.pairs,
+        "messages_in": summary.messages_in,
+        "issues": [f"{i.level} {i.where}: {i.message}" for i in summary.issues][:20],
+        "input_bag_write_s": t_write,
+        "output_bag_mb": size,
+        "sensor_s": sensor_s,
+        "wall_s": wall,
+        "realtime_factor": sensor_s / wall,
+        "latency_s": latency_stats(lat),
+        "profile": _profile_breakdown(prof, pairs),
+        "profile_note": "cProfile cumulative seconds (profiling adds a few percent)",
+    }
+    log(f"offline: {summary.pairs} pairs in {wall:.1f} s (real-time factor {sensor_s / wall:.3f})")
+    for p in (src, dst):
+        for f in p.iterdir():
+            f.unlink()
+        p.rmdir()
+    return res
