@@ -31,7 +31,7 @@ echo "== quick run took $((SECONDS - start)) s" >&2
 
 echo "== full run" >&2
 start=$SECONDS
-"$VENV/bin/parproj" bench --json --markdown "$ROOT/bench/BENCHMARKS.md" \
+"$VENV/bin/parproj" bench --json --force --markdown "$ROOT/bench/BENCHMARKS.md" \
   --include-quick "$ROOT/bench/last_quick.json" ${spy[@]+"${spy[@]}"} "$@" \
   > "$ROOT/bench/last_run.json"
 echo "== full run took $((SECONDS - start)) s; report: bench/BENCHMARKS.md" >&2

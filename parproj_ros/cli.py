@@ -149,6 +149,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if unknown:
         raise InputError(unknown[0], f"unknown scenario; known: {', '.join(SCENARIOS)}, all")
     outs = [check_output(Path(args.output) / n, force=args.force) for n in names]
+    args.outputs = outs
     for name, out in zip(names, outs, strict=True):
         with staged_output(out, force=args.force) as work:
             record_scenario(
@@ -165,6 +166,7 @@ def cmd_process(args: argparse.Namespace) -> int:
     args.inputs = [args.bag]
     bag = input_path(args.bag, "bag")
     out = check_output(args.output, inputs=[bag], force=args.force)
+    args.outputs = [out]
     check_input_bag(bag)
     overrides = {
         "z_avg": args.z_avg,
@@ -210,6 +212,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 f"more than {MAX_REPLAY_IDLE_S:g} s of waiting; shorten it with --max-gap S, "
                 "or replay unpaced with --rate 0",
             )
+    print(f"replay {bag}: rate {args.rate:g}" + (" (unpaced)" if args.rate == 0 else ""))
+    sys.stdout.flush()
     # Our own SIGINT/SIGTERM handlers (main) stop the replay at once; rclpy's would not.
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     try:
@@ -246,6 +250,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     plots = None
     if args.plots:
         plots = check_output(args.plots, inputs=[out_bag, truth], force=args.force, kind="folder")
+    args.outputs = [plots]
     check_output_bag(out_bag)
     if truth is not None:
         check_truth_bag(truth)
@@ -300,6 +305,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     args.inputs = [args.bag]
     bag = input_path(args.bag, "bag")
     out = check_output(args.output, inputs=[bag], force=args.force, kind="folder")
+    args.outputs = [out]
     check_input_bag(bag)
     with staged_output(out, force=args.force, kind="folder") as work:
         code = run_demo(bag, work, rate=args.rate, progress=not args.quiet, shown_as=out)
@@ -336,6 +342,7 @@ def cmd_longrun(args: argparse.Namespace) -> int:
     params = _node_params(args.node_param)
     bag = input_path(args.bag, "bag")
     out = check_output(args.output, inputs=[bag], force=args.force, kind="folder")
+    args.outputs = [out]
     check_input_bag(bag)
     with staged_output(out, force=args.force, kind="folder") as work:
         report = run_longrun(
@@ -373,6 +380,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         markdown = check_output(args.markdown, inputs=[include], force=args.force, kind="file")
     if args.workdir:
         workdir = check_output(args.workdir, inputs=[include], force=args.force, kind="folder")
+    args.outputs = [markdown, workdir]
     with contextlib.ExitStack() as stack:
         md = (
             stack.enter_context(staged_output(markdown, force=args.force, kind="file"))
@@ -401,19 +409,51 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if (res.get("live") or {}).get("error") else 0
 
 
+def _why(err: BaseException) -> str:
+    text = " ".join(str(err).split())[:300]
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
 def _check_tiff(path: Path) -> None:
-    """A file tifffile can open (a TIFF), else :class:`InputError` naming it."""
+    """A TIFF whose first image reads whole, else :class:`InputError` naming it."""
     import tifffile
 
     try:
         with tifffile.TiffFile(path) as tif:
             if not tif.pages:
                 raise InputError(path, "a TIFF without images")
-            tif.pages[0].shape  # noqa: B018 - reads the first page's tags
+            tif.pages[0].asarray()
     except InputError:
         raise
     except Exception as err:  # tifffile raises assorted types for a damaged file
-        raise InputError(path, f"not a readable TIFF ({type(err).__name__}: {err})") from None
+        raise InputError(path, f"not a readable TIFF ({_why(err)})") from None
+
+
+def _check_rpc(path: Path, image: bool = False) -> None:
+    """An RPC that reads, else :class:`InputError` naming the file.
+
+    From the file ``path``; with ``image``, the RPC of the image ``path`` (GeoTIFF tag or
+    sidecar file).
+
+    The readers (rpc.py, scene_import.py) signal a bad file with assorted exceptions, not all
+    naming it: reading here first is what lets the message name the right file.
+    """
+    from .rpc import read_rpc
+    from .scene_import import find_rpc
+
+    try:
+        if image:
+            find_rpc(path)
+        else:
+            read_rpc(path)
+    except Exception as err:
+        if image:
+            raise InputError(
+                path,
+                f"no usable RPC for this image ({_why(err)}); give the RPC file with "
+                "--rpc-left / --rpc-right",
+            ) from None
+        raise InputError(path, f"not a readable RPC file ({_why(err)})") from None
 
 
 def cmd_import(args: argparse.Namespace) -> int:
@@ -426,11 +466,14 @@ def cmd_import(args: argparse.Namespace) -> int:
         input_path(f, "file")
     for f in (args.left, args.right):
         _check_tiff(Path(f))
+    for img, rpc in ((args.left, args.rpc_left), (args.right, args.rpc_right)):
+        _check_rpc(Path(rpc) if rpc else Path(img), image=not rpc)
     if args.heights:
         _check_heights("--heights", args.heights, 1.0)
     if args.ids[0] == args.ids[1] or not all(i.strip() for i in args.ids):
         raise InputError("--ids", f"two different, non-empty scene ids needed, got {args.ids}")
     out = check_output(args.output, inputs=args.inputs, force=args.force)
+    args.outputs = [out]
     with staged_output(out, force=args.force) as work:
         import_pair(
             args.left,
@@ -498,7 +541,7 @@ def cmd_segments(args: argparse.Namespace) -> int:
 
     args.inputs = [args.left_rpc, args.right_rpc]
     for f in args.inputs:
-        input_path(f, "file")
+        _check_rpc(input_path(f, "file"))
     _check_heights("--heights", args.heights, MIN_SEGMENT_HEIGHT_RANGE_M)
     res = run(
         args.left_rpc,
@@ -820,11 +863,17 @@ def _input_errors(command: str) -> tuple[type[BaseException], ...]:
     return tuple(kinds)
 
 
-def describe(err: BaseException, inputs: Sequence[str | None] = ()) -> str:
-    """One line ``<file>: <problem>`` for a bad-input exception."""
-    if isinstance(err, OSError) and err.filename is not None:
-        names = f"{err.filename}" + (f" -> {err.filename2}" if err.filename2 else "")
-        return f"{names}: {err.strerror or err}"
+def describe(err: BaseException, inputs: Sequence[Any] = (), outputs: Sequence[Any] = ()) -> str:
+    """One line ``<file>: <problem>`` for a bad-input exception.
+
+    The file is the one the exception names; failing that, for an operating-system error
+    (disk full, ...) the outputs being written, and for any other error the inputs.
+    """
+    if isinstance(err, OSError):
+        if err.filename is not None:
+            names = f"{err.filename}" + (f" -> {err.filename2}" if err.filename2 else "")
+            return f"{names}: {err.strerror or err}"
+        inputs = outputs or inputs
     text = " ".join(str(err).split()) or type(err).__name__
     path = getattr(err, "path", None)
     if path and not text.startswith(str(path)):
@@ -848,12 +897,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             traceback.print_exc()
         which = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
-        print(f"{name}: stopped by {which}; no output left at its final name", file=sys.stderr)
+        outs = [str(o) for o in getattr(args, "outputs", []) if o]
+        undone = f"; {', '.join(outs)} not written" if outs else ""
+        print(f"{name}: stopped by {which}{undone}", file=sys.stderr)
         return EXIT_SIGTERM if isinstance(err, Terminated) else EXIT_SIGINT
     except _input_errors(args.command) as err:
         if args.debug:
             raise
-        print(f"{name}: {describe(err, getattr(args, 'inputs', []))}", file=sys.stderr)
+        where = describe(err, getattr(args, "inputs", []), getattr(args, "outputs", []))
+        print(f"{name}: {where}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Exception as err:
         if args.debug:

@@ -154,7 +154,7 @@ def read_bounded(path: str | os.PathLike[str], limit: int, what: str = "file") -
         raise InputError(p, f"is a folder, a {what} was expected") from None
     except OSError as err:
         raise InputError(p, err.strerror or str(err)) from None
-    with os.fdopen(fd, "rb") as fh:
+    try:
         st = os.fstat(fd)
         if stat.S_ISDIR(st.st_mode):
             raise InputError(p, f"is a folder, a {what} was expected")
@@ -164,7 +164,14 @@ def read_bounded(path: str | os.PathLike[str], limit: int, what: str = "file") -
             raise InputError(
                 p, f"{st.st_size} bytes, more than the {limit} bytes a {what} may have"
             )
-        data = fh.read(limit + 1)
+    except BaseException:
+        os.close(fd)
+        raise
+    with os.fdopen(fd, "rb") as fh:
+        try:
+            data = fh.read(limit + 1)
+        except OSError as err:
+            raise InputError(p, err.strerror or str(err)) from None
     if len(data) > limit:  # grew while being read
         raise InputError(p, f"more than the {limit} bytes a {what} may have")
     return data
