@@ -51,7 +51,7 @@ class InputError(ValueError):
     """
 
     def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
-        self.path = str(path)
+        self.path = str(path) or "''"
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
 
