@@ -203,8 +203,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
     args.inputs = [args.bag]
     bag = input_path(args.bag, "bag")
+    reader = BagReader(bag)
+    unknown = [t for t in args.wait_for if t not in reader.topics()]
+    if unknown:
+        raise InputError(
+            "--wait-for", f"{unknown[0]} is not a topic of {bag} ({', '.join(reader.topics())})"
+        )
     if args.rate > 0:
-        idle, where = largest_idle_s(BagReader(bag), args.max_gap)
+        idle, where = largest_idle_s(reader, args.max_gap)
         if idle / args.rate > MAX_REPLAY_IDLE_S:
             raise InputError(
                 bag,

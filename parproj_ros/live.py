@@ -98,9 +98,16 @@ def replay(
         if cls is None:
             log(f"replay: {topic}: type {msgtype} unknown here: not published")
             continue
-        pubs[topic] = node.create_publisher(cls, topic, _qos(reader.qos(topic)))
+        try:
+            pubs[topic] = node.create_publisher(cls, topic, _qos(reader.qos(topic)))
+        except Exception as err:  # rclpy: invalid topic name (assorted exception types)
+            why = " ".join(str(err).split())
+            log(f"replay: {topic}: cannot be published ({type(err).__name__}: {why}): skipped")
     deadline = time.monotonic() + wait_timeout_s
     for topic in wait_for or []:
+        if topic not in pubs:
+            log(f"replay: {topic} is not published from this bag: not waited for")
+            continue
         while pubs[topic].get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
         if pubs[topic].get_subscription_count() == 0:

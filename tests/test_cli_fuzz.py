@@ -181,6 +181,7 @@ BAD_CASES = [
     ("replay {random_bag}", "random_bag_0.mcap"),
     ("replay {fifo}", "{fifo}"),
     ("replay {nested_yaml}", "nested_yaml/metadata.yaml"),
+    ("replay " + str(BAG) + " --wait-for nope", "--wait-for"),
     ("demo --bag {garbage_yaml} -o {tmp}/d", "garbage_yaml/metadata.yaml"),
     ("demo --bag {only_nav} -o {tmp}/d", "{only_nav}"),
     ("longrun --bag {cut_bag} -o {tmp}/l", "{cut_bag}"),
