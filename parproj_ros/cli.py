@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import re
 import signal
 import sys
 import traceback
@@ -562,7 +563,18 @@ def cmd_segments(args: argparse.Namespace) -> int:
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors: ``parproj <command>: <option>: <problem>``, exit 2."""
+    """argparse with one-line errors: ``parproj <command>: <option>: <problem>``, exit 2.
+
+    ``-1e4``, ``-.5e-3`` and ``-inf`` are taken as (negative) values, not as options (argparse
+    only knows ``-1`` and ``-1.5``), so that ``--z-avg -1e4`` works and ``--rate -inf`` is
+    refused for what it is.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(
+            r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE
+        )
 
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
@@ -608,16 +620,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_simulate)
 
+    # process: the ranges of parproj_node's parameters (node.PARAMS), not imported (rclpy)
     p = sub.add_parser("process", help="run the pipeline over a bag offline, write outputs")
     p.add_argument("bag")
     p.add_argument("-o", "--output", required=True, help="output bag folder")
     p.add_argument("--force", action="store_true", help="replace an existing output bag")
     p.add_argument(
-        "--z-avg", type=number(-1e4, 1e5), default=0.0, help="average terrain height, m"
+        "--z-avg", type=number(-1000.0, 9000.0), default=0.0, help="average terrain height, m"
     )
     p.add_argument(
         "--height-range",
-        type=number(0.0, 1e5, lo_open=True),
+        type=number(0.0, 9000.0, lo_open=True),
         default=500.0,
         help="height half range, m (> 0)",
     )
@@ -625,7 +638,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
     p.add_argument(
-        "--scene-lines", type=integer(0, 10**9), default=0, help="lines per scene (0: by id/gap)"
+        "--scene-lines",
+        type=integer(0, 10_000_000),
+        default=0,
+        help="lines per scene (0: by id/gap)",
     )
     p.add_argument(
         "--no-tie-points",
@@ -639,7 +655,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--segment-max-error",
-        type=number(0.0, 1e6),
+        type=number(0.0, 1000.0),
         default=1.0,
         metavar="PX",
         help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
@@ -907,6 +923,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         undone = f"; {', '.join(outs)} not written" if outs else ""
         print(f"{name}: stopped by {which}{undone}", file=sys.stderr)
         return EXIT_SIGTERM if isinstance(err, Terminated) else EXIT_SIGINT
+    except MemoryError as err:
+        if args.debug:
+            raise
+        print(f"{name}: out of memory ({err})", file=sys.stderr)
+        return EXIT_INTERNAL
     except _input_errors(args.command) as err:
         if args.debug:
             raise

@@ -279,6 +279,7 @@ def test_internal_error_is_exit_3(
 
 OPTION_CASES = [
     ("process {bag} -o {tmp}/o --z-avg nan", "--z-avg"),
+    ("process {bag} -o {tmp}/o --z-avg -1e5", "--z-avg"),  # the node's range: -1000..9000
     ("process {bag} -o {tmp}/o --height-range inf", "--height-range"),
     ("process {bag} -o {tmp}/o --height-range 0", "--height-range"),
     ("process {bag} -o {tmp}/o --segment-max-error -1", "--segment-max-error"),
