@@ -145,7 +145,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .recording import record_scenario
     from .scenarios import SCENARIOS
 
-    names = list(SCENARIOS) if args.scenario == ["all"] else args.scenario
+    names = list(SCENARIOS) if args.scenario == ["all"] else list(dict.fromkeys(args.scenario))
     unknown = [n for n in names if n not in SCENARIOS]
     if unknown:
         raise InputError(unknown[0], f"unknown scenario; known: {', '.join(SCENARIOS)}, all")
