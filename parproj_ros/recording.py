@@ -287,7 +287,10 @@ def truth_from_bag(reader: BagReader) -> list[GroundPoint]:
     """Truth points recorded on truth/points."""
     out: list[GroundPoint] = []
     for item in reader.messages(topics=["truth/points"]):
-        out += gcp_from_msg(item.msg)
+        try:
+            out += gcp_from_msg(item.msg)
+        except ValueError as err:  # ConversionError, or a GroundPoint refused
+            raise BagError(f"truth/points: malformed message: {err}", reader.path) from err
     return out
 
 

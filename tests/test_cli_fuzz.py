@@ -30,6 +30,7 @@ from typing import Any
 
 import pytest
 from nav_msgs.msg import Odometry
+from parproj_msgs.msg import StereoPair
 from sensor_msgs.msg import Image
 
 from parproj_ros import cli
@@ -135,6 +136,10 @@ def bad(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         d / "camera_is_odometry", [("left/scanner_info", Odometry(), 10**18)]
     )
     out["pair_is_image"] = write_bag(d / "pair_is_image", [("stereo_pair", Image(), 10**18)])
+    nan_pair = StereoPair()
+    nan_pair.left_params.x_per_line = float("nan")
+    out["empty_pair"] = write_bag(d / "empty_pair", [("stereo_pair", StereoPair(), 10**18)])
+    out["nan_pair"] = write_bag(d / "nan_pair", [("stereo_pair", nan_pair, 10**18)])
     # import / segments inputs
     tif = DATA / "left_image.tif"
     (d / "cut.tif").write_bytes(tif.read_bytes()[:20000])
@@ -176,6 +181,8 @@ BAD_CASES = [
     ("evaluate {only_nav}", "{only_nav}"),
     ("evaluate {pair_is_image}", "{pair_is_image}"),
     ("evaluate {latin1_yaml}", "latin1_yaml/metadata.yaml"),
+    ("evaluate {empty_pair}", "{empty_pair}: stereo_pair message 0"),
+    ("evaluate {nan_pair}", "left_params.x_per_line is not finite"),
     ("evaluate " + str(BAG), str(BAG)),  # an input bag, not an output
     ("evaluate {pair_is_image} --truth {only_nav}", "{pair_is_image}"),
     ("replay {random_bag}", "random_bag_0.mcap"),
