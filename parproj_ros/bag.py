@@ -1201,6 +1201,14 @@ class BagReader:
             return "transient_local"
         return "reliable"
 
+    def message_encodings(self) -> dict[str, str]:
+        """Each topic's message encoding (``cdr`` in a ROS 2 bag): {name: encoding}."""
+        out: dict[str, str] = {}
+        for idx in self._indexes:
+            for ch in idx.channels.values():
+                out.setdefault(ch.topic, ch.message_encoding)
+        return out
+
     def unknown_types(self) -> dict[str, str]:
         """Topics whose message type cannot be imported here: {topic: msgtype}."""
         return {t: m for t, m in self.topics().items() if get_message_class(m) is None}

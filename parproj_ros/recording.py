@@ -62,8 +62,15 @@ def check_topic_types(reader: BagReader, expected: dict[str, str]) -> None:
     Raises:
         BagError: naming the bag, the topic, its type and the expected one.
     """
+    encodings = reader.message_encodings()
     for topic, msgtype in reader.topics().items():
         want = _expected_type(topic, expected)
+        if want is not None and encodings.get(topic, "cdr") != "cdr":
+            raise BagError(
+                f"topic {topic} has message encoding {encodings[topic]!r}: only ROS 2 CDR "
+                "('cdr') is read",
+                reader.path,
+            )
         if want is not None and msgtype != want:
             raise BagError(
                 f"topic {topic} has type {msgtype or '(no schema)'}, expected {want}", reader.path

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from mcap.writer import Writer as McapWriter
 from nav_msgs.msg import Odometry
 from parproj_msgs.msg import StereoPair
 from sensor_msgs.msg import Image
@@ -140,6 +141,16 @@ def bad(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     nan_pair.left_params.x_per_line = float("nan")
     out["empty_pair"] = write_bag(d / "empty_pair", [("stereo_pair", StereoPair(), 10**18)])
     out["nan_pair"] = write_bag(d / "nan_pair", [("stereo_pair", nan_pair, 10**18)])
+    json_bag = d / "json_bag"  # a foreign (non-ROS) MCAP: JSON messages
+    json_bag.mkdir()
+    with (json_bag / "json_bag_0.mcap").open("wb") as fh:
+        w = McapWriter(fh)
+        w.start(profile="", library="test")
+        sid = w.register_schema("nav_msgs/msg/Odometry", "jsonschema", b"{}")
+        cid = w.register_channel("navigation", "json", sid)
+        w.add_message(cid, log_time=10**18, data=b'{"x": 1}', publish_time=10**18)
+        w.finish()
+    out["json_bag"] = json_bag
     # import / segments inputs
     tif = DATA / "left_image.tif"
     (d / "cut.tif").write_bytes(tif.read_bytes()[:20000])
@@ -175,6 +186,7 @@ BAD_CASES = [
     ("process {nav_is_image} -o {tmp}/o", "{nav_is_image}"),
     ("process {only_nav} -o {tmp}/o", "{only_nav}"),
     ("process {camera_is_odometry} -o {tmp}/o", "{camera_is_odometry}"),
+    ("process {json_bag} -o {tmp}/o", "{json_bag}: topic navigation has message encoding 'json'"),
     ("process {tmp}/nothing -o {tmp}/o", "{tmp}/nothing"),
     ("process " + str(BAG) + " -o {random_file}/o", "{random_file}/o"),
     ("evaluate {random_bag}", "random_bag_0.mcap"),
