@@ -140,6 +140,11 @@ def _bags_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "bags"
 
 
+def _shown(work: Path, out: Path) -> Callable[[str], None]:
+    """A ``log`` that prints the output's final name instead of its temporary one."""
+    return lambda text: print(text.replace(str(work), str(out)))
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``parproj simulate``: render scenarios into bags."""
     from .recording import record_scenario
@@ -154,7 +159,11 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     for name, out in zip(names, outs, strict=True):
         with staged_output(out, force=args.force) as work:
             record_scenario(
-                SCENARIOS[name](), work, progress=not args.quiet, noise_px=args.noise_px
+                SCENARIOS[name](),
+                work,
+                progress=not args.quiet,
+                noise_px=args.noise_px,
+                log=_shown(work, out),
             )
     return 0
 
@@ -477,6 +486,8 @@ def cmd_import(args: argparse.Namespace) -> int:
         _check_rpc(Path(rpc) if rpc else Path(img), image=not rpc)
     if args.heights:
         _check_heights("--heights", args.heights, 1.0)
+    if Path(args.left).resolve() == Path(args.right).resolve():
+        raise InputError(args.right, "is the left image too: a stereo pair needs two images")
     if args.ids[0] == args.ids[1] or not all(i.strip() for i in args.ids):
         raise InputError("--ids", f"two different, non-empty scene ids needed, got {args.ids}")
     out = check_output(args.output, inputs=args.inputs, force=args.force)
@@ -495,8 +506,8 @@ def cmd_import(args: argparse.Namespace) -> int:
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
             overwrite=False,
+            log=_shown(work, out),
         )
-    print(f"parproj import: wrote {out}")
     return 0
 
 

@@ -319,9 +319,10 @@ OPTION_CASES = [
     ("segments {geom} {geom} --bound nan", "--bound"),
     ("segments {geom} {geom} --bound 0", "--bound"),
     ("segments {geom} {geom} --width 0", "--width"),
-    ("import {tif} {tif} -o {tmp}/i --heights 500 500", "--heights"),
-    ("import {tif} {tif} -o {tmp}/i --pixel-size 0", "--pixel-size"),
-    ("import {tif} {tif} -o {tmp}/i --ids a a", "--ids"),
+    ("import {tif} {tif2} -o {tmp}/i --heights 500 500", "--heights"),
+    ("import {tif} {tif2} -o {tmp}/i --pixel-size 0", "--pixel-size"),
+    ("import {tif} {tif2} -o {tmp}/i --ids a a", "--ids"),
+    ("import {tif} {tif} -o {tmp}/i", "is the left image too"),
     ("ventoux-eval {bag} --left {tif} --right {tif} --grids {tmp} --pair -1", "--pair"),
 ]
 
@@ -331,7 +332,11 @@ def test_bad_option_is_one_line_exit_2(
     line: str, option: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     argv = line.format(
-        bag=BAG, tmp=tmp_path, geom=DATA / "left_image.geom", tif=DATA / "left_image.tif"
+        bag=BAG,
+        tmp=tmp_path,
+        geom=DATA / "left_image.geom",
+        tif=DATA / "left_image.tif",
+        tif2=DATA / "right_image.tif",
     ).split()
     code, _, err = run(argv, capsys)
     assert_bad_input(code, err, argv[0], option)
