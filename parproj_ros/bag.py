@@ -32,12 +32,14 @@ epoch of the recording host's clock (the log time of each message).
 from __future__ import annotations
 
 import contextlib
+import errno
 import importlib
 import importlib.util
 import json
 import os
 import re
 import shutil
+import stat
 import struct
 import sys
 import threading
@@ -101,8 +103,22 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _CHUNK_HEAD = struct.Struct("<QQQI")
 
 
+#: Largest ``metadata.yaml`` read (bytes); rosbag2 writes a few kB per file and topic.
+MAX_METADATA_BYTES = 16 * 1024 * 1024
+
+
 class BagError(ValueError):
-    """A file or folder is not a readable bag, or a bag is used the wrong way."""
+    """A file or folder is not a readable bag, or a bag is used the wrong way.
+
+    Attributes:
+        path: the bag, file or folder at fault, when known; the message then starts with it.
+    """
+
+    def __init__(self, message: str, path: str | os.PathLike[str] | None = None) -> None:
+        self.path = None if path is None else str(path)
+        if self.path is not None and not message.startswith(self.path):
+            message = f"{self.path}: {message}"
+        super().__init__(message)
 
 
 # --------------------------------------------------------------------------------------------
@@ -813,7 +829,7 @@ def _scan(
 
     with path.open("rb") as f:
         if f.read(8) != _MAGIC:
-            raise BagError(f"{path} is not an MCAP file (bad magic)")
+            raise BagError("not an MCAP file (bad magic)", path)
         pos = 8
         while True:
             head = f.read(9)
@@ -902,16 +918,100 @@ def _salvage_chunk(available: bytes, handle: _Handler) -> Iterator[_Msg]:
         yield from handle(opcode, rec)
 
 
+#: What a corrupt MCAP file can make the record parsers raise (mcap, struct, zstd, decoding).
+_CORRUPT = (
+    McapError, struct.error, zstandard.ZstdError, ValueError, EOFError, KeyError, IndexError,
+    UnicodeDecodeError, OverflowError, MemoryError, TypeError, AttributeError, AssertionError,
+)  # fmt: skip
+
+
+@contextlib.contextmanager
+def _corrupt_is_bag_error(path: Path) -> Iterator[None]:
+    """Turn whatever a damaged file makes the parsers raise into a :class:`BagError`."""
+    try:
+        yield
+    except BagError:
+        raise
+    except OSError as err:
+        raise BagError(f"cannot be read: {err.strerror or err}", path) from err
+    except _CORRUPT as err:
+        raise BagError(f"corrupt MCAP file ({type(err).__name__}: {err})", path) from err
+
+
+def _guarded(messages: Iterator[_Msg], path: Path) -> Iterator[_Msg]:
+    """``messages`` with the errors of a damaged file turned into :class:`BagError`."""
+    with _corrupt_is_bag_error(path):
+        yield from messages
+
+
+def _regular_size(path: Path) -> int:
+    """The size of a regular file; :class:`BagError` for a folder, FIFO or device.
+
+    Only ``stat`` is used (nothing is opened), so a FIFO cannot block the reader.
+    """
+    try:
+        st = path.stat()
+    except OSError as err:
+        raise BagError(f"cannot be read: {err.strerror or err}", path) from err
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a folder" if stat.S_ISDIR(st.st_mode) else "not a regular file (FIFO or device)"
+        raise BagError(f"{kind}: not an MCAP file", path)
+    return st.st_size
+
+
+def _read_metadata(meta_path: Path) -> dict[str, Any] | None:
+    """The ``rosbag2_bagfile_information`` mapping of a ``metadata.yaml``, checked.
+
+    Raises:
+        BagError: the file is not a regular file, larger than :data:`MAX_METADATA_BYTES`, not
+            UTF-8, not YAML, or its fields do not have rosbag2's types.
+    """
+    from .cli_io import InputError, decode_utf8, read_bounded
+
+    try:
+        text = decode_utf8(meta_path, read_bounded(meta_path, MAX_METADATA_BYTES, "metadata.yaml"))
+    except InputError as err:
+        raise BagError(err.problem, meta_path) from None
+    try:
+        loaded = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise BagError(f"not YAML ({first})", meta_path) from None
+    if loaded is None:
+        return None
+    if not isinstance(loaded, dict):
+        raise BagError(
+            f"expected a mapping with rosbag2_bagfile_information, got {type(loaded).__name__}",
+            meta_path,
+        )
+    info = loaded.get("rosbag2_bagfile_information")
+    if info is None:
+        raise BagError("no rosbag2_bagfile_information: not rosbag2 metadata", meta_path)
+    if not isinstance(info, dict):
+        raise BagError(
+            f"rosbag2_bagfile_information is a {type(info).__name__}, not a mapping", meta_path
+        )
+    files = info.get("relative_file_paths")
+    if files is not None and not (
+        isinstance(files, list) and all(isinstance(f, str) and f.strip() for f in files)
+    ):
+        raise BagError("relative_file_paths must be a list of file names", meta_path)
+    count = info.get("message_count")
+    if count is not None and (isinstance(count, bool) or not isinstance(count, int) or count < 0):
+        raise BagError(f"message_count must be a count, got {count!r}", meta_path)
+    return info
+
+
 def _index_file(path: Path, validate_crcs: bool) -> _FileIndex:
     """Topics, counts and completeness of one MCAP file.
 
     From its summary section when the file has one, otherwise by reading it through.
     """
     index = _FileIndex(path)
-    size = path.stat().st_size
+    size = _regular_size(path)
     with path.open("rb") as f:
         if f.read(8) != _MAGIC:
-            raise BagError(f"{path} is not an MCAP file (bad magic)")
+            raise BagError("not an MCAP file (bad magic)", path)
         f.seek(max(0, size - 8))
         closed = size >= 8 + 9 + 20 + 8 and f.read(8) == _MAGIC
         summary = None
@@ -973,27 +1073,33 @@ class BagReader:
         self.metadata: dict[str, Any] | None = None
         if self.path.is_dir():
             meta_path = self.path / "metadata.yaml"
-            if meta_path.is_file():
-                loaded = yaml.safe_load(meta_path.read_text(encoding="utf-8")) or {}
-                self.metadata = loaded.get("rosbag2_bagfile_information")
-            if self.metadata and self.metadata.get("relative_file_paths"):
-                self.files = [
-                    self.path / Path(p).name for p in self.metadata["relative_file_paths"]
-                ]
-                missing = [str(p) for p in self.files if not p.is_file()]
+            if meta_path.exists() or meta_path.is_symlink():
+                self.metadata = _read_metadata(meta_path)
+            listed = (self.metadata or {}).get("relative_file_paths")
+            if listed:
+                self.files = [self.path / Path(p).name for p in listed]
+                missing = [str(p) for p in self.files if not p.exists()]
                 if missing:
                     raise FileNotFoundError(
-                        f"bag files listed in metadata.yaml missing: {missing}"
-                    )
+                        errno.ENOENT, f"bag files listed in metadata.yaml missing: {missing}",
+                        str(meta_path),
+                    )  # fmt: skip
             else:
                 self.files = sorted(self.path.glob("*.mcap"))
                 if not self.files:
-                    raise FileNotFoundError(f"no .mcap file in {self.path}")
-        elif self.path.is_file():
+                    raise FileNotFoundError(
+                        errno.ENOENT, "no .mcap file in the folder (not a bag)", str(self.path)
+                    )
+        elif self.path.exists():
             self.files = [self.path]
         else:
-            raise FileNotFoundError(f"no bag at {self.path}")
-        self._indexes = [_index_file(p, validate_crcs) for p in self.files]
+            raise FileNotFoundError(
+                errno.ENOENT, "no bag (no such file or folder)", str(self.path)
+            )
+        self._indexes = []
+        for p in self.files:
+            with _corrupt_is_bag_error(p):
+                self._indexes.append(_index_file(p, validate_crcs))
         self.recovery = Recovery()
         for idx in self._indexes:
             r = idx.recovery
@@ -1074,7 +1180,10 @@ class BagReader:
             for ch in idx.channels.values():
                 if ch.topic == topic:
                     text = ch.metadata.get("offered_qos_profiles", "")
-                    loaded = yaml.safe_load(text) if text else None
+                    try:
+                        loaded = yaml.safe_load(text) if text else None
+                    except (yaml.YAMLError, RecursionError):
+                        loaded = None  # unreadable offer: the default QoS
                     return list(loaded) if isinstance(loaded, list) else []
         raise KeyError(topic)
 
@@ -1091,6 +1200,14 @@ class BagReader:
         ):
             return "transient_local"
         return "reliable"
+
+    def message_encodings(self) -> dict[str, str]:
+        """Each topic's message encoding (``cdr`` in a ROS 2 bag): {name: encoding}."""
+        out: dict[str, str] = {}
+        for idx in self._indexes:
+            for ch in idx.channels.values():
+                out.setdefault(ch.topic, ch.message_encoding)
+        return out
 
     def unknown_types(self) -> dict[str, str]:
         """Topics whose message type cannot be imported here: {topic: msgtype}."""
@@ -1120,14 +1237,15 @@ class BagReader:
             # a copy: the pass re-reads channel records and must not disturb the index
             pass_index = _FileIndex(index.path, dict(index.schemas), dict(index.channels))
             rec = Recovery()
-            for m in _scan(
+            scan = _scan(
                 pass_index,
                 rec,
                 validate_crcs=self.validate_crcs,
                 start_ns=start_ns,
                 end_ns=end_ns,
                 stop_at_data_end=index.recovery.complete,
-            ):
+            )
+            for m in _guarded(scan, index.path):
                 ch = pass_index.channels.get(m.channel_id)
                 if ch is None or (wanted is not None and ch.topic not in wanted):
                     continue

@@ -3,12 +3,35 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
+import re
+import signal
 import sys
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import Any, NoReturn
+
+from .cli_io import (
+    InputError,
+    check_output,
+    input_path,
+    integer,
+    number,
+    staged_output,
+)
+
+#: Exit codes of every ``parproj`` command (README, "Exit codes").
+EXIT_OK, EXIT_NOT_MET, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+#: Exit codes after SIGINT and SIGTERM (128 + the signal number, as a shell reports them).
+EXIT_SIGINT, EXIT_SIGTERM = 128 + signal.SIGINT, 128 + signal.SIGTERM
+#: Largest wait between two messages ``parproj replay`` accepts without --max-gap, s.
+MAX_REPLAY_IDLE_S = 3600.0
+#: Largest JSON file read (``bench --include-quick``), bytes.
+MAX_JSON_BYTES = 16 * 1024 * 1024
 
 
 def _fmt(v: float) -> str:
@@ -116,32 +139,44 @@ def _bags_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "bags"
 
 
+def _shown(work: Path, out: Path) -> Callable[[str], None]:
+    """A ``log`` that prints the output's final name instead of its temporary one."""
+    return lambda text: print(text.replace(str(work), str(out)))
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``parproj simulate``: render scenarios into bags."""
     from .recording import record_scenario
     from .scenarios import SCENARIOS
 
-    names = list(SCENARIOS) if args.scenario == ["all"] else args.scenario
-    for name in names:
-        if name not in SCENARIOS:
-            print(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}", file=sys.stderr)
-            return 2
-        out = Path(args.output) / name
-        if out.exists() and not args.force:
-            print(f"{out} exists (use --force to replace)", file=sys.stderr)
-            return 2
-        if out.exists():
-            import shutil
-
-            shutil.rmtree(out)
-        record_scenario(SCENARIOS[name](), out, progress=not args.quiet, noise_px=args.noise_px)
+    names = list(SCENARIOS) if args.scenario == ["all"] else list(dict.fromkeys(args.scenario))
+    unknown = [n for n in names if n not in SCENARIOS]
+    if unknown:
+        raise InputError(unknown[0], f"unknown scenario; known: {', '.join(SCENARIOS)}, all")
+    outs = [check_output(Path(args.output) / n, force=args.force) for n in names]
+    args.outputs = outs
+    for name, out in zip(names, outs, strict=True):
+        with staged_output(out, force=args.force) as work:
+            record_scenario(
+                SCENARIOS[name](),
+                work,
+                progress=not args.quiet,
+                noise_px=args.noise_px,
+                log=_shown(work, out),
+            )
     return 0
 
 
 def cmd_process(args: argparse.Namespace) -> int:
     """``parproj process``: the pipeline over a bag without DDS."""
     from .offline import process_bag
+    from .recording import check_input_bag
 
+    args.inputs = [args.bag]
+    bag = input_path(args.bag, "bag")
+    out = check_output(args.output, inputs=[bag], force=args.force)
+    args.outputs = [out]
+    check_input_bag(bag)
     overrides = {
         "z_avg": args.z_avg,
         "height_range": args.height_range,
@@ -155,16 +190,15 @@ def cmd_process(args: argparse.Namespace) -> int:
     }
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
-    summary = process_bag(
-        Path(args.bag), Path(args.output), overrides=overrides, progress=not args.quiet
-    )
+    with staged_output(out, force=args.force) as work:
+        summary = process_bag(bag, work, overrides=overrides, progress=not args.quiet)
     for iss in summary.issues:
         print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
     rec = summary.recovery
     lost = "" if rec is None or rec.complete else f"; input cut off: {rec.error}"
     print(
         f"{summary.messages_in} messages in, {summary.scenes} scenes, {summary.pairs} pairs "
-        f"-> {args.output}{lost}"
+        f"-> {out}{lost}"
     )
     return 0 if summary.pairs > 0 else 1
 
@@ -172,22 +206,46 @@ def cmd_process(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     """``parproj replay``: publish a bag into the live graph."""
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
-    from .live import replay
+    from .bag import BagReader
+    from .live import largest_idle_s, replay
 
-    rclpy.init()
-    node = rclpy.create_node("parproj_replay")
-    try:
-        res = replay(
-            node,
-            Path(args.bag),
-            rate=args.rate,
-            max_gap_s=args.max_gap,
-            wait_for=args.wait_for,
-            progress=not args.quiet,
+    args.inputs = [args.bag]
+    bag = input_path(args.bag, "bag")
+    reader = BagReader(bag)
+    unknown = [t for t in args.wait_for if t not in reader.topics()]
+    if unknown:
+        raise InputError(
+            "--wait-for", f"{unknown[0]} is not a topic of {bag} ({', '.join(reader.topics())})"
         )
+    if args.rate > 0:
+        idle, where = largest_idle_s(reader, args.max_gap)
+        if idle / args.rate > MAX_REPLAY_IDLE_S:
+            raise InputError(
+                bag,
+                f"log time jumps ahead by {idle:.6g} s at message {where} (a clock jump?): "
+                f"more than {MAX_REPLAY_IDLE_S:g} s of waiting; shorten it with --max-gap S, "
+                "or replay unpaced with --rate 0",
+            )
+    print(f"replay {bag}: rate {args.rate:g}" + (" (unpaced)" if args.rate == 0 else ""))
+    sys.stdout.flush()
+    # Our own SIGINT/SIGTERM handlers (main) stop the replay at once; rclpy's would not.
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = rclpy.create_node("parproj_replay")
+        try:
+            res = replay(
+                node,
+                bag,
+                rate=args.rate,
+                max_gap_s=args.max_gap,
+                wait_for=args.wait_for,
+                progress=not args.quiet,
+            )
+        finally:
+            node.destroy_node()
     finally:
-        node.destroy_node()
         rclpy.try_shutdown()
     rec = res["recovery"]
     print(
@@ -200,13 +258,25 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """``parproj evaluate``: y-parallax, x-parallax linearity and object errors of an output."""
     from .evaluate import evaluate_bag
+    from .recording import check_output_bag, check_truth_bag
 
-    res = evaluate_bag(
-        Path(args.output_bag),
-        Path(args.truth) if args.truth else None,
-        plots=Path(args.plots) if args.plots else None,
-        matching=not args.no_matching,
-    )
+    args.inputs = [args.output_bag, args.truth]
+    out_bag = input_path(args.output_bag, "bag")
+    truth = input_path(args.truth, "bag") if args.truth else None
+    plots = None
+    if args.plots:
+        plots = check_output(args.plots, inputs=[out_bag, truth], force=args.force, kind="folder")
+    args.outputs = [plots]
+    check_output_bag(out_bag)
+    if truth is not None:
+        check_truth_bag(truth)
+    with contextlib.ExitStack() as stack:
+        work = (
+            stack.enter_context(staged_output(plots, force=args.force, kind="folder"))
+            if plots
+            else None
+        )
+        res = evaluate_bag(out_bag, truth, plots=work, matching=not args.no_matching)
     _report(args.json, res, _print_evaluation)
     return 0 if res["pair_count"] > 0 else 1
 
@@ -246,8 +316,16 @@ def _print_evaluation(res: dict[str, Any]) -> None:
 def cmd_demo(args: argparse.Namespace) -> int:
     """``parproj demo``: the default bag through the live node; pair, anaglyph and evaluation."""
     from .demo import run_demo
+    from .recording import check_input_bag
 
-    return run_demo(Path(args.bag), Path(args.output), rate=args.rate, progress=not args.quiet)
+    args.inputs = [args.bag]
+    bag = input_path(args.bag, "bag")
+    out = check_output(args.output, inputs=[bag], force=args.force, kind="folder")
+    args.outputs = [out]
+    check_input_bag(bag)
+    with staged_output(out, force=args.force, kind="folder") as work:
+        code = run_demo(bag, work, rate=args.rate, progress=not args.quiet, shown_as=out)
+    return code
 
 
 def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) -> tuple[Any, ...]:
@@ -281,42 +359,160 @@ def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) 
     return tuple(out)
 
 
+def _why(err: BaseException) -> str:
+    text = " ".join(str(err).split())[:300]
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def _check_tiff(path: Path) -> None:
+    """A TIFF whose first image reads whole, else :class:`InputError` naming it."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            if not tif.pages:
+                raise InputError(path, "a TIFF without images")
+            tif.pages[0].asarray()
+    except InputError:
+        raise
+    except Exception as err:  # tifffile raises assorted types for a damaged file
+        raise InputError(path, f"not a readable TIFF ({_why(err)})") from None
+
+
+def _check_raster(path: Path) -> None:
+    """A raster GDAL opens (header, size, bands), else :class:`InputError` naming it.
+
+    Pixels are read later, strip by strip; a file damaged further in is then reported with the
+    rows GDAL could not read (``raster_io.read_rows``).
+    """
+    from .raster_io import raster_info
+
+    try:
+        raster_info(path)
+    except Exception as err:  # GDAL and rasterio raise assorted types for a damaged file
+        raise InputError(path, f"not a raster GDAL can read ({_why(err)})") from None
+
+
+def _check_rpc(path: Path, image: bool = False) -> None:
+    """An RPC that reads, else :class:`InputError` naming the file.
+
+    From the file ``path``; with ``image``, the RPC of the image ``path`` (GeoTIFF tag or
+    sidecar file).
+
+    The readers (rpc.py, scene_import.py) signal a bad file with assorted exceptions, not all
+    naming it: reading here first is what lets the message name the right file.
+    """
+    from .raster_io import read_rpc_file
+    from .scene_import import find_rpc
+
+    try:
+        if image:
+            find_rpc(path)
+        else:
+            read_rpc_file(path)
+    except Exception as err:
+        if image:
+            raise InputError(
+                path,
+                f"no usable RPC for this image ({_why(err)}); give the RPC file with "
+                "--rpc-left / --rpc-right",
+            ) from None
+        raise InputError(path, f"not a readable RPC file ({_why(err)})") from None
+
+
 def cmd_import(args: argparse.Namespace) -> int:
-    """``parproj import``: two images with RPC -> a single-camera bag with virtual GCP."""
-    from .rpc import RPCError
+    """``parproj import``: two or more images with RPC -> a single-camera bag with virtual GCP."""
+    from .multi_import import import_scenes
     from .scene_import import import_pair
 
-    if args.more or args.pairs is not None or (args.ids and len(args.ids) != 2):
-        from .multi_import import cmd_import_many  # more than two images, or a pair selection
+    images = [args.left, args.right, *args.more]
+    files = [*images, args.rpc_left, args.rpc_right, args.dem]
+    args.inputs = [f for f in files if f]
+    for f in args.inputs:
+        input_path(f, "file")
+    for f in images:
+        _check_raster(Path(f))
+    rpcs = [args.rpc_left, args.rpc_right] + [None] * len(args.more)
+    for img, rpc in zip(images, rpcs, strict=True):
+        _check_rpc(Path(rpc) if rpc else Path(img), image=not rpc)
+    if args.heights:
+        _check_heights("--heights", args.heights, 1.0)
+    seen: dict[Path, str] = {}
+    for img in images:
+        if Path(img).resolve() in seen:
+            raise InputError(
+                img,
+                f"is the same image as {seen[Path(img).resolve()]}: a stereo pair needs two different images",
+            )
+        seen[Path(img).resolve()] = img
+    if args.ids is not None and (
+        len(args.ids) != len(images)
+        or len(set(args.ids)) != len(args.ids)
+        or not all(i.strip() for i in args.ids)
+    ):
+        raise InputError(
+            "--ids", f"one distinct, non-empty scene id per image needed, got {args.ids}"
+        )
+    offsets = _crop_origins(args.crop_origin, images)
+    out = check_output(args.output, inputs=args.inputs, force=args.force)
+    args.outputs = [out]
+    if args.more or args.pairs is not None:  # more than two images, or a pair selection
+        from .multi_import import parse_pairs, scene_ids_of
 
-        return cmd_import_many(args)
-    try:
+        ids = list(args.ids) if args.ids else scene_ids_of(images)
+        spec = parse_pairs(args.pairs or "bh", ids)
+        if offsets[2:] != (None,) * len(args.more) or args.band is not None:
+            raise InputError("--crop-origin/--band", "not supported yet with more than two images")
+        with staged_output(out, force=args.force) as work:
+            import_scenes(
+                images,
+                work,
+                pairs=spec,
+                bh_range=tuple(args.bh_range),
+                scene_ids=ids,
+                rpcs=rpcs,
+                dem=args.dem,
+                geoid_undulation=args.geoid_undulation,
+                heights=tuple(args.heights) if args.heights else None,
+                principal_distance=args.principal_distance,
+                pixel_size=args.pixel_size,
+                overwrite=False,
+                log=_shown(work, out),
+            )
+        return 0
+    with staged_output(out, force=args.force) as work:
         import_pair(
             args.left,
             args.right,
-            args.output,
+            work,
             rpc_left=args.rpc_left,
             rpc_right=args.rpc_right,
             dem=args.dem,
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
             scene_ids=tuple(args.ids or ("left", "right")),
-            offsets=_crop_origins(args.crop_origin, (args.left, args.right)),
+            offsets=offsets,
             band=args.band,
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
-            overwrite=args.force,
+            overwrite=False,
+            log=_shown(work, out),
         )
-    except (RPCError, FileExistsError, OSError, ValueError) as err:
-        print(f"parproj import: {err}", file=sys.stderr)
-        return 2
     return 0
 
 
 def cmd_ventoux_eval(args: argparse.Namespace) -> int:
     """``parproj ventoux-eval``: y-parallax of matches, ours vs reference epipolar grids."""
+    from .recording import check_output_bag
     from .ventoux import evaluate_against_grids, format_table
 
+    args.inputs = [args.output_bag, args.left, args.right, args.grids, args.truth]
+    check_output_bag(input_path(args.output_bag, "bag"))
+    for f in (args.left, args.right):
+        _check_tiff(input_path(f, "file"))
+    input_path(args.grids, "dir")
+    if args.truth:
+        input_path(args.truth, "bag")
     res = evaluate_against_grids(
         args.output_bag,
         args.left,
@@ -329,10 +525,32 @@ def cmd_ventoux_eval(args: argparse.Namespace) -> int:
     return 0 if res["methods"]["ours"].get("n", 0) > 0 else 1
 
 
+#: Smallest height range of ``parproj segments``, m: the virtual GCP and check points need
+#: relief to fix the model's height terms (A3, A7, roll); a flat set leaves them undetermined,
+#: and check points at the same heights then cannot show it.
+MIN_SEGMENT_HEIGHT_RANGE_M = 10.0
+
+
+def _check_heights(option: str, heights: Sequence[float], min_width: float) -> None:
+    lo, hi = heights
+    if not hi > lo:
+        raise InputError(option, f"HI ({hi:g}) must be above LO ({lo:g})")
+    if hi - lo < min_width:
+        raise InputError(
+            option,
+            f"range {hi - lo:g} m is narrower than {min_width:g} m: points at nearly one height "
+            "leave the model's height terms undetermined, and the check would mean nothing",
+        )
+
+
 def cmd_segments(args: argparse.Namespace) -> int:
     """``parproj segments``: a full-length RPC strip pair cut under model error bounds."""
     from .long_scene import format_table, run
 
+    args.inputs = [args.left_rpc, args.right_rpc]
+    for f in args.inputs:
+        _check_rpc(input_path(f, "file"))
+    _check_heights("--heights", args.heights, MIN_SEGMENT_HEIGHT_RANGE_M)
     res = run(
         args.left_rpc,
         args.right_rpc,
@@ -345,21 +563,49 @@ def cmd_segments(args: argparse.Namespace) -> int:
     return 0 if all(r["reached"] for r in res["runs"]) else 1
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``parproj <command>: <option>: <problem>``, exit 2.
+
+    ``-1e4``, ``-.5e-3`` and ``-inf`` are taken as (negative) values, not as options (argparse
+    only knows ``-1`` and ``-1.5``), so that ``--z-avg -1e4`` works and ``--rate -inf`` is
+    refused for what it is.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(
+            r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$|^-(inf|infinity|nan)$", re.IGNORECASE
+        )
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+FORCE_HELP = "replace an existing output (a bag, or a folder parproj wrote)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     from .paper import SEED
 
-    parser = argparse.ArgumentParser(prog="parproj", description=__doc__)
+    parser = _Parser(prog="parproj", description=__doc__)
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="on an error, show the Python traceback instead of the one-line message",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     p = sub.add_parser("paper", help="reproduce paper 1 section 5 (Tables 2-6) and paper 2 checks")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument(
         "--sets",
-        type=int,
+        type=integer(0, 100_000),
         default=200,
         help="random point sets for the spread of Tables 4-6 (0 to skip; default 200)",
     )
-    p.add_argument("--seed", type=int, default=SEED, help=f"layout seed (default {SEED})")
+    p.add_argument(
+        "--seed", type=integer(0, 2**32 - 1), default=SEED, help=f"layout seed (default {SEED})"
+    )
     p.set_defaults(func=cmd_paper)
 
     p = sub.add_parser("simulate", help="render simulated scenarios into bags (MCAP)")
@@ -367,7 +613,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default=str(_bags_dir()), help="folder for the bags")
     p.add_argument(
         "--noise-px",
-        type=float,
+        type=number(0.0, 1e3),
         default=None,
         help="GCP measurement noise, px (default: the scenario's)",
     )
@@ -375,15 +621,29 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_simulate)
 
+    # process: the ranges of parproj_node's parameters (node.PARAMS), not imported (rclpy)
     p = sub.add_parser("process", help="run the pipeline over a bag offline, write outputs")
     p.add_argument("bag")
     p.add_argument("-o", "--output", required=True, help="output bag folder")
-    p.add_argument("--z-avg", type=float, default=0.0, help="average terrain height, m")
-    p.add_argument("--height-range", type=float, default=500.0, help="height half range, m")
+    p.add_argument("--force", action="store_true", help="replace an existing output bag")
+    p.add_argument(
+        "--z-avg", type=number(-1000.0, 9000.0), default=0.0, help="average terrain height, m"
+    )
+    p.add_argument(
+        "--height-range",
+        type=number(0.0, 9000.0, lo_open=True),
+        default=500.0,
+        help="height half range, m (> 0)",
+    )
     p.add_argument("--gcp-roll", choices=["estimate", "navigation", "none"], default="estimate")
     p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
-    p.add_argument("--scene-lines", type=int, default=0, help="lines per scene (0: by id/gap)")
+    p.add_argument(
+        "--scene-lines",
+        type=integer(0, 10_000_000),
+        default=0,
+        help="lines per scene (0: by id/gap)",
+    )
     p.add_argument(
         "--no-tie-points",
         action="store_true",
@@ -396,7 +656,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--segment-max-error",
-        type=float,
+        type=number(0.0, 1000.0),
         default=1.0,
         metavar="PX",
         help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
@@ -412,10 +672,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="publish a bag into the live ROS 2 graph")
     p.add_argument("bag")
-    p.add_argument("--rate", type=float, default=1.0, help="speed factor (0 = unpaced)")
+    p.add_argument("--rate", type=number(0.0, 1e6), default=1.0, help="speed factor (0 = unpaced)")
     p.add_argument(
         "--max-gap",
-        type=float,
+        type=number(0.0, 1e9, lo_open=True),
         default=None,
         help="shorten idle stretches longer than this many seconds",
     )
@@ -427,14 +687,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("output_bag")
     p.add_argument("--truth", help="bag with truth/points (default: the output bag)")
     p.add_argument("--json", action="store_true", help="print one JSON document")
-    p.add_argument("--plots", help="folder for PNG plots and images")
+    p.add_argument("--plots", help="folder to create for PNG plots and images")
+    p.add_argument("--force", action="store_true", help="replace an existing --plots folder")
     p.add_argument("--no-matching", action="store_true", help="skip image matching")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("demo", help="run the default bag through the live node")
     p.add_argument("--bag", default=str(_bags_dir() / "ikonos_agile"))
-    p.add_argument("-o", "--output", default="out/demo")
-    p.add_argument("--rate", type=float, default=20.0, help="replay speed factor")
+    p.add_argument("-o", "--output", default="out/demo", help="folder to create for results")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
+    p.add_argument(
+        "--rate", type=number(0.0, 1e6), default=20.0, help="replay speed factor (0 = unpaced)"
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_demo)
 
@@ -465,13 +729,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dem", help="SRTM .hgt tile: virtual points on the ground +- 100 m")
     p.add_argument(
         "--geoid-undulation",
-        type=float,
+        type=number(-200.0, 200.0),
         default=0.0,
         help="metres added to the DEM heights (geoid -> WGS84 ellipsoid; about 50 at Ventoux)",
     )
     p.add_argument(
         "--heights",
-        type=float,
+        type=number(-1e4, 1e5),
         nargs=2,
         metavar=("HMIN", "HMAX"),
         help="ellipsoidal heights without a DEM (default: RPC height_off +- height_scale / 2)",
@@ -485,12 +749,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--principal-distance",
-        type=float,
+        type=number(1e-4, 100.0),
         default=12.905,
         help="c written in the scanner info, m (not in an RPC; Pleiades-like default)",
     )
     p.add_argument(
-        "--pixel-size", type=float, default=13e-6, help="detector pitch, m (default 13 um)"
+        "--pixel-size",
+        type=number(0.0, 1e-2, lo_open=True),
+        default=13e-6,
+        help="detector pitch, m (default 13 um)",
     )
     p.add_argument("--force", action="store_true", help="replace an existing bag")
     # issue 10: crop origins and band (kept apart from the image list: merge-friendly)
@@ -515,7 +782,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--right", required=True, help="original right image")
     p.add_argument("--grids", required=True, help="folder of the reference grids (OTB, shareloc)")
     p.add_argument("--truth", help="the imported input bag: evaluate its RPC-exact truth points")
-    p.add_argument("--pair", type=int, default=0, help="which stereo_pair of the bag (from 0)")
+    p.add_argument(
+        "--pair", type=integer(0, 10**6), default=0, help="which stereo_pair of the bag (from 0)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=cmd_ventoux_eval)
 
@@ -525,23 +794,123 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("left_rpc", help="RPC of the full left scene (.geom, _RPC.TXT, .RPB, XML, tif)")
     p.add_argument("right_rpc", help="RPC of the full right scene")
-    p.add_argument("--width", type=int, default=400, help="samples of the strips (default 400)")
     p.add_argument(
-        "--heights", type=float, nargs=2, default=[900.0, 1100.0], help="height range, m"
+        "--width",
+        type=integer(2, 10**6),
+        default=400,
+        help="samples of the strips (default 400)",
     )
     p.add_argument(
-        "--bound", type=float, action="append", help="model error bound, px (repeatable)"
+        "--heights",
+        type=number(-1e4, 1e5),
+        nargs=2,
+        default=[900.0, 1100.0],
+        metavar=("LO", "HI"),
+        help=f"height range, m (HI - LO >= {MIN_SEGMENT_HEIGHT_RANGE_M:g})",
     )
-    p.add_argument("--overlap", type=float, default=0.1, help="segment overlap fraction")
+    p.add_argument(
+        "--bound",
+        type=number(0.0, 1e6, lo_open=True),
+        action="append",
+        help="model error bound, px (> 0; repeatable)",
+    )
+    p.add_argument(
+        "--overlap", type=number(0.0, 0.5), default=0.1, help="segment overlap fraction (0-0.5)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.set_defaults(func=cmd_segments, bound=None)
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like SIGINT's KeyboardInterrupt so that outputs in progress are undone."""
+
+
+def _on_sigterm(signum: int, frame: FrameType | None) -> None:
+    raise Terminated
+
+
+#: What the commands raise for input a user can fix (exit 2): domain errors of the readers,
+#: and the operating system's errors on the files named.
+def _input_errors(command: str) -> tuple[type[BaseException], ...]:
+    import yaml
+
+    from .bag import BagError
+    from .gcp_file import GcpFileError
+
+    kinds: list[type[BaseException]] = [InputError, BagError, GcpFileError, OSError]
+    kinds += [UnicodeDecodeError, yaml.YAMLError]
+    with contextlib.suppress(ImportError):
+        from .rpc import RPCError
+
+        kinds.append(RPCError)
+    if command in ("import", "ventoux-eval"):
+        # their readers (scene_import, rpc, ventoux, tifffile) report bad files as ValueError
+        kinds.append(ValueError)
+    return tuple(kinds)
+
+
+def describe(err: BaseException, inputs: Sequence[Any] = (), outputs: Sequence[Any] = ()) -> str:
+    """One line ``<file>: <problem>`` for a bad-input exception.
+
+    The file is the one the exception names; failing that, for an operating-system error
+    (disk full, ...) the outputs being written, and for any other error the inputs.
+    """
+    if isinstance(err, OSError):
+        if err.filename is not None:
+            names = f"{err.filename}" + (f" -> {err.filename2}" if err.filename2 else "")
+            return f"{names}: {err.strerror or err}"
+        inputs = outputs or inputs
+    text = " ".join(str(err).split()) or type(err).__name__
+    path = getattr(err, "path", None)
+    if path and not text.startswith(str(path)):
+        return f"{path}: {text}"
+    if path or any(f and str(f) in text for f in inputs):
+        return text
+    named = ", ".join(str(f) for f in inputs if f)
+    return f"{named}: {text}" if named else text
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``parproj`` console script."""
+    """Entry point of the ``parproj`` console script; returns the exit code (README)."""
     args = build_parser().parse_args(argv)
-    return int(args.func(args))
+    name = f"parproj {args.command}"
+    previous = signal.getsignal(signal.SIGTERM)
+    with contextlib.suppress(ValueError):  # not the main thread: leave SIGTERM alone
+        signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt as err:
+        if args.debug:
+            traceback.print_exc()
+        which = "SIGTERM" if isinstance(err, Terminated) else "SIGINT"
+        outs = [str(o) for o in getattr(args, "outputs", []) if o]
+        undone = f"; {', '.join(outs)} not written" if outs else ""
+        print(f"{name}: stopped by {which}{undone}", file=sys.stderr)
+        return EXIT_SIGTERM if isinstance(err, Terminated) else EXIT_SIGINT
+    except MemoryError as err:
+        if args.debug:
+            raise
+        print(f"{name}: out of memory ({err})", file=sys.stderr)
+        return EXIT_INTERNAL
+    except _input_errors(args.command) as err:
+        if args.debug:
+            raise
+        where = describe(err, getattr(args, "inputs", []), getattr(args, "outputs", []))
+        print(f"{name}: {where}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except Exception as err:
+        if args.debug:
+            raise
+        print(
+            f"{name}: internal error (a bug, not your input): {type(err).__name__}: "
+            f"{' '.join(str(err).split())[:300]}; rerun with --debug for the traceback",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
+    finally:
+        with contextlib.suppress(ValueError, TypeError):
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

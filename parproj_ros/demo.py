@@ -17,15 +17,25 @@ from .recording import node_parameters, views_from_bag
 
 
 def run_demo(
-    bag: Path, out: Path, *, rate: float = 20.0, progress: bool = True, timeout_s: float = 300.0
+    bag: Path,
+    out: Path,
+    *,
+    rate: float = 20.0,
+    progress: bool = True,
+    timeout_s: float = 300.0,
+    shown_as: Path | None = None,
 ) -> int:
-    """Run the demo; returns 0 when at least one pair was produced and evaluated."""
+    """Run the demo; returns 0 when at least one pair was produced and evaluated.
+
+    ``shown_as``: the folder named in the messages (``out`` is then a temporary name that the
+    caller renames to it when the demo is complete).
+    """
     from .evaluate import evaluate_bag
 
     out.mkdir(parents=True, exist_ok=True)
     env = ros_environment()
     views = views_from_bag(BagReader(bag))
-    print(f"demo: ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, node log {out / 'node.log'}")
+    print(f"demo: ROS_DOMAIN_ID={env['ROS_DOMAIN_ID']}, node log {(shown_as or out) / 'node.log'}")
     run = run_through_node(
         bag,
         out,
@@ -48,8 +58,9 @@ def run_demo(
     from .cli import _print_evaluation
 
     _print_evaluation(result)
+    shown = shown_as or out
     print(
-        f"demo: normalized pair, anaglyph and plots in {out}/, evaluation in "
-        f"{out / 'evaluation.json'}, output bag in {run.output}"
+        f"demo: normalized pair, anaglyph and plots in {shown}/, evaluation in "
+        f"{shown / 'evaluation.json'}, output bag in {shown / run.output.relative_to(out)}"
     )
     return 0

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from .bag import BagReader
-from .conversions import assemble_blocks, image_to_array
-from .geometry import AffineModel, SceneObservation, space_intersection
+from .bag import BagError, BagReader
+from .conversions import ConversionError, assemble_blocks, image_to_array
+from .geometry import AffineModel, GeometryError, SceneObservation, space_intersection
 from .geometry.ptp import ptp_forward
 from .imaging.matching import match_normalized
 from .pipeline import GroundPoint
@@ -131,13 +131,21 @@ def evaluate_bag(
     if block_topics:
         for item in reader.messages(topics=block_topics):
             blocks.setdefault((item.msg.pair_id, item.msg.side), []).append(item.msg)
-    for item in reader.messages(topics=["stereo_pair"]):
+    for k, item in enumerate(reader.messages(topics=["stereo_pair"])):
         sp = item.msg
-        images = None
-        if sp.streamed:
-            parts = [blocks.get((sp.pair_id, side), []) for side in ("left", "right")]
-            images = tuple(assemble_blocks(p) for p in parts) if all(parts) else None
-        result["pairs"].append(_evaluate_pair(sp, truth, plots, matching, images))
+        try:
+            check_pair_message(sp)
+            images = None
+            if sp.streamed:
+                parts = [blocks.get((sp.pair_id, side), []) for side in ("left", "right")]
+                images = tuple(assemble_blocks(p) for p in parts) if all(parts) else None
+            result["pairs"].append(_evaluate_pair(sp, truth, plots, matching, images))
+        except (ConversionError, GeometryError) as err:
+            # a message that decodes but cannot be a pair (empty image, singular transform)
+            raise BagError(
+                f"stereo_pair message {k} ({sp.pair_id or 'no pair id'}) is malformed: {err}",
+                out_bag,
+            ) from err
     result["pair_count"] = len(result["pairs"])
     return result
 
@@ -156,6 +164,38 @@ def _observation(p: GroundPoint, params: Any) -> tuple[float, float] | None:
     if params.segment_of and not (-0.5 <= line <= params.lines - 0.5):
         return None
     return (line, obs[1])
+
+
+#: The StereoPair and ParallelProjection fields the evaluation computes with.
+_PAIR_FIELDS = (
+    "left_to_normalized", "right_to_normalized", "left_x_origin", "right_x_origin", "y_origin",
+    "normalized_pixel_size", "height_per_disparity_px", "height_offset_m",
+)  # fmt: skip
+_PARAM_FIELDS = (
+    "affine", "roll_psi", "principal_distance", "pixel_size", "line_mid", "x_per_line",
+    "principal_point",
+)  # fmt: skip
+
+
+def check_pair_message(sp: Any) -> None:
+    """The fields of a StereoPair that the evaluation uses are finite and consistent.
+
+    Raises:
+        ConversionError: naming the first field that is not.
+    """
+    for name in _PAIR_FIELDS:
+        if not np.all(np.isfinite(np.asarray(getattr(sp, name), dtype=float))):
+            raise ConversionError(f"{name} is not finite")
+    for side in ("left_params", "right_params"):
+        prm = getattr(sp, side)
+        for name in _PARAM_FIELDS:
+            if not np.all(np.isfinite(np.asarray(getattr(prm, name), dtype=float))):
+                raise ConversionError(f"{side}.{name} is not finite")
+        if not prm.segment_of and prm.segment_first_line != 0:
+            raise ConversionError(
+                f"{side}.segment_first_line is {prm.segment_first_line} in a whole scene (no "
+                "segment_of)"
+            )
 
 
 def _evaluate_pair(

@@ -16,20 +16,39 @@ YAML::
         xyz: [1520.3, -880.0, 412.7]
         check: false
         observations: {left_0000: [1033.25, 517.5], right_0000: [998.0, 520.1]}
+
+Files are UTF-8 text of at most :data:`MAX_GCP_FILE_BYTES` (16 MiB: about 200,000 CSV rows);
+anything else that is not a regular file (a folder, a FIFO, a device) is refused before it is
+opened for reading, so loading never blocks. Every problem raises :class:`GcpFileError`, whose
+message starts with the file's path.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import numpy as np
 
 from .pipeline import GroundPoint
 
+#: Largest GCP file read, bytes.
+MAX_GCP_FILE_BYTES = 16 * 1024 * 1024
+
 
 class GcpFileError(ValueError):
-    """A GCP file that cannot be used, with the line or entry at fault."""
+    """A GCP file that cannot be used, with the line or entry at fault.
+
+    Attributes:
+        path: the file (the message starts with it), when known.
+    """
+
+    def __init__(self, message: str, path: str | Path | None = None) -> None:
+        self.path = None if path is None else str(path)
+        if self.path is not None and not message.startswith(self.path):
+            message = f"{self.path}: {message}"
+        super().__init__(message)
 
 
 def _bool(text: object) -> bool:
@@ -44,65 +63,84 @@ def _bool(text: object) -> bool:
 def load_gcp_file(path: str | Path) -> list[GroundPoint]:
     """Read a .csv or .yaml/.yml GCP file (format in the module docstring)."""
     p = Path(path)
+    from .cli_io import InputError, decode_utf8, read_bounded
+
+    try:
+        text = decode_utf8(p, read_bounded(p, MAX_GCP_FILE_BYTES, "GCP file"))
+    except InputError as err:
+        raise GcpFileError(err.problem, p) from None
     if p.suffix.lower() in (".yaml", ".yml"):
-        return _load_yaml(p)
-    return _load_csv(p)
+        return _load_yaml(p, text)
+    try:
+        return _load_csv(p, text)
+    except csv.Error as err:
+        raise GcpFileError(f"not CSV ({err})", p) from None
 
 
-def _load_csv(path: Path) -> list[GroundPoint]:
+def _load_csv(path: Path, text: str) -> list[GroundPoint]:
     points: dict[str, GroundPoint] = {}
-    with path.open(newline="") as fh:
+    with io.StringIO(text, newline="") as fh:
         reader = csv.DictReader(fh)
         need = {"id", "X", "Y", "Z", "scene_id", "line", "sample"}
         missing = need - set(reader.fieldnames or [])
         if missing:
-            raise GcpFileError(f"{path}: missing columns {sorted(missing)}")
+            raise GcpFileError(f"{path}: missing columns {sorted(missing)}", path)
         for row in reader:
             n = reader.line_num  # the file's line, blank lines included
+            short = sorted(k for k in need if row.get(k) is None)
+            if short:
+                raise GcpFileError(f"{path}:{n}: no value for {short}", path)
             try:
                 xyz = np.array([float(row["X"]), float(row["Y"]), float(row["Z"])])
                 obs = (float(row["line"]), float(row["sample"]))
-                check = _bool(row.get("check", "0"))
+                check = _bool(row.get("check") or "0")
             except (TypeError, ValueError) as err:
-                raise GcpFileError(f"{path}:{n}: {err}") from err
+                raise GcpFileError(f"{path}:{n}: {err}", path) from err
             if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(obs))):
-                raise GcpFileError(f"{path}:{n}: non-finite value")
+                raise GcpFileError(f"{path}:{n}: non-finite value", path)
             pid = row["id"].strip()
             old = points.get(pid)
             if old is None:
                 points[pid] = GroundPoint(pid, xyz, check, {row["scene_id"].strip(): obs})
             else:
                 if not np.allclose(old.xyz, xyz, rtol=0.0, atol=1e-6) or old.check != check:
-                    raise GcpFileError(f"{path}:{n}: point {pid} repeated with other X Y Z/check")
+                    raise GcpFileError(
+                        f"{path}:{n}: point {pid} repeated with other X Y Z/check", path
+                    )
                 old.observations[row["scene_id"].strip()] = obs
     return list(points.values())
 
 
-def _load_yaml(path: Path) -> list[GroundPoint]:
+def _load_yaml(path: Path, text: str) -> list[GroundPoint]:
     import yaml
 
     try:
-        doc = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as err:
-        raise GcpFileError(f"{path}: {err}") from err
+        doc = yaml.safe_load(text)
+    except (yaml.YAMLError, RecursionError) as err:
+        first = str(err).splitlines()[0] if str(err) else type(err).__name__
+        raise GcpFileError(f"{path}: not YAML ({first})", path) from err
     if not isinstance(doc, dict) or not isinstance(doc.get("points"), list):
-        raise GcpFileError(f"{path}: expected a mapping with a 'points' list")
+        raise GcpFileError(f"{path}: expected a mapping with a 'points' list", path)
     out = []
     for i, item in enumerate(doc["points"]):
+        if not isinstance(item, dict):
+            raise GcpFileError(f"{path}: points[{i}]: expected a mapping (id, xyz, ...)", path)
+        observations = item.get("observations") or {}
+        if not isinstance(observations, dict):
+            raise GcpFileError(
+                f"{path}: points[{i}]: observations must map scene ids to [line, sample]", path
+            )
         try:
             xyz = np.asarray(item["xyz"], dtype=float)
-            obs = {
-                str(k): (float(v[0]), float(v[1]))
-                for k, v in (item.get("observations") or {}).items()
-            }
+            obs = {str(k): (float(v[0]), float(v[1])) for k, v in observations.items()}
             gp = GroundPoint(str(item["id"]), xyz, _bool(item.get("check", False)), obs)
-        except (KeyError, TypeError, ValueError, IndexError) as err:
-            raise GcpFileError(f"{path}: points[{i}]: {err!r}") from err
+        except (KeyError, TypeError, ValueError, IndexError, OverflowError) as err:
+            raise GcpFileError(f"{path}: points[{i}]: {err!r}", path) from err
         if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
-            raise GcpFileError(f"{path}: points[{i}]: xyz must be 3 finite numbers")
+            raise GcpFileError(f"{path}: points[{i}]: xyz must be 3 finite numbers", path)
         bad = [k for k, v in obs.items() if not np.all(np.isfinite(v))]
         if bad:
-            raise GcpFileError(f"{path}: points[{i}]: non-finite observation in {bad}")
+            raise GcpFileError(f"{path}: points[{i}]: non-finite observation in {bad}", path)
         out.append(gp)
     return out
 

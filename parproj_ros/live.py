@@ -99,9 +99,16 @@ def replay(
         if cls is None:
             log(f"replay: {topic}: type {msgtype} unknown here: not published")
             continue
-        pubs[topic] = node.create_publisher(cls, topic, _qos(reader.qos(topic)))
+        try:
+            pubs[topic] = node.create_publisher(cls, topic, _qos(reader.qos(topic)))
+        except Exception as err:  # rclpy: invalid topic name (assorted exception types)
+            why = " ".join(str(err).split())
+            log(f"replay: {topic}: cannot be published ({type(err).__name__}: {why}): skipped")
     deadline = time.monotonic() + wait_timeout_s
     for topic in wait_for or []:
+        if topic not in pubs:
+            log(f"replay: {topic} is not published from this bag: not waited for")
+            continue
         while pubs[topic].get_subscription_count() == 0 and time.monotonic() < deadline:
             time.sleep(0.05)
         if pubs[topic].get_subscription_count() == 0:
@@ -112,7 +119,7 @@ def replay(
     start_wall = time.monotonic()
     first_log: int | None = None
     skipped = 0.0
-    prev_log = None
+    latest: int | None = None  # latest log time so far: a jump back is sent at once
     bar = tqdm(
         total=reader.message_count,
         desc=f"replay {Path(bag).name}",
@@ -125,14 +132,15 @@ def replay(
         if pub is None:
             continue
         if first_log is None:
-            first_log = item.log_time_ns
-        if max_gap_s is not None and prev_log is not None:
-            gap = (item.log_time_ns - prev_log) / 1e9
+            first_log = item.log_time_ns  # pacing starts at the bag's first message, not at 0
+        if max_gap_s is not None and latest is not None:
+            gap = (item.log_time_ns - latest) / 1e9
             if gap > max_gap_s:
                 skipped += gap - max_gap_s
-        prev_log = item.log_time_ns
+        latest = item.log_time_ns if latest is None else max(latest, item.log_time_ns)
         if rate > 0:
             due = start_wall + ((item.log_time_ns - first_log) / 1e9 - skipped) / rate
+            # time.sleep returns early when a signal handler raises (SIGINT, parproj's SIGTERM)
             wait = due - time.monotonic()
             if wait > 0:
                 time.sleep(wait)
@@ -143,7 +151,11 @@ def replay(
     from rclpy.duration import Duration
 
     for topic, pub in pubs.items():
-        if not pub.wait_for_all_acked(Duration(seconds=10)):
+        # in slices, so that a signal is handled within 0.2 s
+        acked = wait_until(
+            lambda p=pub: p.wait_for_all_acked(Duration(seconds=0.2)), 10.0, poll_s=0
+        )
+        if not acked:
             log(f"replay: {topic}: not every message was acknowledged within 10 s")
     return {
         "sent": sent,
@@ -151,6 +163,28 @@ def replay(
         "recovery": reader.recovery,
         "skipped_types": reader.unknown_types(),
     }
+
+
+def largest_idle_s(reader: BagReader, max_gap_s: float | None = None) -> tuple[float, int]:
+    """The longest wait of a paced replay of ``reader`` at rate 1, s, and the message before it.
+
+    As :func:`replay` paces: from the first message, log times in file order, a jump back sent
+    at once, idle stretches longer than ``max_gap_s`` shortened to it. A bag whose first
+    message was logged at a tiny time (an unset clock) and the rest at the real time would
+    otherwise wait for decades.
+    """
+    latest: int | None = None
+    idle, where = 0.0, 0
+    for k, item in enumerate(reader.raw_messages()):
+        t = item.log_time_ns
+        if latest is not None and t > latest:
+            gap = (t - latest) / 1e9
+            if max_gap_s is not None:
+                gap = min(gap, max_gap_s)
+            if gap > idle:
+                idle, where = gap, k
+        latest = t if latest is None else max(latest, t)
+    return idle, where
 
 
 class Recorder:

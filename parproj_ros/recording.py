@@ -19,20 +19,118 @@ from typing import Any
 
 import numpy as np
 
-from .bag import BagReader, BagWriter
+from .bag import BagError, BagReader, BagWriter
 from .conversions import (
+    OUTPUT_TOPICS,
     array_to_image,
     gcp_from_msg,
     gcp_to_msg,
     sample_to_odometry,
     scanner_info_msg,
 )
-from .geometry import LineCamera, angles_from_rotation, quaternion_to_rotation
+from .geometry import GeometryError, LineCamera, angles_from_rotation, quaternion_to_rotation
 from .pipeline import GroundPoint, PipelineConfig, ViewConfig
 from .scenarios import Scenario, ground_points
 from .trajectory import NavSample
 
 FRAME_ID = "map"
+
+#: Topics of an input bag and their types (``*`` stands for a view name).
+INPUT_TOPICS = {
+    "navigation": "nav_msgs/msg/Odometry",
+    "*/image_strip": "sensor_msgs/msg/Image",
+    "*/scanner_info": "parproj_msgs/msg/ScannerInfo",
+    "gcp": "parproj_msgs/msg/GroundControlPoints",
+    "truth/points": "parproj_msgs/msg/GroundControlPoints",
+}
+
+
+def _expected_type(topic: str, expected: dict[str, str]) -> str | None:
+    name = topic.lstrip("/")
+    for pattern, msgtype in expected.items():
+        if pattern.startswith("*/"):
+            if name.endswith(pattern[1:]) and name.count("/") == pattern.count("/"):
+                return msgtype
+        elif name == pattern.lstrip("/"):
+            return msgtype
+    return None
+
+
+def check_topic_types(reader: BagReader, expected: dict[str, str]) -> None:
+    """Every topic of ``reader`` named in ``expected`` has the type given there.
+
+    Raises:
+        BagError: naming the bag, the topic, its type and the expected one.
+    """
+    encodings = reader.message_encodings()
+    for topic, msgtype in reader.topics().items():
+        want = _expected_type(topic, expected)
+        if want is not None and encodings.get(topic, "cdr") != "cdr":
+            raise BagError(
+                f"topic {topic} has message encoding {encodings[topic]!r}: only ROS 2 CDR "
+                "('cdr') is read",
+                reader.path,
+            )
+        if want is not None and msgtype != want:
+            raise BagError(
+                f"topic {topic} has type {msgtype or '(no schema)'}, expected {want}", reader.path
+            )
+
+
+def check_input_bag(path: Path) -> tuple[ViewConfig, ...]:
+    """An input bag the pipeline can run on (the checks of ``parproj process`` and the demo).
+
+    Returns its cameras.
+
+    Raises:
+        BagError: not a bag, topics of the wrong type, no camera or more than two, a camera
+            without strips.
+        FileNotFoundError: no such bag.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, INPUT_TOPICS)
+    views = views_from_bag(reader)
+    if not views:
+        rec = reader.recovery
+        cut = "" if rec.complete else f" (the file is damaged or cut off: {rec.error})"
+        raise BagError(
+            "no <view>/scanner_info topic: not an input bag (made by parproj simulate or "
+            f"parproj import){cut}",
+            path,
+        )
+    if len(views) > 2:
+        raise BagError(f"{len(views)} cameras ({[v.name for v in views]}); 1 or 2 needed", path)
+    topics = reader.topics()
+    lacking = [v.name for v in views if f"{v.name}/image_strip" not in topics]
+    if lacking:
+        raise BagError(f"no image strips for camera {lacking[0]} ({lacking[0]}/image_strip)", path)
+    return views
+
+
+def check_output_bag(path: Path) -> None:
+    """A bag of outputs (``parproj process``, the node): a stereo_pair topic of the right type.
+
+    Raises:
+        BagError: not a bag, no stereo_pair topic, topics of the wrong type.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, {**OUTPUT_TOPICS, "truth/points": INPUT_TOPICS["truth/points"]})
+    if "stereo_pair" not in {t.lstrip("/") for t in reader.topics()}:
+        raise BagError(
+            "no stereo_pair topic: not an output of parproj process or of the node", path
+        )
+
+
+def check_truth_bag(path: Path) -> None:
+    """A bag with truth points (``truth/points``, GroundControlPoints).
+
+    Raises:
+        BagError: not a bag, no truth/points topic, or of the wrong type.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, {"truth/points": INPUT_TOPICS["truth/points"]})
+    if "truth/points" not in reader.topics():
+        raise BagError("no truth/points topic: no truth to evaluate against", path)
 
 
 def _progress(total: int, desc: str, enabled: bool) -> Any:
@@ -159,16 +257,29 @@ def _cam(scn: Scenario, view: str) -> LineCamera:
 
 
 def views_from_bag(reader: BagReader) -> tuple[ViewConfig, ...]:
-    """The cameras (ScannerInfo messages) recorded in a bag, in topic order."""
+    """The cameras (ScannerInfo messages) recorded in a bag, in topic order.
+
+    Raises:
+        BagError: a ``*/scanner_info`` topic is not a ScannerInfo, or describes no camera.
+    """
+    topics = [t for t in reader.topics() if t.endswith("/scanner_info")]
+    if not topics:
+        return ()  # (an empty topic list would read every topic)
+    check_topic_types(reader, {"*/scanner_info": INPUT_TOPICS["*/scanner_info"]})
     views = []
-    for item in reader.messages(
-        topics=[t for t in reader.topics() if t.endswith("/scanner_info")]
-    ):
+    for item in reader.messages(topics=topics):
         m = item.msg
         q = m.mounting
-        cam = LineCamera(
-            m.principal_distance, m.pixel_size, int(m.detectors), m.line_period, m.principal_point
-        )
+        try:
+            cam = LineCamera(
+                m.principal_distance,
+                m.pixel_size,
+                int(m.detectors),
+                m.line_period,
+                m.principal_point,
+            )
+        except (GeometryError, ValueError, OverflowError) as err:
+            raise BagError(f"{item.topic}: not a usable camera: {err}", reader.path) from None
         views.append(
             ViewConfig(
                 item.topic.rsplit("/", 1)[0], cam, quaternion_to_rotation([q.x, q.y, q.z, q.w])
@@ -183,7 +294,10 @@ def truth_from_bag(reader: BagReader) -> list[GroundPoint]:
     """Truth points recorded on truth/points."""
     out: list[GroundPoint] = []
     for item in reader.messages(topics=["truth/points"]):
-        out += gcp_from_msg(item.msg)
+        try:
+            out += gcp_from_msg(item.msg)
+        except ValueError as err:  # ConversionError, or a GroundPoint refused
+            raise BagError(f"truth/points: malformed message: {err}", reader.path) from err
     return out
 
 

@@ -363,4 +363,4 @@ def test_cli_import_and_ventoux_eval(
     assert set(res["methods"]) == {"ours", "otb", "shareloc"}
     swapped = ["ventoux-eval", str(out), "--left", str(VENTOUX[1]), "--right", str(VENTOUX[0])]
     with pytest.raises(ValueError, match="wrong image or order"):
-        cli.main([*swapped, "--grids", str(GRIDS)])
+        cli.main(["--debug", *swapped, "--grids", str(GRIDS)])
