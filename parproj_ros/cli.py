@@ -442,7 +442,8 @@ def cmd_import(args: argparse.Namespace) -> int:
         if Path(img).resolve() in seen:
             raise InputError(
                 img,
-                f"is the same image as {seen[Path(img).resolve()]}: a stereo pair needs two different images",
+                f"is the same image as {seen[Path(img).resolve()]}: "
+                "a stereo pair needs two different images",
             )
         seen[Path(img).resolve()] = img
     if args.ids is not None and (
