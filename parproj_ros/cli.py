@@ -312,6 +312,40 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 1 if (res.get("live") or {}).get("error") else 0
 
 
+def _image_index(option: str, name: str, images: Sequence[str]) -> int:
+    """Which image ``option``'s IMAGE names: its path as given, else its file name.
+
+    Raises:
+        ValueError: IMAGE names no image, or several.
+
+    """
+    hits = [i for i, p in enumerate(images) if p == name] or [
+        i for i, p in enumerate(images) if Path(p).name == Path(name).name
+    ]
+    if len(hits) != 1:
+        raise ValueError(
+            f"{option} {name}: names {'no' if not hits else 'more than one'} image "
+            f"of {list(images)}"
+        )
+    return hits[0]
+
+
+def _rpc_files(args: argparse.Namespace, images: Sequence[str]) -> list[str | None]:
+    """``--rpc-left`` / ``--rpc-right`` (images 1, 2) and ``--rpc IMAGE FILE`` -> one per image.
+
+    Raises:
+        ValueError: IMAGE names no image (or several), an image given two RPC files.
+
+    """
+    out: list[str | None] = [args.rpc_left, args.rpc_right] + [None] * (len(images) - 2)
+    for name, path in args.rpc or []:
+        i = _image_index("--rpc", name, images)
+        if out[i] is not None:
+            raise ValueError(f"--rpc {name} {path}: {images[i]} already has RPC file {out[i]}")
+        out[i] = path
+    return out
+
+
 def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) -> tuple[Any, ...]:
     """``--crop-origin IMAGE ROW COL`` (repeatable) -> one (row, col) or None per image.
 
@@ -323,14 +357,7 @@ def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) 
     """
     out: list[tuple[float, float] | None] = [None] * len(images)
     for name, row, col in given or []:
-        hits = [i for i, p in enumerate(images) if p == name] or [
-            i for i, p in enumerate(images) if Path(p).name == Path(name).name
-        ]
-        if len(hits) != 1:
-            raise ValueError(
-                f"--crop-origin {name}: names {'no' if not hits else 'more than one'} image "
-                f"of {list(images)}"
-            )
+        i = _image_index("--crop-origin", name, images)
         try:
             r, c = float(row), float(col)
         except ValueError:
@@ -339,31 +366,32 @@ def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) 
             ) from None
         if not (math.isfinite(r) and math.isfinite(c)):
             raise ValueError(f"--crop-origin {name} {row} {col}: ROW and COL must be finite")
-        out[hits[0]] = (r, c)
+        out[i] = (r, c)
     return tuple(out)
 
 
 def cmd_import(args: argparse.Namespace) -> int:
-    """``parproj import``: two images with RPC -> a single-camera bag with virtual GCP."""
+    """``parproj import``: two or more images with RPC -> a single-camera bag with virtual GCP."""
+    from .multi_import import parse_pairs, scene_ids_of
     from .rpc import RPCError
-    from .scene_import import import_pair
+    from .scene_import import import_scenes
 
-    if args.more or args.pairs is not None or (args.ids and len(args.ids) != 2):
-        from .multi_import import cmd_import_many  # more than two images, or a pair selection
-
-        return cmd_import_many(args)
+    images = [args.left, args.right, *args.more]
+    # a pair selection with more than two images or --pairs; else scenes left, right by order
+    select = bool(args.more or args.pairs is not None or (args.ids and len(args.ids) != 2))
     try:
-        import_pair(
-            args.left,
-            args.right,
+        ids = args.ids or (scene_ids_of(images) if select else ["left", "right"])
+        import_scenes(
+            images,
             args.output,
-            rpc_left=args.rpc_left,
-            rpc_right=args.rpc_right,
+            pairs=parse_pairs(args.pairs or "bh", ids) if select else None,
+            bh_range=tuple(args.bh_range),
+            scene_ids=ids,
+            rpcs=_rpc_files(args, images),
+            offsets=_crop_origins(args.crop_origin, images),
             dem=args.dem,
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
-            scene_ids=tuple(args.ids or ("left", "right")),
-            offsets=_crop_origins(args.crop_origin, (args.left, args.right)),
             band=args.band,
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
@@ -567,7 +595,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-o", "--output", required=True, help="bag folder to create")
     p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
-    p.add_argument("--rpc-right", help="RPC of the right full scene")
+    p.add_argument("--rpc-right", help="RPC of the right full scene (see also --rpc)")
     p.add_argument("--dem", help="SRTM .hgt tile: virtual points on the ground +- 100 m")
     p.add_argument(
         "--geoid-undulation",
@@ -610,6 +638,14 @@ def build_parser() -> argparse.ArgumentParser:
         "else (0, 0) (the RPC is in the image's own grid, as GDAL assumes)",
     )
     p.add_argument("--band", type=int, help="band to import from each image, 1-based (default 1)")
+    p.add_argument(
+        "--rpc",
+        nargs=2,
+        action="append",
+        metavar=("IMAGE", "FILE"),
+        help="RPC file of IMAGE's full scene (its path or file name; any image; repeatable); "
+        "--rpc-left / --rpc-right are the same for the first two images",
+    )
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser(
