@@ -162,6 +162,8 @@ def test_bad_options(pair: tuple[Path, Path], tmp_path: Path) -> None:
     assert cli.main([*args, "--heights", "nan", "800"]) == 2
     assert cli.main([*args, "--crop-origin", "nothere.tif", "1", "2"]) == 2
     assert cli.main([*args, "--crop-origin", "left.tif", "nan", "2"]) == 2
+    assert cli.main([*args, "--rpc", "nothere.tif", "x.geom"]) == 2
+    assert cli.main([*args, "--rpc-left", "a.geom", "--rpc", "left.tif", "b.geom"]) == 2  # twice
 
 
 def test_bands(pair: tuple[Path, Path], tmp_path: Path) -> None:
