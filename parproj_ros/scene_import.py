@@ -553,14 +553,15 @@ def check_image(
     foot = raster_io.map_footprint(img.info, ll[::3], ss[::3])
     if foot is not None:
         c = (0.5 * float(lon.min() + lon.max()), 0.5 * float(lat.min() + lat.max()))
-        k = 111_320.0  # metres per degree
+        m_deg = 111_320.0  # metres per degree
         d = np.hypot(
-            (foot[:, 0] - lon[::3]) * k * math.cos(math.radians(c[1])), (foot[:, 1] - lat[::3]) * k
+            (foot[:, 0] - lon[::3]) * m_deg * math.cos(math.radians(c[1])),
+            (foot[:, 1] - lat[::3]) * m_deg,
         )
         size = float(
             np.hypot(
-                (lon.max() - lon.min()) * k * math.cos(math.radians(c[1])),
-                (lat.max() - lat.min()) * k,
+                (lon.max() - lon.min()) * m_deg * math.cos(math.radians(c[1])),
+                (lat.max() - lat.min()) * m_deg,
             )
         )
         if float(np.median(d)) > max(2000.0, 0.5 * size):
@@ -815,16 +816,19 @@ def import_scenes(
     ids = list(scene_ids) if scene_ids is not None else scene_ids_of(paths)
     if len(ids) != n or len(set(ids)) != n or not all(ids):
         raise SceneImportError(f"one distinct, non-empty scene id per image needed, got {ids}")
-    per_image = {"rpcs": rpcs or [None] * n, "offsets": offsets or [None] * n}
-    for key, values in per_image.items():
-        if len(values) != n:
-            raise SceneImportError(f"{key}: {len(values)} given for {n} images")
+    rpc_files = list(rpcs) if rpcs is not None else [None] * n
+    origins = list(offsets) if offsets is not None else [None] * n
+    if len(rpc_files) != n or len(origins) != n:
+        raise SceneImportError(
+            f"one RPC file and one crop origin (or None) per image needed: {len(rpc_files)} and "
+            f"{len(origins)} for {n} images"
+        )
     _check_options(
         heights, geoid_undulation, principal_distance, pixel_size, line_period, dem_margin
     )
     images = [
         load_image(p, sid, rpc_path=r, offset=o, band=band)
-        for p, sid, r, o in zip(paths, ids, per_image["rpcs"], per_image["offsets"], strict=True)
+        for p, sid, r, o in zip(paths, ids, rpc_files, origins, strict=True)
     ]
     if len({img.dtype for img in images}) > 1:
         raise SceneImportError(
