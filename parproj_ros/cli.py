@@ -328,6 +328,40 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return code
 
 
+def _image_index(option: str, name: str, images: Sequence[str]) -> int:
+    """Which image ``option``'s IMAGE names: its path as given, else its file name.
+
+    Raises:
+        ValueError: IMAGE names no image, or several.
+
+    """
+    hits = [i for i, p in enumerate(images) if p == name] or [
+        i for i, p in enumerate(images) if Path(p).name == Path(name).name
+    ]
+    if len(hits) != 1:
+        raise ValueError(
+            f"{option} {name}: names {'no' if not hits else 'more than one'} image "
+            f"of {list(images)}"
+        )
+    return hits[0]
+
+
+def _rpc_files(args: argparse.Namespace, images: Sequence[str]) -> list[str | None]:
+    """``--rpc-left`` / ``--rpc-right`` (images 1, 2) and ``--rpc IMAGE FILE`` -> one per image.
+
+    Raises:
+        ValueError: IMAGE names no image (or several), an image given two RPC files.
+
+    """
+    out: list[str | None] = [args.rpc_left, args.rpc_right] + [None] * (len(images) - 2)
+    for name, path in args.rpc or []:
+        i = _image_index("--rpc", name, images)
+        if out[i] is not None:
+            raise ValueError(f"--rpc {name} {path}: {images[i]} already has RPC file {out[i]}")
+        out[i] = path
+    return out
+
+
 def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) -> tuple[Any, ...]:
     """``--crop-origin IMAGE ROW COL`` (repeatable) -> one (row, col) or None per image.
 
@@ -339,14 +373,7 @@ def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) 
     """
     out: list[tuple[float, float] | None] = [None] * len(images)
     for name, row, col in given or []:
-        hits = [i for i, p in enumerate(images) if p == name] or [
-            i for i, p in enumerate(images) if Path(p).name == Path(name).name
-        ]
-        if len(hits) != 1:
-            raise ValueError(
-                f"--crop-origin {name}: names {'no' if not hits else 'more than one'} image "
-                f"of {list(images)}"
-            )
+        i = _image_index("--crop-origin", name, images)
         try:
             r, c = float(row), float(col)
         except ValueError:
@@ -355,7 +382,7 @@ def _crop_origins(given: Sequence[Sequence[str]] | None, images: Sequence[str]) 
             ) from None
         if not (math.isfinite(r) and math.isfinite(c)):
             raise ValueError(f"--crop-origin {name} {row} {col}: ROW and COL must be finite")
-        out[hits[0]] = (r, c)
+        out[i] = (r, c)
     return tuple(out)
 
 
@@ -415,24 +442,25 @@ def _check_rpc(path: Path, image: bool = False) -> None:
             raise InputError(
                 path,
                 f"no usable RPC for this image ({_why(err)}); give the RPC file with "
-                "--rpc-left / --rpc-right",
+                "--rpc IMAGE FILE (or --rpc-left / --rpc-right)",
             ) from None
         raise InputError(path, f"not a readable RPC file ({_why(err)})") from None
 
 
 def cmd_import(args: argparse.Namespace) -> int:
     """``parproj import``: two or more images with RPC -> a single-camera bag with virtual GCP."""
-    from .multi_import import import_scenes
-    from .scene_import import import_pair
+    from .multi_import import parse_pairs, scene_ids_of
+    from .scene_import import import_scenes
 
     images = [args.left, args.right, *args.more]
-    files = [*images, args.rpc_left, args.rpc_right, args.dem]
+    rpcs = _rpc_files(args, images)
+    offsets = _crop_origins(args.crop_origin, images)
+    files = [*images, *rpcs, args.dem]
     args.inputs = [f for f in files if f]
     for f in args.inputs:
         input_path(f, "file")
     for f in images:
         _check_raster(Path(f))
-    rpcs = [args.rpc_left, args.rpc_right] + [None] * len(args.more)
     for img, rpc in zip(images, rpcs, strict=True):
         _check_rpc(Path(rpc) if rpc else Path(img), image=not rpc)
     if args.heights:
@@ -446,53 +474,26 @@ def cmd_import(args: argparse.Namespace) -> int:
                 "a stereo pair needs two different images",
             )
         seen[Path(img).resolve()] = img
-    if args.ids is not None and (
-        len(args.ids) != len(images)
-        or len(set(args.ids)) != len(args.ids)
-        or not all(i.strip() for i in args.ids)
-    ):
-        raise InputError(
-            "--ids", f"one distinct, non-empty scene id per image needed, got {args.ids}"
-        )
-    offsets = _crop_origins(args.crop_origin, images)
+    # a pair selection with more than two images or --pairs; else scenes left, right by order
+    select = bool(args.more or args.pairs is not None or (args.ids and len(args.ids) != 2))
+    ids = args.ids or (scene_ids_of(images) if select else ["left", "right"])
+    if len(ids) != len(images) or len(set(ids)) != len(ids) or not all(i.strip() for i in ids):
+        raise InputError("--ids", f"one distinct, non-empty scene id per image needed, got {ids}")
+    pairs = parse_pairs(args.pairs or "bh", ids) if select else None
     out = check_output(args.output, inputs=args.inputs, force=args.force)
     args.outputs = [out]
-    if args.more or args.pairs is not None:  # more than two images, or a pair selection
-        from .multi_import import parse_pairs, scene_ids_of
-
-        ids = list(args.ids) if args.ids else scene_ids_of(images)
-        spec = parse_pairs(args.pairs or "bh", ids)
-        if offsets[2:] != (None,) * len(args.more) or args.band is not None:
-            raise InputError("--crop-origin/--band", "not supported yet with more than two images")
-        with staged_output(out, force=args.force) as work:
-            import_scenes(
-                images,
-                work,
-                pairs=spec,
-                bh_range=tuple(args.bh_range),
-                scene_ids=ids,
-                rpcs=rpcs,
-                dem=args.dem,
-                geoid_undulation=args.geoid_undulation,
-                heights=tuple(args.heights) if args.heights else None,
-                principal_distance=args.principal_distance,
-                pixel_size=args.pixel_size,
-                overwrite=False,
-                log=_shown(work, out),
-            )
-        return 0
     with staged_output(out, force=args.force) as work:
-        import_pair(
-            args.left,
-            args.right,
+        import_scenes(
+            images,
             work,
-            rpc_left=args.rpc_left,
-            rpc_right=args.rpc_right,
+            pairs=pairs,
+            bh_range=tuple(args.bh_range),
+            scene_ids=ids,
+            rpcs=rpcs,
+            offsets=offsets,
             dem=args.dem,
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
-            scene_ids=tuple(args.ids or ("left", "right")),
-            offsets=offsets,
             band=args.band,
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
@@ -726,7 +727,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("-o", "--output", required=True, help="bag folder to create")
     p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
-    p.add_argument("--rpc-right", help="RPC of the right full scene")
+    p.add_argument("--rpc-right", help="RPC of the right full scene (see also --rpc)")
     p.add_argument("--dem", help="SRTM .hgt tile: virtual points on the ground +- 100 m")
     p.add_argument(
         "--geoid-undulation",
@@ -772,6 +773,14 @@ def build_parser() -> argparse.ArgumentParser:
         "else (0, 0) (the RPC is in the image's own grid, as GDAL assumes)",
     )
     p.add_argument("--band", type=int, help="band to import from each image, 1-based (default 1)")
+    p.add_argument(
+        "--rpc",
+        nargs=2,
+        action="append",
+        metavar=("IMAGE", "FILE"),
+        help="RPC file of IMAGE's full scene (its path or file name; any image; repeatable); "
+        "--rpc-left / --rpc-right are the same for the first two images",
+    )
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser(

@@ -1,20 +1,23 @@
-"""``parproj import A B C ...``: more than two images with RPC -> one single-camera bag + pairs.
+"""``parproj import A B C ...``: which of the imported images pair up (B/H), the ``pairs`` topic.
 
-The images become consecutive acquisitions (scenes) of the one view, as in
-:func:`parproj_ros.scene_import.import_pair` (strips, scanner info, virtual GCP and check
-points, truth points; read that module's docstring), and the bag gets one more latched topic,
-``pairs`` (parproj_msgs/PairSelection), that says which acquisitions pair up; the node and
-``parproj process`` make exactly those pairs (a scene may be in several).
+The images are imported as in :func:`parproj_ros.scene_import.import_scenes` (the one importer:
+windowed strips, import checks, virtual GCP and check points, truth points; read that module's
+docstring): consecutive acquisitions (scenes) of the one view. With a pair selection the bag gets
+one more latched topic, ``pairs`` (parproj_msgs/PairSelection), that says which acquisitions pair
+up; the node and ``parproj process`` make exactly those pairs (a scene may be in several).
+Without one (two images, no ``--pairs``) there is no ``pairs`` topic and the scenes pair up by
+order; the bag is then the same as ``parproj import`` of a pair always wrote.
 
-Pair selection (``pairs``):
+Pair selection (``pairs``, :func:`select_pairs`):
 
-* ``"bh"`` (default): every pair of images that overlap (at least :data:`MIN_COMMON` virtual
-  points seen by both) and whose base-to-height ratio is within ``bh_range`` (default
-  :data:`BH_RANGE` = 0.1 .. 1.0: below 0.1 the x-parallax per metre of height is too small for
-  useful heights, above 1.0 the views differ so much that image matching, and so tie points,
-  fail);
+* ``"bh"`` (default with three or more images): every pair of images that overlap (at least
+  :data:`MIN_COMMON` virtual points seen by both) and whose base-to-height ratio is within
+  ``bh_range`` (default :data:`BH_RANGE` = 0.1 .. 1.0: below 0.1 the x-parallax per metre of
+  height is too small for useful heights, above 1.0 the views differ so much that image
+  matching, and so tie points, fail);
 * ``"all"``: every overlapping pair, whatever its B/H;
-* a list of (left, right) scene ids: those pairs, in that order.
+* a list of (left, right) scene ids: those pairs, in that order; each must overlap
+  (:func:`parproj_ros.scene_import.check_overlap`, common points).
 
 Each pair's left scene is the earlier image on the command line.
 
@@ -40,31 +43,16 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .rpc import HeightFunction, LocalTangentPlane
+from .rpc import LocalTangentPlane
 from .scene_import import (
-    CHECK_GRID,
-    DEM_MARGIN,
-    GCP_GRID,
-    LINE_PERIOD,
-    MAX_GRID_ROWS,
-    PIXEL_SIZE,
-    PRINCIPAL_DISTANCE,
-    SCENE_GAP_S,
-    START_NS,
-    STRIP_LINES,
-    TRUTH_POINTS,
-    VIEW,
     Heights,
     ImportedImage,
     SceneImportError,
     VirtualPoints,
-    _grid,
-    _ground,
-    default_heights,
-    dem_from_path,
-    frame_id_of,
-    load_image,
-    make_frame,
+    check_overlap,
+    footprints_overlap,
+    import_scenes,
+    pair_truth_points,
 )
 
 FloatArray = NDArray[np.float64]
@@ -135,309 +123,129 @@ def base_to_height(d1: FloatArray, d2: FloatArray) -> tuple[float, float]:
     return bh, conv
 
 
-def _gcp_points(
-    images: Sequence[ImportedImage], heights: Heights, dem_margin: float
-) -> VirtualPoints:
-    """GCP and check-point grids over every image, observed in every image that sees them."""
-    gcp = VirtualPoints()
-    callable_h = callable(heights)
-
-    def levels(n: int) -> FloatArray:
-        u = np.linspace(-1.0, 1.0, n) if n > 1 else np.zeros(1)
-        return u * dem_margin if callable_h else u
-
-    for grid, check, shift in ((GCP_GRID, False, 0.0), (CHECK_GRID, True, 0.5)):
-        nx, ny, nz = grid
-        for img in images:
-            rows = min(max(ny, round(ny * img.lines / max(img.samples, 1))), MAX_GRID_ROWS)
-            gl, gs = _grid(img, nx, rows, shift if check else 0.0)
-            for dz in levels(nz):
-                geo = _ground(img, gl, gs, heights, np.full(gl.shape, dz))
-                gcp.add(f"{img.scene_id}_{'chk' if check else 'gcp'}", geo, images, check=check)
-    for img in images:
-        n = sum(
-            1
-            for o, c in zip(gcp.observations, gcp.check, strict=True)
-            if img.scene_id in o and not c
-        )
-        if n < 5:
-            raise SceneImportError(f"only {n} virtual GCP fall in {img.scene_id}: check the RPC")
-    return gcp
-
-
-def _truth_points(
-    left: ImportedImage,
-    right: ImportedImage,
-    heights: Heights,
-    count: int,
-    dem_margin: float,
-    prefix: str,
-    seed: int,
-) -> VirtualPoints:
-    """Up to ``count`` random points of ``left`` that ``right`` sees too (observed in both)."""
-    truth = VirtualPoints()
-    rng = np.random.default_rng(seed)
-    for _ in range(20):
-        n = 4 * count
-        gl = rng.uniform(0, left.lines - 1, n)
-        gs = rng.uniform(0, left.samples - 1, n)
-        dz = rng.uniform(-1.0, 1.0, n) * (dem_margin if callable(heights) else 1.0)
-        geo = _ground(left, gl, gs, heights, dz)
-        truth.add(prefix, geo, (left, right), check=True, min_scenes=2)
-        if len(truth.ids) >= count:
-            break
-    del truth.ids[count:], truth.geodetic[count:], truth.observations[count:], truth.check[count:]
-    return truth
-
-
-def import_scenes(
-    paths: Sequence[str | Path],
-    output: str | Path,
-    *,
-    pairs: str | Sequence[tuple[str, str]] = "bh",
-    bh_range: tuple[float, float] = BH_RANGE,
-    scene_ids: Sequence[str] | None = None,
-    rpcs: Sequence[str | Path | None] | None = None,
-    dem: str | Path | HeightFunction | None = None,
-    geoid_undulation: float = 0.0,
-    heights: tuple[float, float] | None = None,
-    principal_distance: float = PRINCIPAL_DISTANCE,
-    pixel_size: float = PIXEL_SIZE,
-    line_period: float = LINE_PERIOD,
-    dem_margin: float = DEM_MARGIN,
-    truth_points: int = TRUTH_POINTS,
-    overwrite: bool = False,
-    log: Callable[[str], None] = print,
-) -> dict[str, Any]:
-    """Write the input bag of two or more images with RPC and their pair selection.
-
-    Args:
-        paths: the images (GeoTIFF/TIFF), in acquisition order.
-        output: bag folder to create.
-        pairs: ``"bh"``, ``"all"`` or (left, right) scene ids (module docstring).
-        bh_range: (low, high) B/H of a useful pair (``pairs="bh"``).
-        scene_ids: one per image (default :func:`scene_ids_of`).
-        rpcs: RPC file of each image's full scene, None for :func:`scene_import.find_rpc`.
-        dem: SRTM ``.hgt`` path or a height function ``(lon, lat) -> ellipsoidal h`` (m).
-        geoid_undulation: metres added to the SRTM heights.
-        heights: (hmin, hmax) metres without a DEM (default: the first image's RPC).
-        principal_distance: c written in the scanner info, metres.
-        pixel_size: detector pitch written in the scanner info, metres.
-        line_period: seconds between lines (stamps).
-        dem_margin: half height range of the virtual points about the DEM, metres.
-        truth_points: truth points per pair.
-        overwrite: replace an existing bag.
-        log: where to report.
-
-    Returns:
-        Summary: scenes, every candidate pair with its B/H, convergence (deg), common points
-        and whether it was selected, the selected pairs.
+def _candidates(
+    images: Sequence[ImportedImage], pairs: str | Sequence[tuple[str, str]] | None
+) -> list[tuple[str, str]]:
+    """(left, right) scene ids to consider: by order (None), every two (str), or the given ones.
 
     Raises:
-        SceneImportError: fewer than two images, repeated or unknown scene ids, no pair
-            selected, an image without RPC or GCP.
+        SceneImportError: an unknown selection, an odd number of images without a selection, a
+            pair with an unknown scene id or the same scene twice.
+
     """
-    from parproj_msgs.msg import GroundControlPoints, PairSelection, ScannerInfo
-    from sensor_msgs.msg import Image
-
-    from .bag import BagWriter
-    from .conversions import array_to_image, gcp_to_msg, ns_to_stamp, pairs_to_msg
-
-    if len(paths) < 2:
-        raise SceneImportError("at least two images are needed")
-    ids = list(scene_ids) if scene_ids is not None else scene_ids_of(paths)
-    if len(ids) != len(paths) or len(set(ids)) != len(ids) or not all(ids):
-        raise SceneImportError(f"one distinct, non-empty scene id per image needed, got {ids}")
-    rpc_files = list(rpcs) if rpcs is not None else [None] * len(paths)
-    images = [
-        load_image(p, sid, rpc_path=r) for p, sid, r in zip(paths, ids, rpc_files, strict=True)
-    ]
-    if len({img.image.dtype for img in images}) > 1:
-        raise SceneImportError(f"pixel types differ: {[str(i.image.dtype) for i in images]}")
-    h: Heights
-    if dem is None:
-        h = heights if heights is not None else default_heights(images[0])
-    elif callable(dem):
-        h = dem
-    else:
-        h = dem_from_path(dem, geoid_undulation=geoid_undulation)
-    frame = make_frame(images[0], h)
-    frame_id = frame_id_of(frame)
-    gcp = _gcp_points(images, h, dem_margin)
-
-    # Candidate pairs: every two images (earlier one left), or the given ones.
-    by_id = {img.scene_id: img for img in images}
+    ids = [img.scene_id for img in images]
+    if pairs is None:
+        if len(ids) % 2:
+            raise SceneImportError(
+                f"{len(ids)} images without a pair selection: they pair up by order (1st with "
+                "2nd, 3rd with 4th, ...), so their number must be even; choose pairs with --pairs"
+            )
+        return list(zip(ids[::2], ids[1::2], strict=True))
     if isinstance(pairs, str):
         if pairs not in ("all", "bh"):
             raise SceneImportError(f"pairs must be 'all', 'bh' or a list, got {pairs!r}")
-        candidates = [(a.scene_id, b.scene_id) for a, b in itertools.combinations(images, 2)]
-    else:
-        candidates = [(str(a), str(b)) for a, b in pairs]
-        for a, b in candidates:
-            unknown = [s for s in (a, b) if s not in by_id]
-            if unknown or a == b:
-                raise SceneImportError(
-                    f"pair {a}:{b}: "
-                    + (f"unknown scene id {', '.join(unknown)}" if unknown else "same scene twice")
-                    + f" (scene ids: {', '.join(ids)})"
-                )
+        return list(itertools.combinations(ids, 2))
+    candidates = [(str(a), str(b)) for a, b in pairs]
+    for a, b in candidates:
+        unknown = [s for s in (a, b) if s not in ids]
+        if unknown or a == b:
+            raise SceneImportError(
+                f"pair {a}:{b}: "
+                + (f"unknown scene id {', '.join(unknown)}" if unknown else "same scene twice")
+                + f" (scene ids: {', '.join(ids)})"
+            )
+    return candidates
+
+
+def select_pairs(
+    images: Sequence[ImportedImage],
+    pairs: str | Sequence[tuple[str, str]] | None,
+    bh_range: tuple[float, float],
+    heights: Heights,
+    frame: LocalTangentPlane,
+    truth_points: int,
+    dem_margin: float,
+    log: Callable[[str], None],
+) -> tuple[list[dict[str, Any]], VirtualPoints]:
+    """Each candidate pair's overlap, B/H and convergence; the selected ones' truth points.
+
+    Args:
+        images: the checked images (:func:`parproj_ros.scene_import.check_image` done).
+        pairs: None (no selection: images pair up by order, as the node pairs scenes without
+            a ``pairs`` topic), ``"bh"``, ``"all"`` or (left, right) scene ids.
+        bh_range: (low, high) B/H of a useful pair (``pairs="bh"``).
+        heights: DEM or (hmin, hmax) metres, as for the virtual points.
+        frame: the object frame (viewing directions in east, north, up).
+        truth_points: truth points per pair (ids ``t<k>_0000``... for the k-th candidate;
+            ``truth0000``... for the first without a selection).
+        dem_margin: half height range of the truth points about the DEM, metres.
+        log: where each candidate's line goes.
+
+    Returns:
+        One row per candidate (left, right, common_points, base_to_height, convergence_deg,
+        selected, why) and the truth points of the selected pairs.
+
+    Raises:
+        SceneImportError: a pair that is not chosen by B/H (None or given) and does not overlap
+            (:func:`parproj_ros.scene_import.check_overlap`, or no common point); nothing
+            selected.
+
+    """
+    by_id = {img.scene_id: img for img in images}
+    candidates = _candidates(images, pairs)
     truth = VirtualPoints()
     table: list[dict[str, Any]] = []
     for k, (a, b) in enumerate(candidates):
-        t = _truth_points(by_id[a], by_id[b], h, truth_points, dem_margin, f"t{k}_", seed=k)
-        row: dict[str, Any] = {"left": a, "right": b, "common_points": len(t.ids)}
-        if len(t.ids) >= 1:
+        row: dict[str, Any] = {"left": a, "right": b, "common_points": 0}
+        bh, conv = float("nan"), float("nan")
+        t = VirtualPoints()
+        if not isinstance(pairs, str):
+            check_overlap(by_id[a], by_id[b])  # a pair asked for must be one
+        if not isinstance(pairs, str) or footprints_overlap(by_id[a], by_id[b]):
+            prefix = f"t{k}_" if pairs is not None or k else "truth"  # as both importers did
+            t = pair_truth_points(by_id[a], by_id[b], heights, truth_points, dem_margin, prefix, k)
+            row["common_points"] = len(t.ids)
+        if not t.ids and not isinstance(pairs, str):
+            raise SceneImportError(
+                f"pair {a}:{b}: no virtual point falls in both {by_id[a].path} and "
+                f"{by_id[b].path}: do they overlap?"
+            )
+        if t.ids:
             centre = np.mean(np.array(t.geodetic), axis=0)
             bh, conv = base_to_height(
                 viewing_direction(by_id[a], centre, frame),
                 viewing_direction(by_id[b], centre, frame),
             )
-        else:
-            bh, conv = float("nan"), float("nan")
         row["base_to_height"], row["convergence_deg"] = bh, conv
         overlap = len(t.ids) >= MIN_COMMON
         in_window = bool(bh_range[0] <= bh <= bh_range[1])
-        if pairs == "bh":
-            row["selected"] = overlap and in_window
-        elif pairs == "all":
-            row["selected"] = overlap
-        else:
+        if pairs is None:
+            row["selected"], row["why"] = True, "by order"
+        elif not isinstance(pairs, str):
             row["selected"] = True
-        row["why"] = (
-            ("given" if in_window else "given, B/H outside the useful window")
-            if not isinstance(pairs, str)
-            else (
+            row["why"] = "given" if in_window else "given, B/H outside the useful window"
+        else:
+            row["selected"] = overlap and (in_window or pairs == "all")
+            row["why"] = (
                 "no overlap"
                 if not overlap
                 else ("B/H in window" if in_window else "B/H outside window")
             )
-        )
         if row["selected"]:
-            truth.ids += t.ids
-            truth.geodetic += t.geodetic
-            truth.observations += t.observations
-            truth.check += t.check
+            truth.extend(t)
         table.append(row)
         log(
             f"pair {a}:{b}: B/H {bh:.3f}, convergence {conv:.2f} deg, {len(t.ids)} common "
             f"points: "
             + (f"selected ({row['why']})" if row["selected"] else f"not selected ({row['why']})")
         )
-    chosen = [r for r in table if r["selected"]]
-    if not chosen:
+    if not any(r["selected"] for r in table):
         raise SceneImportError(
             f"no pair selected ({pairs if isinstance(pairs, str) else 'given'}; B/H window "
             f"{bh_range[0]:g}..{bh_range[1]:g}): "
             + "; ".join(f"{r['left']}:{r['right']} B/H {r['base_to_height']:.3f}" for r in table)
         )
-
-    period_ns = line_period * 1e9
-    starts, t = [], START_NS
-    for img in images:
-        starts.append(t)
-        t += round(img.lines * period_ns) + round(SCENE_GAP_S * 1e9)
-    t_info = START_NS - 1_000_000_000
-    detectors = max(img.samples for img in images)
-    custom = {
-        "parproj_import": "parproj import (parproj_ros/multi_import.py)",
-        "object_frame": frame_id,
-        "images": ", ".join(f"{img.path.name} ({img.scene_id})" for img in images),
-        "rpc": "; ".join(img.rpc_source for img in images),
-        "crop_offsets_line_sample": "; ".join(str(img.offset) for img in images),
-        "pairs": ", ".join(
-            f"{r['left']}:{r['right']} (B/H {r['base_to_height']:.3f})" for r in chosen
-        ),
-    }
-    with BagWriter(
-        Path(output), compression="zstd", overwrite=overwrite, custom_data=custom
-    ) as bw:
-        bw.add_topic(f"{VIEW}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
-        bw.add_topic(f"{VIEW}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local")
-        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        bw.add_topic("pairs", "parproj_msgs/msg/PairSelection", "transient_local")
-        info = ScannerInfo()
-        ns_to_stamp(t_info, info.header.stamp)
-        info.header.frame_id = VIEW
-        info.camera_name = VIEW
-        info.principal_distance = float(principal_distance)
-        info.pixel_size = float(pixel_size)
-        info.detectors = int(detectors)
-        info.principal_point = (images[0].samples - 1) / 2.0
-        info.line_period = float(line_period)
-        info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = 0.0, 0.0, 0.0, 1.0
-        bw.write(f"{VIEW}/scanner_info", info, t_info)
-        for topic, vp in (("gcp", gcp), ("truth/points", truth)):
-            msg = gcp_to_msg(
-                vp.ground_points(frame), GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info
-            )
-            bw.write(topic, msg, t_info)
-        sel = pairs_to_msg(
-            [(r["left"], r["right"]) for r in chosen], PairSelection(), stamp_ns=t_info
-        )
-        bw.write("pairs", sel, t_info)
-        for img, t0 in zip(images, starts, strict=True):
-            pixels = img.image
-            if pixels.shape[1] < detectors:  # one camera: narrower crops padded with no-data
-                pad = np.zeros((pixels.shape[0], detectors - pixels.shape[1]), pixels.dtype)
-                pixels = np.hstack([pixels, pad])
-            for r0 in range(0, img.lines, STRIP_LINES):
-                stamp = t0 + round(r0 * period_ns)
-                msg = array_to_image(
-                    pixels[r0 : r0 + STRIP_LINES], Image(), frame_id=img.scene_id, stamp_ns=stamp
-                )
-                bw.write(f"{VIEW}/image_strip", msg, stamp)
-    size = sum(f.stat().st_size for f in Path(output).iterdir())
-    n_gcp = sum(1 for c in gcp.check if not c)
-    log(
-        f"wrote {output} ({size / 1e6:.2f} MB): {len(images)} scenes, {len(chosen)} pairs "
-        f"({', '.join(r['left'] + ':' + r['right'] for r in chosen)}); {n_gcp} GCP, "
-        f"{len(gcp.ids) - n_gcp} check, {len(truth.ids)} truth points; object frame {frame_id}"
-    )
-    return {
-        "output": str(output),
-        "size_mb": size / 1e6,
-        "frame_id": frame_id,
-        "scenes": {
-            img.scene_id: {"image": str(img.path), "lines": img.lines, "samples": img.samples}
-            for img in images
-        },
-        "candidates": table,
-        "pairs": [(r["left"], r["right"]) for r in chosen],
-        "gcp": n_gcp,
-        "check": len(gcp.ids) - n_gcp,
-        "truth": len(truth.ids),
-    }
-
-
-def cmd_import_many(args: Any) -> int:
-    """``parproj import A B C ... [--pairs all|bh|A:B,...]`` (called by cli.cmd_import)."""
-    import sys
-
-    from .rpc import RPCError
-
-    paths = [args.left, args.right, *args.more]
-    try:
-        ids = list(args.ids) if args.ids else scene_ids_of(paths)
-        spec = parse_pairs(args.pairs or "bh", ids)
-        import_scenes(
-            paths,
-            args.output,
-            pairs=spec,
-            bh_range=tuple(args.bh_range),
-            scene_ids=ids,
-            rpcs=[args.rpc_left, args.rpc_right] + [None] * len(args.more),
-            dem=args.dem,
-            geoid_undulation=args.geoid_undulation,
-            heights=tuple(args.heights) if args.heights else None,
-            principal_distance=args.principal_distance,
-            pixel_size=args.pixel_size,
-            overwrite=args.force,
-        )
-    except (RPCError, FileExistsError, OSError, ValueError) as err:
-        print(f"parproj import: {err}", file=sys.stderr)
-        return 2
-    return 0
+    return table, truth
 
 
 __all__ = [
@@ -446,5 +254,6 @@ __all__ = [
     "import_scenes",
     "parse_pairs",
     "scene_ids_of",
+    "select_pairs",
     "viewing_direction",
 ]

@@ -1,8 +1,12 @@
-"""``parproj import``: two satellite images with RPC models -> a single-camera input bag.
+"""``parproj import``: satellite images with RPC models -> a single-camera input bag.
 
-The two images (e.g. the crops of a Pleiades stereo pair) become the scenes of one view
-(:data:`VIEW`, single-camera mode: consecutive scenes pair up), cut into strips of
-:data:`STRIP_LINES` image rows with increasing stamps, the second scene after the first. Image
+The one importer (:func:`import_scenes`; :func:`import_pair` is it with two images). The
+images (e.g. the crops of a Pleiades stereo pair, or more acquisitions) become the scenes of one
+view (:data:`VIEW`, single-camera mode), cut into strips of :data:`STRIP_LINES` image rows with
+increasing stamps, each scene after the one before. Which scenes pair up: without a selection
+(two images, no ``--pairs``) consecutive scenes, as the node pairs them; with one (three or more
+images, or ``--pairs``), the pairs chosen by parproj_ros/multi_import.py (B/H), written on the
+latched ``pairs`` topic. Image
 rows are scan lines (pushbroom time), columns are detectors. There is no navigation: the node
 gets its parameters from the virtual ground control points on the ``gcp`` topic (Eq 8, roll
 estimated), exactly as paper 2 did for its IKONOS pair.
@@ -15,14 +19,16 @@ Topics written (relative names, as ``parproj_node`` subscribes to them):
 | pan/scanner_info | parproj_msgs/msg/ScannerInfo | documented defaults (below), once |
 | gcp | parproj_msgs/msg/GroundControlPoints | virtual GCP and check points, once |
 | truth/points | parproj_msgs/msg/GroundControlPoints | other virtual points, for evaluation |
+| pairs | parproj_msgs/msg/PairSelection | the selected pairs, once (only with a selection) |
 
 Images and RPC are read through GDAL (parproj_ros/raster_io.py: any raster GDAL reads, RPC
 from every source GDAL reads, OSSIM ``.geom`` and loose DIMAP XML by parproj_ros/rpc.py), pixels
 by windows of :data:`STRIP_LINES` rows. Image coordinates of every observation are those of the
 *crops* (0, 0 = centre of the crop's first pixel): the RPC is shifted by the crop origin
 (``--crop-origin``, else GDAL's geotransform, i.e. the ModelTransformationTag 34264, else (0, 0),
-a named assumption: :func:`load_image`) with :meth:`RPCModel.shifted`. Before anything is
-written each image's RPC is checked over it (:func:`check_image`, :func:`check_overlap`).
+a named assumption: :func:`load_image`) with :meth:`RPCModel.shifted`. Crop origin, RPC file
+and band can be given for every image. Before anything is written each image's RPC is checked
+over it (:func:`check_image`) and each pair must overlap (:func:`check_overlap`).
 
 Object frame: a local east-north-up tangent plane on WGS84 (:class:`LocalTangentPlane`), origin
 at the centre of the first image on the mean ground height, rounded to 1e-7 deg and 1 cm so that
@@ -40,8 +46,9 @@ Virtual points (all exact RPC correspondences, projections of one geodetic point
   scene, and points inside both crops also give the pair's y-parallax;
 * check points: a sparser grid (:data:`CHECK_GRID`) half a step off the GCP grid, flagged
   ``check_point`` (never used in the estimation);
-* truth points: :data:`TRUTH_POINTS` random positions in the first image that the second image
-  also sees, at random heights within the margin of the ground; on ``truth/points`` only.
+* truth points: per pair, :data:`TRUTH_POINTS` random positions in its left image that its
+  right image also sees, at random heights within the margin of the ground; on
+  ``truth/points`` only.
 
 Scanner info: an RPC carries no interior orientation. Defaults (Pleiades-like): principal
 distance :data:`PRINCIPAL_DISTANCE` = 12.905 m, detector pitch :data:`PIXEL_SIZE` = 13 um,
@@ -177,7 +184,7 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
     raise SceneImportError(
         f"{p}: no RPC (GDAL finds none: no tag {RPC_TIFF_TAG}, no {stem}.RPB / {stem}_RPC.TXT, "
         f"no NITF RPC00B; no {stem}.geom; {'several' if xmls else 'no'} RPC_*.XML in {folder}); "
-        "pass it with --rpc-left / --rpc-right"
+        "pass it with --rpc IMAGE FILE (or --rpc-left / --rpc-right)"
     )
 
 
@@ -228,11 +235,6 @@ class ImportedImage:
     def dtype(self) -> np.dtype[Any]:
         """Pixel type of the strips."""
         return raster_io.out_dtype(self.info.dtype)
-
-    @property
-    def image(self) -> NDArray[np.generic]:
-        """All pixels of the imported band (reads the file; small images, tests)."""
-        return raster_io.read_band(self.path, self.band)
 
     def inside(self, ls: FloatArray) -> NDArray[np.bool_]:
         """Whether (line, sample) rows (n, 2) fall on pixel centres of the image (NaN: no)."""
@@ -442,6 +444,13 @@ class VirtualPoints:
             count += 1
         return count
 
+    def extend(self, other: VirtualPoints) -> None:
+        """Append the points of ``other`` (their ids must not clash with these)."""
+        self.ids += other.ids
+        self.geodetic += other.geodetic
+        self.observations += other.observations
+        self.check += other.check
+
     def ground_points(self, frame: LocalTangentPlane) -> list[Any]:
         """As pipeline GroundPoints (object coordinates in ``frame``, metres)."""
         from .pipeline import GroundPoint
@@ -544,14 +553,15 @@ def check_image(
     foot = raster_io.map_footprint(img.info, ll[::3], ss[::3])
     if foot is not None:
         c = (0.5 * float(lon.min() + lon.max()), 0.5 * float(lat.min() + lat.max()))
-        k = 111_320.0  # metres per degree
+        m_deg = 111_320.0  # metres per degree
         d = np.hypot(
-            (foot[:, 0] - lon[::3]) * k * math.cos(math.radians(c[1])), (foot[:, 1] - lat[::3]) * k
+            (foot[:, 0] - lon[::3]) * m_deg * math.cos(math.radians(c[1])),
+            (foot[:, 1] - lat[::3]) * m_deg,
         )
         size = float(
             np.hypot(
-                (lon.max() - lon.min()) * k * math.cos(math.radians(c[1])),
-                (lat.max() - lat.min()) * k,
+                (lon.max() - lon.min()) * m_deg * math.cos(math.radians(c[1])),
+                (lat.max() - lat.min()) * m_deg,
             )
         )
         if float(np.median(d)) > max(2000.0, 0.5 * size):
@@ -576,10 +586,16 @@ def check_image(
     return checks
 
 
+def footprints_overlap(left: ImportedImage, right: ImportedImage) -> bool:
+    """Whether the lon/lat boxes of two images (from :func:`check_image`) intersect."""
+    a, b = left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"]
+    return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
+
+
 def check_overlap(left: ImportedImage, right: ImportedImage) -> None:
     """Refuse a pair whose ground footprints (from :func:`check_image`) do not intersect."""
     a, b = left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"]
-    if a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]:
+    if not footprints_overlap(left, right):
         raise SceneImportError(
             f"{left.path} and {right.path} do not overlap on the ground: footprints lon/lat "
             f"{[round(v, 4) for v in a]} and {[round(v, 4) for v in b]}; not a stereo pair, or "
@@ -599,24 +615,20 @@ def make_frame(img: ImportedImage, heights: Heights) -> LocalTangentPlane:
     return LocalTangentPlane(round(geo[1], 7), round(geo[0], 7), round(geo[2], 2))
 
 
-def virtual_points(
-    left: ImportedImage,
-    right: ImportedImage,
+def gcp_points(
+    images: Sequence[ImportedImage],
     heights: Heights,
+    dem_margin: float = DEM_MARGIN,
     *,
     gcp_grid: tuple[int, int, int] = GCP_GRID,
     check_grid: tuple[int, int, int] = CHECK_GRID,
-    truth_points: int = TRUTH_POINTS,
-    dem_margin: float = DEM_MARGIN,
-    seed: int = 0,
-) -> tuple[VirtualPoints, VirtualPoints]:
-    """(GCP + check points, truth points) of a pair (see the module docstring).
+) -> VirtualPoints:
+    """GCP and check points: grids over every image, observed in every image that sees them.
 
     Raises:
-        SceneImportError: fewer than 5 GCP in a scene, or no truth point seen by both images.
+        SceneImportError: fewer than 5 GCP in a scene.
 
     """
-    images = (left, right)
     gcp = VirtualPoints()
     callable_h = callable(heights)
 
@@ -633,7 +645,7 @@ def virtual_points(
             gl, gs = _grid(img, nx, rows, shift if check else 0.0)
             for dz in levels(nz):
                 geo = _ground(img, gl, gs, heights, np.full(gl.shape, dz))
-                # a point from the other image's grid that also falls here keeps both observations
+                # a point from another image's grid that also falls here keeps every observation
                 gcp.add(f"{img.scene_id}_{'chk' if check else 'gcp'}", geo, images, check=check)
     for img in images:
         n = sum(
@@ -643,22 +655,36 @@ def virtual_points(
         )
         if n < 5:
             raise SceneImportError(f"only {n} virtual GCP fall in {img.scene_id}: check the RPC")
+    return gcp
+
+
+def pair_truth_points(
+    left: ImportedImage,
+    right: ImportedImage,
+    heights: Heights,
+    count: int = TRUTH_POINTS,
+    dem_margin: float = DEM_MARGIN,
+    prefix: str = "truth",
+    seed: int = 0,
+) -> VirtualPoints:
+    """Up to ``count`` random points of ``left`` that ``right`` sees too (observed in both).
+
+    Image positions uniform over ``left``; heights uniform within ``dem_margin`` metres of the
+    DEM ground, or over (hmin, hmax); ids ``prefix`` + a 4-digit number.
+    """
     truth = VirtualPoints()
     rng = np.random.default_rng(seed)
     for _ in range(20):
-        n = 4 * truth_points
+        n = 4 * count
         gl = rng.uniform(0, left.lines - 1, n)
         gs = rng.uniform(0, left.samples - 1, n)
-        dz = rng.uniform(-1.0, 1.0, n) * (dem_margin if callable_h else 1.0)
+        dz = rng.uniform(-1.0, 1.0, n) * (dem_margin if callable(heights) else 1.0)
         geo = _ground(left, gl, gs, heights, dz)
-        truth.add("truth", geo, images, check=True, min_scenes=2)
-        if len(truth.ids) >= truth_points:
+        truth.add(prefix, geo, (left, right), check=True, min_scenes=2)
+        if len(truth.ids) >= count:
             break
-    del truth.ids[truth_points:], truth.geodetic[truth_points:]
-    del truth.observations[truth_points:], truth.check[truth_points:]
-    if not truth.ids:
-        raise SceneImportError("no virtual point falls in both images: do they overlap?")
-    return gcp, truth
+    del truth.ids[count:], truth.geodetic[count:], truth.observations[count:], truth.check[count:]
+    return truth
 
 
 # ---------------------------------------------------------------------------------------------
@@ -710,19 +736,19 @@ def _check_options(
             )
 
 
-def import_pair(
-    left_path: str | Path,
-    right_path: str | Path,
+def import_scenes(
+    paths: Sequence[str | Path],
     output: str | Path,
     *,
-    rpc_left: str | Path | None = None,
-    rpc_right: str | Path | None = None,
+    pairs: str | Sequence[tuple[str, str]] | None = "bh",
+    bh_range: tuple[float, float] | None = None,
+    scene_ids: Sequence[str] | None = None,
+    rpcs: Sequence[str | Path | None] | None = None,
+    offsets: Sequence[tuple[float, float] | None] | None = None,
+    band: int | None = None,
     dem: str | Path | HeightFunction | None = None,
     geoid_undulation: float = 0.0,
     heights: tuple[float, float] | None = None,
-    scene_ids: tuple[str, str] = ("left", "right"),
-    offsets: tuple[tuple[float, float] | None, tuple[float, float] | None] = (None, None),
-    band: int | None = None,
     principal_distance: float = PRINCIPAL_DISTANCE,
     pixel_size: float = PIXEL_SIZE,
     line_period: float = LINE_PERIOD,
@@ -731,65 +757,91 @@ def import_pair(
     overwrite: bool = False,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
-    """Write the input bag of a pair of images with RPC (module docstring); return a summary.
+    """Write the input bag of two or more images with RPC (module docstring); return a summary.
+
+    Every image is read by windows of :data:`STRIP_LINES` rows (one strip in memory at a time),
+    checked (:func:`check_image`; its notes and figures logged), and every pair considered
+    must overlap (:func:`check_overlap`; automatic selections leave out those that do not).
 
     Args:
-        left_path: first image (scene ``scene_ids[0]``, the left scene of the pair).
-        right_path: second image.
+        paths: the images (any raster GDAL reads), in acquisition order.
         output: bag folder to create.
-        rpc_left: RPC file of the first image's full scene (default: :func:`find_rpc`).
-        rpc_right: RPC file of the second image's full scene.
+        pairs: None (no selection: consecutive images pair up, no ``pairs`` topic), ``"bh"``,
+            ``"all"`` or (left, right) scene ids
+            (:func:`parproj_ros.multi_import.select_pairs`).
+        bh_range: (low, high) B/H of a useful pair for ``pairs="bh"`` (default
+            :data:`parproj_ros.multi_import.BH_RANGE`).
+        scene_ids: one per image (default :func:`parproj_ros.multi_import.scene_ids_of`).
+        rpcs: per image, an RPC file of its full scene, or None for :func:`find_rpc`.
+        offsets: per image, the crop origin (line, sample) in its RPC's grid, pixels, or None:
+            from GDAL's geotransform (:func:`crop_offset`), else (0, 0), a named assumption
+            (logged).
+        band: the band to import from every image (1-based); None: band 1 (logged when an
+            image has more).
         dem: SRTM ``.hgt`` path or a height function ``(lon, lat) -> ellipsoidal h`` (m); None:
             ``heights``.
         geoid_undulation: metres added to the SRTM heights (geoid -> ellipsoid).
-        heights: (hmin, hmax) metres without a DEM (default :func:`default_heights`).
-        scene_ids: the two scene ids.
-        offsets: crop origins (line, sample) per image in its RPC's grid; None: from GDAL's
-            geotransform (:func:`crop_offset`), else (0, 0), a named assumption (logged).
-        band: the band to import from each image (1-based); None: band 1 (logged when an image
-            has more).
+        heights: (hmin, hmax) metres without a DEM (default :func:`default_heights` of the
+            first image).
         principal_distance: c written in the scanner info, metres.
         pixel_size: detector pitch written in the scanner info, metres.
         line_period: seconds between lines (stamps).
         dem_margin: half height range of the virtual points about the DEM, metres.
-        truth_points: number of truth points.
+        truth_points: number of truth points per pair.
         overwrite: replace an existing bag.
         log: where to report.
 
     Returns:
-        Summary (sizes, counts, frame_id, RPC and offset sources, checks, notes).
+        Summary: sizes, counts, frame_id, per scene the RPC and offset sources, band, checks
+        and notes; every candidate pair with its B/H, convergence (deg), common points and
+        whether it was selected; the pairs.
 
     Raises:
-        SceneImportError: bad options (NaN, zero height range), an unreadable image, no RPC, a
-            failed check (:func:`check_image`, :func:`check_overlap`), no common points.
+        SceneImportError: bad options (NaN, zero height range, scene ids, per-image lists of
+            the wrong length), an unreadable image, no RPC, a failed check, pixel types that
+            differ, a pair asked for that does not overlap, no pair selected.
         RPCFormatError: a malformed RPC (file, key and value named).
 
     """
-    from parproj_msgs.msg import GroundControlPoints, ScannerInfo
+    from parproj_msgs.msg import GroundControlPoints, PairSelection, ScannerInfo
     from sensor_msgs.msg import Image
 
     from .bag import BagWriter
-    from .conversions import array_to_image, gcp_to_msg, ns_to_stamp
+    from .conversions import array_to_image, gcp_to_msg, ns_to_stamp, pairs_to_msg
+    from .multi_import import BH_RANGE, scene_ids_of, select_pairs
 
-    if scene_ids[0] == scene_ids[1]:
-        raise SceneImportError("the two scene ids must differ")
+    n = len(paths)
+    if n < 2:
+        raise SceneImportError("at least two images are needed")
+    ids = list(scene_ids) if scene_ids is not None else scene_ids_of(paths)
+    if len(ids) != n or len(set(ids)) != n or not all(ids):
+        raise SceneImportError(f"one distinct, non-empty scene id per image needed, got {ids}")
+    rpc_files = list(rpcs) if rpcs is not None else [None] * n
+    origins = list(offsets) if offsets is not None else [None] * n
+    if len(rpc_files) != n or len(origins) != n:
+        raise SceneImportError(
+            f"one RPC file and one crop origin (or None) per image needed: {len(rpc_files)} and "
+            f"{len(origins)} for {n} images"
+        )
     _check_options(
         heights, geoid_undulation, principal_distance, pixel_size, line_period, dem_margin
     )
-    left = load_image(left_path, scene_ids[0], rpc_path=rpc_left, offset=offsets[0], band=band)
-    right = load_image(right_path, scene_ids[1], rpc_path=rpc_right, offset=offsets[1], band=band)
-    if left.dtype != right.dtype:
+    images = [
+        load_image(p, sid, rpc_path=r, offset=o, band=band)
+        for p, sid, r, o in zip(paths, ids, rpc_files, origins, strict=True)
+    ]
+    if len({img.dtype for img in images}) > 1:
         raise SceneImportError(
-            f"pixel types differ: {left.path} {left.dtype}, {right.path} {right.dtype}"
+            "pixel types differ: " + ", ".join(f"{img.path} {img.dtype}" for img in images)
         )
     h: Heights
     if dem is None:
-        h = heights if heights is not None else default_heights(left)
+        h = heights if heights is not None else default_heights(images[0])
     elif callable(dem):
         h = dem
     else:
         h = dem_from_path(dem, geoid_undulation=geoid_undulation)
-    for img in (left, right):
+    for img in images:
         check_image(img, height_range(img, h, dem_margin))
         for note in img.notes:
             log(note)
@@ -799,25 +851,34 @@ def import_pair(
             f"({img.offset_source}); round trip {c['round_trip_px']:.1e} px, "
             f"{c['round_trip_deg']:.1e} deg"
         )
-    check_overlap(left, right)
-    frame = make_frame(left, h)
+    frame = make_frame(images[0], h)
     frame_id = frame_id_of(frame)
-    gcp, truth = virtual_points(left, right, h, truth_points=truth_points, dem_margin=dem_margin)
-    gcp_points = gcp.ground_points(frame)
-    truth_points_ = truth.ground_points(frame)
+    gcp = gcp_points(images, h, dem_margin)
+    table, truth = select_pairs(
+        images, pairs, bh_range or BH_RANGE, h, frame, truth_points, dem_margin, log
+    )
+    chosen = [(r["left"], r["right"]) for r in table if r["selected"]]
 
     period_ns = line_period * 1e9
-    starts = [START_NS]
-    starts.append(START_NS + round(left.lines * period_ns) + round(SCENE_GAP_S * 1e9))
+    starts, t = [], START_NS
+    for img in images:
+        starts.append(t)
+        t += round(img.lines * period_ns) + round(SCENE_GAP_S * 1e9)
     t_info = START_NS - 1_000_000_000
-    detectors = max(left.samples, right.samples)
+    detectors = max(img.samples for img in images)
     custom = {
         "parproj_import": "parproj import (parproj_ros/scene_import.py)",
         "object_frame": frame_id,
-        "images": f"{left.path.name} ({scene_ids[0]}), {right.path.name} ({scene_ids[1]})",
-        "rpc": f"{left.rpc_source}; {right.rpc_source}",
-        "crop_offsets_line_sample": f"{left.offset}; {right.offset}",
+        "images": ", ".join(f"{img.path.name} ({img.scene_id})" for img in images),
+        "rpc": "; ".join(img.rpc_source for img in images),
+        "crop_offsets_line_sample": "; ".join(str(img.offset) for img in images),
     }
+    if pairs is not None:
+        custom["pairs"] = ", ".join(
+            f"{r['left']}:{r['right']} (B/H {r['base_to_height']:.3f})"
+            for r in table
+            if r["selected"]
+        )
     with BagWriter(
         Path(output), compression="zstd", overwrite=overwrite, custom_data=custom
     ) as bw:
@@ -832,14 +893,19 @@ def import_pair(
         info.principal_distance = float(principal_distance)
         info.pixel_size = float(pixel_size)
         info.detectors = int(detectors)
-        info.principal_point = (left.samples - 1) / 2.0
+        info.principal_point = (images[0].samples - 1) / 2.0
         info.line_period = float(line_period)
         info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = 0.0, 0.0, 0.0, 1.0
         bw.write(f"{VIEW}/scanner_info", info, t_info)
-        for topic, pts in (("gcp", gcp_points), ("truth/points", truth_points_)):
-            msg = gcp_to_msg(pts, GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info)
+        for topic, vp in (("gcp", gcp), ("truth/points", truth)):
+            msg = gcp_to_msg(
+                vp.ground_points(frame), GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info
+            )
             bw.write(topic, msg, t_info)
-        for img, t0 in zip((left, right), starts, strict=True):
+        if pairs is not None:
+            bw.add_topic("pairs", "parproj_msgs/msg/PairSelection", "transient_local")
+            bw.write("pairs", pairs_to_msg(chosen, PairSelection(), stamp_ns=t_info), t_info)
+        for img, t0 in zip(images, starts, strict=True):
             # One camera has one detector count: a narrower crop is padded on the right with
             # no-data (0) columns, which changes no pixel's position.
             # Read by windows of STRIP_LINES rows: one strip in memory at a time.
@@ -879,20 +945,66 @@ def import_pair(
                     if img.scene_id in o and not c
                 ),
             }
-            for img in (left, right)
+            for img in images
         },
+        "candidates": table,
+        "pairs": chosen,
         "gcp": n_gcp,
         "check": len(gcp.ids) - n_gcp,
-        "gcp_in_both": sum(1 for o in gcp.observations if len(o) == 2),
+        "gcp_in_both": sum(1 for o in gcp.observations if len(o) >= 2),
         "truth": len(truth.ids),
         "heights": "DEM" if callable(h) else list(h),
     }
     log(
-        f"wrote {output} ({size / 1e6:.2f} MB): scenes {scene_ids[0]} {left.lines}x{left.samples}"
-        f", {scene_ids[1]} {right.lines}x{right.samples}; {n_gcp} GCP, {summary['check']} check,"
-        f" {len(truth.ids)} truth points; object frame {frame_id}"
+        f"wrote {output} ({size / 1e6:.2f} MB): scenes "
+        + ", ".join(f"{img.scene_id} {img.lines}x{img.samples}" for img in images)
+        + (f"; pairs {', '.join(a + ':' + b for a, b in chosen)}" if pairs is not None else "")
+        + f"; {n_gcp} GCP, {summary['check']} check, {len(truth.ids)} truth points; object "
+        f"frame {frame_id}"
     )
     return summary
+
+
+def import_pair(
+    left_path: str | Path,
+    right_path: str | Path,
+    output: str | Path,
+    *,
+    rpc_left: str | Path | None = None,
+    rpc_right: str | Path | None = None,
+    scene_ids: tuple[str, str] = ("left", "right"),
+    offsets: tuple[tuple[float, float] | None, tuple[float, float] | None] = (None, None),
+    **options: Any,
+) -> dict[str, Any]:
+    """The bag of a pair: :func:`import_scenes` of two images without a pair selection.
+
+    Args:
+        left_path: first image (scene ``scene_ids[0]``, the left scene of the pair).
+        right_path: second image.
+        output: bag folder to create.
+        rpc_left: RPC file of the first image's full scene (default: :func:`find_rpc`).
+        rpc_right: RPC file of the second image's full scene.
+        scene_ids: the two scene ids.
+        offsets: crop origins (line, sample) per image in its RPC's grid, pixels (None: from
+            the file, else (0, 0)).
+        **options: the other keyword arguments of :func:`import_scenes` (dem, heights, band,
+            principal_distance, ..., log).
+
+    Raises:
+        SceneImportError, RPCFormatError: as :func:`import_scenes`.
+
+    """
+    if scene_ids[0] == scene_ids[1]:
+        raise SceneImportError("the two scene ids must differ")
+    return import_scenes(
+        [left_path, right_path],
+        output,
+        pairs=None,
+        scene_ids=scene_ids,
+        rpcs=(rpc_left, rpc_right),
+        offsets=offsets,
+        **options,
+    )
 
 
 def geodetic_of(points: Sequence[Any], frame_id: str) -> FloatArray:
@@ -912,5 +1024,6 @@ __all__ = [
     "frame_from_id",
     "frame_id_of",
     "import_pair",
+    "import_scenes",
     "load_image",
 ]

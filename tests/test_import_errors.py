@@ -163,6 +163,8 @@ def test_bad_options(pair: tuple[Path, Path], tmp_path: Path) -> None:
         ["--heights", "nan", "800"],
         ["--crop-origin", "nothere.tif", "1", "2"],
         ["--crop-origin", "left.tif", "nan", "2"],
+        ["--rpc", "nothere.tif", "x.geom"],
+        ["--rpc-left", "a.geom", "--rpc", "left.tif", "b.geom"],  # twice
     ):
         assert exit_code([*args, *extra]) == 2, extra
 

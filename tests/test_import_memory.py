@@ -5,6 +5,11 @@ crops of the full scenes) is imported in a subprocess; its peak RSS (ru_maxrss) 
 the import of a 500 x 500 pair in the same kind of subprocess. Holding either image would add
 72 MB (and the old right-padding copy as much again); reading strips of 64 rows adds about one
 strip (0.8 MB) plus the bag writer's chunk buffer.
+
+Three images (``parproj import A B C``, the same importer with a pair selection), scaled small:
+3300 x 3300 against 1100 x 1100 (22 MB against 2.4 MB per image; both above the 1024 px side of
+the constant-band check's decimated read, whose size is bounded), GDAL's block cache held to 2 MB
+so that it cannot hide a whole image.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ from __future__ import annotations
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import rasterio
@@ -27,13 +33,29 @@ import_pair(sys.argv[1], sys.argv[2], sys.argv[3], heights=(500.0, 1500.0), log=
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """
 
+SCRIPT_3 = """
+import resource, sys
+from parproj_ros import raster_io
+from parproj_ros.multi_import import import_scenes
+raster_io.GDAL_CACHE_MB = 2
+import_scenes(sys.argv[1:4], sys.argv[4], pairs="all", heights=(500.0, 1500.0), log=lambda _: None)
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
 
-def make_pair(folder: Path, size: int) -> list[Path]:
-    """Two size x size uint16 tiled GeoTIFFs (written by windows) with crop RPCs in tag 50844."""
+#: (file name, Ventoux RPC, crop origin (line, sample) in its full scene).
+PAIR = (("left", "left", (5000.0, 5000.0)), ("right", "right", (5162.0, 4915.0)))
+#: A third acquisition: another crop of the left scene, overlapping both.
+THIRD = ("third", "left", (5100.0, 4950.0))
+
+
+def make_pair(
+    folder: Path, size: int, views: tuple[tuple[str, str, Any], ...] = PAIR
+) -> list[Path]:
+    """size x size uint16 tiled GeoTIFFs (written by windows) with crop RPCs in tag 50844."""
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
-    for name, origin in (("left", (5000.0, 5000.0)), ("right", (5162.0, 4915.0))):
-        model = rpc.read_rpc(DATA / f"{name}_image.geom").shifted(-origin[0], -origin[1])
+    for name, scene, origin in views:
+        model = rpc.read_rpc(DATA / f"{scene}_image.geom").shifted(-origin[0], -origin[1])
         p = folder / f"{name}.tif"
         with rasterio.open(
             p,
@@ -59,8 +81,15 @@ def make_pair(folder: Path, size: int) -> list[Path]:
 
 
 def peak_rss_mb(images: list[Path], out: Path) -> float:
+    """Peak RSS of the import of ``images`` (two: import_pair, three: import_scenes), MB."""
     res = subprocess.run(
-        [sys.executable, "-c", SCRIPT, str(images[0]), str(images[1]), str(out)],
+        [
+            sys.executable,
+            "-c",
+            SCRIPT_3 if len(images) == 3 else SCRIPT,
+            *map(str, images),
+            str(out),
+        ],
         capture_output=True,
         text=True,
         check=True,
@@ -73,3 +102,12 @@ def test_import_peak_memory_does_not_grow_with_the_raster(tmp_path: Path) -> Non
     large = peak_rss_mb(make_pair(tmp_path / "large", 6000), tmp_path / "bag_large")
     print(f"peak RSS: 500 x 500 pair {small:.0f} MB, 6000 x 6000 pair {large:.0f} MB")
     assert large - small < 30.0  # one image is 72 MB
+
+
+def test_three_images_read_by_windows(tmp_path: Path) -> None:
+    """``parproj import A B C``: every image by strips (the old multi-image path held each)."""
+    views = (*PAIR, THIRD)
+    small = peak_rss_mb(make_pair(tmp_path / "small", 1100, views), tmp_path / "bag_small")
+    large = peak_rss_mb(make_pair(tmp_path / "large", 3300, views), tmp_path / "bag_large")
+    print(f"peak RSS: 3 x 1100 x 1100 {small:.0f} MB, 3 x 3300 x 3300 {large:.0f} MB")
+    assert large - small < 8.0  # one image is 22 MB

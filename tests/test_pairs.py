@@ -328,3 +328,63 @@ def test_cli_import_process_evaluate_three_images(
     res = json.loads(capsys.readouterr().out)
     assert [p["pair_id"] for p in res["pairs"]] == ["a+c", "b+c"]
     assert all(p["geometric"]["y_parallax_px"]["max_abs"] < 0.05 for p in res["pairs"])
+
+
+def test_crop_origin_band_and_rpc_of_the_third_image(
+    tifs: dict[str, Path], all_bag: dict[str, Any], tmp_path: Path
+) -> None:
+    """`--rpc`, `--crop-origin`, `--band` reach image 3: a 2-band TIFF, no georeferencing.
+
+    All three images have the view in band 2 (band 1: the view upside down); the third has
+    neither RPC nor crop origin in the file: its full scene's .geom and the crop origin are
+    given. The virtual points are then those of the GeoTIFFs with crop RPCs (``all_bag``), and
+    the third scene's strips are its band 2.
+    """
+    import numpy as np
+    import rasterio
+    from test_conventions import to_rasterio
+
+    from parproj_ros import cli
+
+    views = {}
+    for name, look in LOOKS.items():
+        full = _affine_rpc(look)
+        views[name] = _render(full, CROP)
+        kw: dict[str, Any] = {"rpcs": to_rasterio(full.shifted(-CROP[0], -CROP[1]))}
+        if name == "c":
+            rpc.write_geom(tmp_path / "c_full.geom", full)
+            kw = {}  # no RPC, no geotransform
+        size = {"width": CROP[3], "height": CROP[2], "count": 2, "dtype": "uint16"}
+        with rasterio.open(tmp_path / f"{name}.tif", "w", driver="GTiff", **size, **kw) as dst:
+            dst.write(views[name][::-1], 1)
+            dst.write(views[name], 2)
+    imgs = [str(tmp_path / f"{n}.tif") for n in "abc"]
+    heights = ["--heights", str(FLAT_H - 100.0), str(FLAT_H + 100.0)]
+    given = ["--rpc", "c.tif", str(tmp_path / "c_full.geom"), "--band", "2"]
+    bag = tmp_path / "bag"
+    # without its crop origin the third image lies elsewhere: a pair with it is refused
+    assert cli.main(["import", *imgs, "-o", str(bag), "--pairs", "a:c", *heights, *given]) == 2
+    origin = ["--crop-origin", "c.tif", str(CROP[0]), str(CROP[1])]
+    assert (
+        cli.main(["import", *imgs, "-o", str(bag), "--pairs", "all", *heights, *given, *origin])
+        == 0
+    )
+
+    reader = BagReader(bag)
+    strips = [s.msg for s in reader.messages(topics=["pan/image_strip"])]
+    got = np.vstack([image_to_array(m) for m in strips if m.header.frame_id == "c"])
+    np.testing.assert_array_equal(got, views["c"])
+    want = {p.id: p for p in gcp_from_msg(_gcp(all_bag["bag"]))}
+    points = gcp_from_msg(_gcp(bag))
+    assert len(points) == len(want) and {p.id for p in points} == set(want)
+    for p in points:
+        assert set(p.observations) == set(want[p.id].observations), p.id
+        for sid, (line, sample) in p.observations.items():
+            w = want[p.id].observations[sid]
+            assert abs(line - w[0]) < 1e-6 and abs(sample - w[1]) < 1e-6, (p.id, sid)
+    with pytest.raises(SceneImportError, match=r"c\.tif: no RPC .* --rpc IMAGE FILE"):
+        import_scenes(imgs, tmp_path / "b3", pairs="all", band=2, heights=(400.0, 600.0))
+
+
+def _gcp(bag: Path) -> Any:
+    return next(BagReader(bag).messages(topics=["gcp"])).msg
