@@ -257,7 +257,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """``parproj evaluate``: y-parallax, x-parallax linearity and object errors of an output."""
-    from .evaluate import evaluate_bag
+    from .evaluate import evaluate_bag, print_evaluation
     from .recording import check_output_bag, check_truth_bag
 
     args.inputs = [args.output_bag, args.truth]
@@ -277,40 +277,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             else None
         )
         res = evaluate_bag(out_bag, truth, plots=work, matching=not args.no_matching)
-    _report(args.json, res, _print_evaluation)
+    _report(args.json, res, print_evaluation)
     return 0 if res["pair_count"] > 0 else 1
-
-
-def _print_evaluation(res: dict[str, Any]) -> None:
-    print(f"{res['pair_count']} pairs, {res['truth_points']} truth points")
-    for p in res["pairs"]:
-        print(f"pair {p['pair_id']}: {p['width']} x {p['height']} px")
-        g = p.get("geometric")
-        if g:
-            y = g["y_parallax_px"]
-            print(
-                f"  geometric y-parallax ({g['points']} truth points): rms {y['rms']:.3f} px, "
-                f"mean |y| {y['mean_abs']:.3f}, max {y['max_abs']:.3f}"
-            )
-            print(
-                f"  x-parallax vs height: line rms {g['x_parallax_line_rms_px']:.3f} px, "
-                f"{g['disparity_px_per_m']:.4f} px/m (published {g['published_px_per_m']:.4f})"
-            )
-            h = g["height_from_disparity_error_m"]
-            print(f"  height from disparity: rms error {h['rms']:.3f} m")
-        o = p.get("object_space_error_m")
-        if o:
-            print(
-                f"  space intersection: xy {o['xy']['mean']:+.3f} +- {o['xy']['std']:.3f} m, "
-                f"z {o['z']['mean']:+.3f} +- {o['z']['std']:.3f} m"
-            )
-        m = p.get("matching")
-        if m and m["matches"]:
-            y = m["y_parallax_px"]
-            print(
-                f"  image matches ({m['matches']}): median |y| {y['median_abs']:.3f} px, "
-                f"rms {y['rms']:.3f} px"
-            )
 
 
 def cmd_demo(args: argparse.Namespace) -> int:

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .geometry.rotation import rotation_to_quaternion
-from .pipeline import METHODS, GroundPoint, PairResult, SceneResult
+from .results import METHODS, BlockResult, GroundPoint, Level, PairResult, SceneResult
 from .trajectory import NavSample, make_sample
 
 #: Supported single-channel encodings: name -> (dtype, bytes per pixel).
@@ -311,7 +311,7 @@ def pair_to_msgs(pair: PairResult, *, frame_id: str) -> tuple[Any, Any, Any]:
     mean, rms, mx = pair.y_parallax_stats
     sp.y_parallax_mean_px, sp.y_parallax_rms_px, sp.y_parallax_max_px = mean, rms, mx
     sp.y_parallax_points = int(pair.y_parallax_px.size)
-    sp.y_parallax_source = pair.y_parallax_source
+    sp.y_parallax_source = str(pair.y_parallax_source)
     return sp, left, right
 
 
@@ -320,9 +320,9 @@ def issues_to_diagnostics(issues: list[Any], *, stamp_ns: int, hardware_id: str)
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
     levels = {
-        "ok": DiagnosticStatus.OK,
-        "warn": DiagnosticStatus.WARN,
-        "error": DiagnosticStatus.ERROR,
+        Level.OK: DiagnosticStatus.OK,
+        Level.WARN: DiagnosticStatus.WARN,
+        Level.ERROR: DiagnosticStatus.ERROR,
     }
     arr = DiagnosticArray()
     ns_to_stamp(stamp_ns, arr.header.stamp)
@@ -388,8 +388,8 @@ def outputs_to_messages(out: Any, *, frame_id: str, stamp_ns: int) -> list[tuple
     return msgs
 
 
-def block_to_msg(blk: Any, *, frame_id: str) -> Any:
-    """streaming.BlockResult -> parproj_msgs/NormalizedBlock."""
+def block_to_msg(blk: BlockResult, *, frame_id: str) -> Any:
+    """BlockResult -> parproj_msgs/NormalizedBlock."""
     from parproj_msgs.msg import NormalizedBlock
     from sensor_msgs.msg import Image
 

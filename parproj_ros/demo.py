@@ -30,7 +30,7 @@ def run_demo(
     ``shown_as``: the folder named in the messages (``out`` is then a temporary name that the
     caller renames to it when the demo is complete).
     """
-    from .evaluate import evaluate_bag
+    from .evaluate import evaluate_bag, print_evaluation
 
     out.mkdir(parents=True, exist_ok=True)
     env = ros_environment()
@@ -55,9 +55,7 @@ def run_demo(
         return 1
     result = evaluate_bag(run.output, bag, plots=out)
     (out / "evaluation.json").write_text(json.dumps(result, indent=1, default=float))
-    from .cli import _print_evaluation
-
-    _print_evaluation(result)
+    print_evaluation(result)
     shown = shown_as or out
     print(
         f"demo: normalized pair, anaglyph and plots in {shown}/, evaluation in "

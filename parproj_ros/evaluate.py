@@ -26,9 +26,9 @@ from .conversions import ConversionError, assemble_blocks, image_to_array
 from .geometry import AffineModel, GeometryError, SceneObservation, space_intersection
 from .geometry.ptp import ptp_forward
 from .imaging.matching import match_normalized
-from .pipeline import GroundPoint
 from .preview import anaglyph, to_uint8
 from .recording import truth_from_bag
+from .results import GroundPoint
 
 FloatArray = NDArray[np.float64]
 
@@ -148,6 +148,39 @@ def evaluate_bag(
             ) from err
     result["pair_count"] = len(result["pairs"])
     return result
+
+
+def print_evaluation(res: dict[str, Any]) -> None:
+    """Print the result of :func:`evaluate_bag` in words (``parproj evaluate``, the demo)."""
+    print(f"{res['pair_count']} pairs, {res['truth_points']} truth points")
+    for p in res["pairs"]:
+        print(f"pair {p['pair_id']}: {p['width']} x {p['height']} px")
+        g = p.get("geometric")
+        if g:
+            y = g["y_parallax_px"]
+            print(
+                f"  geometric y-parallax ({g['points']} truth points): rms {y['rms']:.3f} px, "
+                f"mean |y| {y['mean_abs']:.3f}, max {y['max_abs']:.3f}"
+            )
+            print(
+                f"  x-parallax vs height: line rms {g['x_parallax_line_rms_px']:.3f} px, "
+                f"{g['disparity_px_per_m']:.4f} px/m (published {g['published_px_per_m']:.4f})"
+            )
+            h = g["height_from_disparity_error_m"]
+            print(f"  height from disparity: rms error {h['rms']:.3f} m")
+        o = p.get("object_space_error_m")
+        if o:
+            print(
+                f"  space intersection: xy {o['xy']['mean']:+.3f} +- {o['xy']['std']:.3f} m, "
+                f"z {o['z']['mean']:+.3f} +- {o['z']['std']:.3f} m"
+            )
+        m = p.get("matching")
+        if m and m["matches"]:
+            y = m["y_parallax_px"]
+            print(
+                f"  image matches ({m['matches']}): median |y| {y['median_abs']:.3f} px, "
+                f"rms {y['rms']:.3f} px"
+            )
 
 
 def _observation(p: GroundPoint, params: Any) -> tuple[float, float] | None:

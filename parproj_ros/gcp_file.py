@@ -1,4 +1,4 @@
-"""Ground control point files (CSV or YAML), read into :class:`~parproj_ros.pipeline.GroundPoint`.
+"""Ground control point files (CSV or YAML), read into :class:`~parproj_ros.results.GroundPoint`.
 
 CSV: a header line and one row per observation of a point in a scene::
 
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .pipeline import GroundPoint
+from .results import GroundPoint
 
 #: Largest GCP file read, bytes.
 MAX_GCP_FILE_BYTES = 16 * 1024 * 1024

@@ -18,6 +18,7 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,17 @@ from . import conversions as conv
 from .gcp_file import load_gcp_file
 from .geometry import LineCamera, rotation_from_angles
 from .pipeline import Issue, Outputs, Pipeline, PipelineConfig, ViewConfig
+
+
+class InputKind(StrEnum):
+    """What an item of the worker's queue holds (callbacks and timers queue, the worker runs)."""
+
+    NAV = "nav"  # a NavSample
+    STRIP = "strip"  # (view, stamp_ns, frame_id, array)
+    GCP = "gcp"  # a list of GroundPoint
+    PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
+    CLOSE = "close"  # the scene timeout: close the idle scenes
+    FLUSH = "flush"  # the flush at stop (a _FlushRequest)
 
 
 @dataclass(frozen=True)
@@ -424,7 +436,7 @@ class ParprojNode(Node):
         self._last_error: tuple[float, str] | None = None  # (monotonic, "where: message")
         self._busy: tuple[str, float] | None = None  # the worker's input and since when
         self._closed = False  # set at shutdown: nothing more is published
-        self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self._queue: queue.Queue[tuple[InputKind, Any] | None] = queue.Queue()
         self._queue_peak = 0  # longest input queue since the last 1 Hz summary, items
         # Inputs: sensor-data QoS (REP 2003: best effort, volatile) with a deep queue, since a
         # strip lost is a gap in a scene; reliability can be overridden per topic
@@ -489,7 +501,7 @@ class ParprojNode(Node):
             path = str(vals["gcp_file"])
             self._log("info", f"gcp_file {path}: loading")
             try:
-                self._queue.put(("gcp", load_gcp_file(path)))
+                self._queue.put((InputKind.GCP, load_gcp_file(path)))
             except Exception as err:  # whatever the loader raises: a clear error, not a crash
                 why = f"{type(err).__name__}: {err}"
                 self._startup_issues.append(
@@ -535,7 +547,7 @@ class ParprojNode(Node):
         except Exception as err:
             self.internal_error("a navigation message (callback)", err)
             return
-        self._enqueue(("nav", sample))
+        self._enqueue((InputKind.NAV, sample))
         self._count("nav")
 
     def _on_strip(self, view: str, msg: Image) -> None:
@@ -553,7 +565,7 @@ class ParprojNode(Node):
             return
         self._count("strips")
         self._last_strip = time.monotonic()
-        self._enqueue(("strip", item))
+        self._enqueue((InputKind.STRIP, item))
 
     def _on_gcp(self, msg: GroundControlPoints) -> None:
         try:
@@ -561,7 +573,7 @@ class ParprojNode(Node):
         except Exception as err:
             self.internal_error("a GCP message (callback)", err)
             return
-        self._enqueue(("gcp", points))
+        self._enqueue((InputKind.GCP, points))
 
     def _subscribe_pairs(self, qos: QoSProfile) -> None:
         """The ``pairs`` topic (parproj_msgs/PairSelection; latched like ``gcp``)."""
@@ -571,13 +583,13 @@ class ParprojNode(Node):
 
     def _on_pairs(self, msg: Any) -> None:
         try:
-            self._enqueue(("pairs", conv.pairs_from_msg(msg)))
+            self._enqueue((InputKind.PAIRS, conv.pairs_from_msg(msg)))
         except conv.ConversionError as err:
             self._report([Issue("error", "pairs", f"{err}: pair selection dropped")])
         except Exception as err:
             self.internal_error("a pair selection (callback)", err)
 
-    def _enqueue(self, item: tuple[str, Any]) -> None:
+    def _enqueue(self, item: tuple[InputKind, Any]) -> None:
         """Queue an input for the worker and keep the queue's peak length for the summary."""
         self._queue.put(item)
         self._queue_peak = max(self._queue_peak, self._queue.qsize())
@@ -602,7 +614,7 @@ class ParprojNode(Node):
                 self._busy = None
                 self._queue.task_done()
 
-    def _handle(self, kind: str, payload: Any) -> None:
+    def _handle(self, kind: InputKind, payload: Any) -> None:
         """Run one input through the pipeline and publish the outputs.
 
         Any exception is caught, counted (``internal_errors``) and reported as an ERROR naming
@@ -613,17 +625,17 @@ class ParprojNode(Node):
         except Exception:
             what = f"an input of kind {kind!r}"
         self._busy = (what, time.monotonic())
-        flush_req = payload if kind == "flush" else None
+        flush_req = payload if kind == InputKind.FLUSH else None
         try:
-            if kind == "nav":
+            if kind == InputKind.NAV:
                 out = self.pipeline.add_navigation(payload)
-            elif kind == "strip":
+            elif kind == InputKind.STRIP:
                 out = self.pipeline.add_strip(*payload)
-            elif kind == "gcp":
+            elif kind == InputKind.GCP:
                 out = self.pipeline.add_gcp(payload)
-            elif kind == "pairs":
+            elif kind == InputKind.PAIRS:
                 out = self.pipeline.set_pairs(payload)
-            elif kind == "close":
+            elif kind == InputKind.CLOSE:
                 out = self.pipeline.close_idle_scenes()
             else:
                 out = Outputs(issues=self._open_at_stop())
@@ -670,8 +682,8 @@ class ParprojNode(Node):
                 issues.append(
                     Issue(
                         "warn",
-                        f"{view}/{opened[0]}",
-                        f"node stopping with this scene open ({opened[3]} lines received): it "
+                        f"{view}/{opened.scene_id}",
+                        f"node stopping with this scene open ({opened.lines} lines received): it "
                         "is closed and processed as it is; lines still to come are not in it",
                     )
                 )
@@ -681,7 +693,7 @@ class ParprojNode(Node):
         idle = time.monotonic() - self._last_strip
         if self.scene_timeout > 0 and idle > self.scene_timeout and self.pipeline.has_open_scene:
             self._last_strip = time.monotonic()
-            self._queue.put(("close", None))
+            self._queue.put((InputKind.CLOSE, None))
 
     def worker_problem(self) -> str | None:
         """Why the worker is not doing its job (dead, or stalled on one input), or None."""
@@ -715,7 +727,7 @@ class ParprojNode(Node):
             )
             return False
         req = _FlushRequest()
-        self._queue.put(("flush", req))
+        self._queue.put((InputKind.FLUSH, req))
         deadline = time.monotonic() + timeout_s
         why = ""
         while not req.done.wait(0.05):
@@ -910,17 +922,17 @@ class _FlushRequest:
     ok: bool = False
 
 
-def _describe(kind: str, payload: Any) -> str:
+def _describe(kind: InputKind, payload: Any) -> str:
     """The input a worker item stands for, in words (for errors and the watchdog)."""
-    if kind == "strip":
+    if kind == InputKind.STRIP:
         return f"a strip of {payload[0]}/{payload[2]}"
-    if kind == "nav":
+    if kind == InputKind.NAV:
         return "a navigation sample"
-    if kind == "gcp":
+    if kind == InputKind.GCP:
         return f"a GCP set ({len(payload)} points)"
-    if kind == "pairs":
+    if kind == InputKind.PAIRS:
         return "a pair selection"
-    if kind == "close":
+    if kind == InputKind.CLOSE:
         return "the scene timeout"
     return "the flush at stop"
 

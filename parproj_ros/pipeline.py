@@ -10,7 +10,9 @@ roll estimated) or else from navigation (Eqs 9-13, with the crab-angle fallback)
 of a pair have parameters, the pair is normalized (paper 2 Eq 8) and both scenes are resampled.
 Pairs are the two views' scenes with the same sequence number (two-view mode) or consecutive
 scenes of the one view (single-camera mode, e.g. an agile satellite looking forward then back).
-Every problem becomes an :class:`Issue` that says what was wrong and what was done.
+Every problem becomes an :class:`Issue` that says what was wrong and what was done. The result
+types (issues, scene and pair results, the closed sets they name) are in
+:mod:`parproj_ros.results`.
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .geometry import (
-    AffineModel,
     DegenerateGeometryError,
     GeometryError,
     LineCamera,
@@ -39,25 +40,23 @@ from .geometry import (
 )
 from .geometry.navigation import virtual_points
 from .geometry.segmentation import SideCamera, segment_pair
-from .imaging.assembly import Scene, SceneAssembler, StripRejectedError
+from .imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd, StripRejectedError
 from .imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
-from .streaming import BlockResult, SideStream, StreamPair, plan_blocks, render_block
+from .results import (
+    BlockResult,
+    GroundPoint,
+    Issue,
+    Method,
+    Outputs,
+    PairGeometry,
+    PairResult,
+    SceneResult,
+)
+from .streaming import SideStream, StreamPair, plan_blocks, render_block
 from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavigationError, NavSample, TrajectoryBuffer
 
 FloatArray = NDArray[np.float64]
-
-Level = Literal["ok", "warn", "error"]
-
-#: Method names (match parproj_msgs/ParallelProjection METHOD_* constants by index).
-METHODS = (
-    "navigation",
-    "navigation_virtual_gcp",
-    "gcp_affine",
-    "gcp_known_roll",
-    "gcp_roll_estimated",
-    "tie_points",
-)
 
 
 @dataclass(frozen=True)
@@ -155,163 +154,6 @@ class PipelineConfig:
     def single_camera(self) -> bool:
         """Whether consecutive scenes of the one view form the pairs."""
         return len(self.views) == 1
-
-
-@dataclass(frozen=True)
-class Issue:
-    """A problem met, for the log and for diagnostics.
-
-    Attributes:
-        level: "ok", "warn" or "error".
-        where: the scene, view or input concerned.
-        message: what was wrong and what was done about it.
-    """
-
-    level: Level
-    where: str
-    message: str
-
-
-@dataclass(frozen=True)
-class GroundPoint:
-    """A ground control (or check) point.
-
-    Attributes:
-        id: name.
-        xyz: object coordinates, metres, (3,).
-        check: True for a check point (not used in the estimation).
-        observations: scene_id -> (line, sample) pixels.
-    """
-
-    id: str
-    xyz: FloatArray
-    check: bool
-    observations: dict[str, tuple[float, float]]
-
-
-@dataclass(frozen=True)
-class SceneResult:
-    """Parameters of one scene.
-
-    Attributes:
-        scene: the assembled scene.
-        params: non-linear parallel projection parameters.
-        affine: A1..A8.
-        psi: roll used for PTP, radians.
-        frame: image <-> scene metres.
-        method: one of :data:`METHODS`.
-        note: how and why the method was used.
-        model: rigorous model from navigation (None when navigation did not cover the scene).
-        camera: the view's camera (principal distance, pixel size, ...).
-        sigma0_px: a-posteriori sigma0 of a GCP fit (or the virtual-point fit), pixels.
-        residual_rms_px: RMS of per-point residual lengths, pixels.
-        residual_max_px: largest residual length, pixels.
-        gcp_count: GCP used.
-        check_count: check points evaluated.
-        check_rms_px: RMS check-point error, pixels (NaN without check points).
-        covariance: 9x9 covariance of (A1..A8, psi) (zeros when not estimated).
-        crab_angle: radians (NaN without navigation).
-        segment_of: for a segment of a long scene, the scene it was cut from ("" otherwise).
-        segment_first_line: the segment's line 0 is this line of ``segment_of``.
-        model_error_bound_px: the bound the segmentation worked to, pixels (0: not cut).
-    """
-
-    scene: Scene
-    params: ParallelProjection
-    affine: AffineModel
-    psi: float
-    frame: SceneFrame
-    method: str
-    note: str
-    model: PushbroomModel | None
-    camera: LineCamera
-    sigma0_px: float = 0.0
-    residual_rms_px: float = 0.0
-    residual_max_px: float = 0.0
-    gcp_count: int = 0
-    check_count: int = 0
-    check_rms_px: float = float("nan")
-    covariance: FloatArray = field(default_factory=lambda: np.zeros((9, 9)))
-    crab_angle: float = float("nan")
-    segment_of: str = ""
-    segment_first_line: int = 0
-    model_error_bound_px: float = 0.0
-
-    def geometry(self, to_normalized: FloatArray) -> SceneGeometry:
-        """Resampling geometry of this scene for a given normalization affine."""
-        return SceneGeometry(self.frame, to_normalized, self.psi, self.camera.principal_distance)
-
-
-@dataclass(frozen=True)
-class PairGeometry:
-    """Normalization and output grids of a pair, before any pixel is resampled."""
-
-    pair_id: str
-    normalization: Normalization
-    left_geom: SceneGeometry
-    right_geom: SceneGeometry
-    left_grid: OutputGrid
-    right_grid: OutputGrid
-
-
-@dataclass(frozen=True)
-class PairResult:
-    """A normalized stereo pair.
-
-    Attributes:
-        pair_id: "<left scene id>+<right scene id>".
-        stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
-        left: left scene parameters.
-        right: right scene parameters.
-        normalization: paper 2 Eq 8 result (2x3 affines, kappa_n, s_n, parallax relation).
-        left_grid: output grid of the left image.
-        right_grid: output grid of the right image (same rows, shifted columns).
-        left_image: normalized left image (None when streamed block by block).
-        right_image: normalized right image (None when streamed).
-        height_per_disparity_px: a in Z = a (col_left - col_right) + b, metres per pixel.
-        height_offset_m: b, metres.
-        y_parallax_px: signed y-parallax samples used for the statistics, pixels.
-        y_parallax_source: "virtual", "gcp" or "none".
-    """
-
-    pair_id: str
-    stamp_ns: int
-    left: SceneResult
-    right: SceneResult
-    normalization: Normalization
-    left_grid: OutputGrid
-    right_grid: OutputGrid
-    left_image: NDArray[np.generic] | None
-    right_image: NDArray[np.generic] | None
-    height_per_disparity_px: float
-    height_offset_m: float
-    y_parallax_px: FloatArray
-    y_parallax_source: str
-
-    @property
-    def y_parallax_stats(self) -> tuple[float, float, float]:
-        """(mean |y|, rms, max |y|) in pixels (NaN when there are no samples)."""
-        y = self.y_parallax_px
-        if y.size == 0:
-            return float("nan"), float("nan"), float("nan")
-        return float(np.abs(y).mean()), float(np.sqrt(np.mean(y**2))), float(np.abs(y).max())
-
-
-@dataclass
-class Outputs:
-    """What one call produced."""
-
-    scenes: list[SceneResult] = field(default_factory=list)
-    pairs: list[PairResult] = field(default_factory=list)
-    issues: list[Issue] = field(default_factory=list)
-    blocks: list[BlockResult] = field(default_factory=list)
-
-    def extend(self, other: Outputs) -> None:
-        """Append another call's outputs."""
-        self.scenes += other.scenes
-        self.pairs += other.pairs
-        self.issues += other.issues
-        self.blocks += other.blocks
 
 
 class Pipeline:
@@ -425,7 +267,7 @@ class Pipeline:
         for asm in self.assemblers.values():
             opened = asm.open_scene()
             if opened is not None:
-                times.append(opened[2])
+                times.append(opened.first_line_ns)
             elif asm.latest_ns is not None:
                 times.append(asm.latest_ns)
             else:
@@ -536,7 +378,7 @@ class Pipeline:
             out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
             return out
         for scene in scenes:
-            if scene.reason == "gap":
+            if scene.reason == SceneEnd.GAP:
                 out.issues.append(self._split(scene, stamp_ns))
             out.extend(self._scene_closed(scene))
         if self._can_stream:
@@ -548,7 +390,7 @@ class Pipeline:
         """The WARN for a scene ended by a jump of more than ``max_gap_lines`` lines."""
         jump = round((next_ns - scene.first_line_ns) / (scene.line_period * 1e9)) - scene.lines
         opened = self.assemblers[scene.view].open_scene()
-        rest = f" ({opened[0]})" if opened is not None else ""
+        rest = f" ({opened.scene_id})" if opened is not None else ""
         return Issue(
             "warn",
             f"{scene.view}/{scene.scene_id}",
@@ -581,7 +423,7 @@ class Pipeline:
             if opened is None:
                 continue
             period_ns = self.views[name].camera.line_period * 1e9
-            after_last = opened[2] + opened[3] * period_ns
+            after_last = opened.first_line_ns + opened.lines * period_ns
             if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
                 continue
             for scene in asm.flush():
@@ -610,20 +452,20 @@ class Pipeline:
         out = Outputs()
         names = [v.name for v in self.config.views]
         opened = {n: self.assemblers[n].open_scene() for n in names}
-        for k in sorted({o[1] for o in opened.values() if o is not None}):
+        for k in sorted({o.index for o in opened.values() if o is not None}):
             if k in self._streams or k in self._no_stream:
                 continue
-            parts: list[tuple[str, tuple[str, int, int, int] | SceneResult]] = []
+            parts: list[tuple[str, OpenScene | SceneResult]] = []
             for n in names:
                 o = opened[n]
-                if o is not None and o[1] == k:
+                if o is not None and o.index == k:
                     parts.append((n, o))
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
             if len(parts) < 2:
                 continue
             if k == 0 and any(
-                not isinstance(part, SceneResult) and not self._start_seen(part[2])
+                not isinstance(part, SceneResult) and not self._start_seen(part.first_line_ns)
                 for _, part in parts
             ):
                 # Perhaps the rest of a scene under way when the pipeline started: it will be
@@ -631,7 +473,11 @@ class Pipeline:
                 self._no_stream.add(k)
                 continue
             # Time of the line after the last one received, per open scene.
-            ends = {o[0]: o[2] + o[3] * self._period(o) for o in opened.values() if o is not None}
+            ends = {
+                o.scene_id: o.first_line_ns + o.lines * self._period(o)
+                for o in opened.values()
+                if o is not None
+            }
             newest = max(ends.values())
             duration = self.config.scene_lines * max(
                 v.camera.line_period for v in self.config.views
@@ -640,7 +486,7 @@ class Pipeline:
             overdue = [
                 part
                 for _, part in parts
-                if not isinstance(part, SceneResult) and newest - ends[part[0]] > stale_ns
+                if not isinstance(part, SceneResult) and newest - ends[part.scene_id] > stale_ns
             ]
             if overdue:
                 # Strips of a scene stopped coming while the other view went on (by more than
@@ -673,16 +519,14 @@ class Pipeline:
             out.extend(self._open_stream(k, results))
         return out
 
-    def _period(self, opened: tuple[str, int, int, int]) -> float:
+    def _period(self, opened: OpenScene) -> float:
         """Line period (ns) of the view whose open scene is ``opened``."""
         for name, asm in self.assemblers.items():
             if asm.open_scene() == opened:
                 return self.views[name].camera.line_period * 1e9
         return 0.0
 
-    def _predict_scene(
-        self, name: str, opened: tuple[str, int, int, int], out: Outputs
-    ) -> SceneResult | None:
+    def _predict_scene(self, name: str, opened: OpenScene, out: Outputs) -> SceneResult | None:
         """Parameters of a scene that has just started, from the latest navigation."""
         sid, k, t0, _ = opened
         n_gcp = sum(1 for p in self.gcp.values() if sid in p.observations and not p.check)
@@ -720,22 +564,15 @@ class Pipeline:
             view.camera.line_period,
             np.empty((0, view.camera.detectors), dtype=dtype),
             0,
-            "streaming",
+            SceneEnd.STREAMING,
             lines,
         )
-        return SceneResult(
+        return SceneResult.from_navigation(
             placeholder,
-            nav.params,
-            nav.affine,
-            nav.psi,
-            nav.frame,
-            nav.method,
-            nav.note + "; extrapolated from the navigation at the scene start (streaming)",
+            nav,
             model,
             view.camera,
-            sigma0_px=(float("nan") if nav.method == "navigation" else nav.fit_rms_px),
-            residual_rms_px=nav.fit_rms_px,
-            crab_angle=nav.crab_angle,
+            note_suffix="; extrapolated from the navigation at the scene start (streaming)",
         )
 
     def _open_stream(self, k: int, results: list[SceneResult]) -> Outputs:
@@ -821,14 +658,14 @@ class Pipeline:
         opened = asm.open_scene()
         if opened is None:
             return out
-        stream = self._streams.get(opened[1])
+        stream = self._streams.get(opened.index)
         if stream is None:
             return out
         for side in stream.sides.values():
             if side.view != view or side.done:
                 continue
             first, data = asm.retained()
-            out.extend(self._emit_blocks(stream, side, opened[3], data, first, False))
+            out.extend(self._emit_blocks(stream, side, opened.lines, data, first, False))
             if side.next_block > 0:  # keep every line until the stream has really begun
                 asm.release(side.needed_from())
         return out
@@ -1115,24 +952,9 @@ class Pipeline:
                     (f"only {len(gxyz)} GCP observed (need {self.config.min_gcp}): GCP not used"),
                 )
             )
-        if result is None and nav_result is not None:
-            result = SceneResult(
-                scene,
-                nav_result.params,
-                nav_result.affine,
-                nav_result.psi,
-                nav_result.frame,
-                nav_result.method,
-                nav_result.note,
-                model,
-                cam,
-                sigma0_px=(
-                    float("nan") if nav_result.method == "navigation" else nav_result.fit_rms_px
-                ),
-                residual_rms_px=nav_result.fit_rms_px,
-                crab_angle=nav_result.crab_angle,
-            )
-            if nav_result.method != "navigation":
+        if result is None and nav_result is not None and model is not None:
+            result = SceneResult.from_navigation(scene, nav_result, model, cam)
+            if nav_result.method != Method.NAVIGATION:
                 out.issues.append(Issue("warn", where, nav_result.note))
         if result is None:
             self._done_with(scene, "skipped")
@@ -1188,9 +1010,9 @@ class Pipeline:
             roll_mode = "estimate"
         psi_in = {"estimate": None, "navigation": nav.psi if nav else 0.0, "none": 0.0}[roll_mode]
         method = {
-            "estimate": "gcp_roll_estimated",
-            "navigation": "gcp_known_roll",
-            "none": "gcp_affine",
+            "estimate": Method.GCP_ROLL_ESTIMATED,
+            "navigation": Method.GCP_KNOWN_ROLL,
+            "none": Method.GCP_AFFINE,
         }[roll_mode]
         est = estimate_affine(
             gxyz,
@@ -1574,7 +1396,7 @@ class Pipeline:
         ci = np.array(common, dtype=np.intp).reshape(-1, 2)
 
         def side(r: SceneResult) -> SideCamera:
-            psi = None if r.method == "gcp_roll_estimated" else r.psi
+            psi = None if r.method == Method.GCP_ROLL_ESTIMATED else r.psi
             return SideCamera(r.camera.principal_distance, r.camera.pixel_size, r.camera.pp, psi)
 
         try:

@@ -17,7 +17,6 @@ navigation of the scene.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -25,9 +24,7 @@ from numpy.typing import NDArray
 
 from .imaging.assembly import Scene
 from .imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles
-
-if TYPE_CHECKING:
-    from .pipeline import PairGeometry, SceneResult
+from .results import PairGeometry, SceneResult
 
 FloatArray = NDArray[np.float64]
 
@@ -35,31 +32,6 @@ FloatArray = NDArray[np.float64]
 BLOCK_COLS = 256
 #: Lines of margin around the lines a tile's affine map reaches (bicubic needs 2).
 LINE_MARGIN = 3
-
-
-@dataclass(frozen=True)
-class BlockResult:
-    """A block of columns of one normalized image.
-
-    Attributes:
-        pair_id: the pair.
-        side: "left" or "right".
-        index: block number from 0.
-        col0: first column in the full normalized image.
-        image: (full height, block columns) pixels.
-        grid: the full image's output grid.
-        stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
-        last: whether this is the side's last block.
-    """
-
-    pair_id: str
-    side: str
-    index: int
-    col0: int
-    image: NDArray[np.generic]
-    grid: OutputGrid
-    stamp_ns: int
-    last: bool
 
 
 @dataclass

@@ -12,7 +12,6 @@ unchanged).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,9 +19,7 @@ from numpy.typing import NDArray
 from .geometry import GeometryError, epipolar_from_points, invert_affine_2x3
 from .imaging.matching import match_normalized
 from .imaging.resample import SceneGeometry
-
-if TYPE_CHECKING:
-    from .pipeline import PairGeometry
+from .results import PairGeometry
 
 FloatArray = NDArray[np.float64]
 

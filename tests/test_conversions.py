@@ -16,7 +16,7 @@ from parproj_ros.bag import BagReader
 from parproj_ros.geometry import ParallelProjection as GeomParallelProjection
 from parproj_ros.geometry import nonlinear_to_affine, rotation_from_angles
 from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import METHODS, GroundPoint, SceneResult
+from parproj_ros.results import METHODS, GroundPoint, SceneResult
 from parproj_ros.trajectory import NavSample
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"

@@ -22,7 +22,7 @@ from parproj_ros import rpc
 from parproj_ros.bag import BagReader
 from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
 from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import METHODS
+from parproj_ros.results import METHODS
 from parproj_ros.rpc import RPCModel
 from parproj_ros.scene_import import (
     PRINCIPAL_DISTANCE,

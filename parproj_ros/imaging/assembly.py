@@ -10,11 +10,32 @@ scene; the caller logs and reports them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .resample import ENCODINGS
+
+
+class SceneEnd(StrEnum):
+    """Why a scene was closed (:attr:`Scene.reason`)."""
+
+    LENGTH = "length"  # it reached ``scene_lines``
+    GAP = "gap"  # the next strip came more than ``max_gap_lines`` lines later
+    SCENE_CHANGE = "scene_change"  # the next strip has another frame_id
+    FLUSH = "flush"  # end of data, or the strips stopped coming
+    STREAMING = "streaming"  # not closed: the placeholder of a scene still arriving (streaming)
+
+
+class OpenScene(NamedTuple):
+    """The scene a :class:`SceneAssembler` is assembling (:meth:`SceneAssembler.open_scene`)."""
+
+    scene_id: str
+    index: int
+    first_line_ns: int
+    lines: int  # received so far
 
 
 @dataclass(frozen=True)
@@ -29,7 +50,7 @@ class Scene:
         line_period: seconds between lines.
         image: (lines, detectors) pixels, uint8 / uint16 / float32.
         gaps: number of missing lines that were filled with no-data.
-        reason: why the scene was closed ("length", "gap", "scene_change", "flush").
+        reason: why the scene was closed (a plain string is accepted and stored as the member).
         released: lines at the start of the scene that a streaming consumer had already used
             and released; ``image`` holds lines ``released`` .. ``released + len(image) - 1``.
         part: 0 for the first (or only) scene of a frame_id, k for ``"<frame_id>#<k>"``.
@@ -44,10 +65,13 @@ class Scene:
     line_period: float
     image: NDArray[np.generic]
     gaps: int = 0
-    reason: str = "length"
+    reason: SceneEnd = SceneEnd.LENGTH
     released: int = 0
     part: int = 0
     acquisition: int = 0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "reason", SceneEnd(self.reason))
 
     @property
     def lines(self) -> int:
@@ -159,7 +183,7 @@ class SceneAssembler:
         # acquisition number of each frame_id (in the order of their first strips)
         self._acquisitions: dict[str, int] = {}
 
-    def _close(self, reason: str) -> Scene | None:
+    def _close(self, reason: SceneEnd) -> Scene | None:
         op = self._open
         self._open = None
         if op is None or op.lines == 0:
@@ -202,12 +226,12 @@ class SceneAssembler:
         """
         return self._latest_ns
 
-    def open_scene(self) -> tuple[str, int, int, int] | None:
-        """(scene_id, index, first_line_ns, lines received) of the open scene, or None."""
+    def open_scene(self) -> OpenScene | None:
+        """The open scene (id, index, first line time, lines received so far), or None."""
         op = self._open
         if op is None:
             return None
-        return op.scene_id, self._count, op.first_line_ns, op.lines
+        return OpenScene(op.scene_id, self._count, op.first_line_ns, op.lines)
 
     def retained(self) -> tuple[int, NDArray[np.generic]]:
         """(first retained line, lines retained so far) of the open scene, as one array."""
@@ -231,7 +255,7 @@ class SceneAssembler:
 
     def flush(self) -> list[Scene]:
         """Close the open scene (end of data)."""
-        s = self._close("flush")
+        s = self._close(SceneEnd.FLUSH)
         return [s] if s is not None else []
 
     def add(self, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]) -> list[Scene]:
@@ -269,7 +293,7 @@ class SceneAssembler:
             expected = op.first_line_ns + round(op.lines * period_ns)
             jump = round((stamp_ns - expected) / period_ns)
             if scene_id != op.base_id:
-                done += [sc for sc in [self._close("scene_change")] if sc]
+                done += [sc for sc in [self._close(SceneEnd.SCENE_CHANGE)] if sc]
             elif jump < 0:
                 raise StripRejectedError(
                     f"strip at {stamp_ns} ns starts {-jump} lines before the end of "
@@ -281,7 +305,7 @@ class SceneAssembler:
                     f"{op.width} px {op.dtype}: dropped"
                 )
             elif jump > self.max_gap_lines:
-                done += [sc for sc in [self._close("gap")] if sc]
+                done += [sc for sc in [self._close(SceneEnd.GAP)] if sc]
             elif jump > 0:
                 fill = np.full((jump, op.width), self.nodata, dtype=op.dtype)
                 done += self._push(fill, scene_id, expected, filled=True)
@@ -325,7 +349,7 @@ class SceneAssembler:
             block = block[room:]
             start_ns = op.first_line_ns + round(op.lines * period_ns)
             if self.scene_lines > 0 and op.lines >= self.scene_lines:
-                closed = self._close("length")
+                closed = self._close(SceneEnd.LENGTH)
                 if closed:
                     done.append(closed)
         self._latest_ns = int(start_ns)

@@ -35,7 +35,7 @@ FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class PairGeometry:
+class ResampleProblem:
     """A normalized pair's left-scene resampling problem.
 
     Attributes:
@@ -54,7 +54,7 @@ class PairGeometry:
     base_to_height: float
 
 
-def pair_geometry(lines: int, detectors: int) -> PairGeometry:
+def resample_problem(lines: int, detectors: int) -> ResampleProblem:
     """Navigation-derived parameters of a fore/aft pair, its normalization, the left grid.
 
     Short scenes get a larger aft lag so that the base-to-height ratio stays above 0.005.
@@ -83,7 +83,7 @@ def pair_geometry(lines: int, detectors: int) -> PairGeometry:
     )
     d1, d2 = nav[0].affine.direction, nav[1].affine.direction
     base = float(np.hypot(*(d1[:2] / d1[2] - d2[:2] / d2[2])))
-    return PairGeometry(geom, grid, lines, detectors, base)
+    return ResampleProblem(geom, grid, lines, detectors, base)
 
 
 def texture(lines: int, detectors: int, seed: int = 0, block: int = 512) -> NDArray[np.uint16]:
@@ -96,7 +96,7 @@ def texture(lines: int, detectors: int, seed: int = 0, block: int = 512) -> NDAr
     return img
 
 
-def affine_part(pg: PairGeometry) -> FloatArray:
+def affine_part(pg: ResampleProblem) -> FloatArray:
     """2x3 map (col, row) -> (sample, line) of the exact map without the inverse PTP."""
     g, grid = pg.geom, pg.grid
     inv = invert_affine_2x3(g.to_normalized)
@@ -118,7 +118,7 @@ def affine_part(pg: PairGeometry) -> FloatArray:
     )
 
 
-def exact_map(pg: PairGeometry, r0: int, r1: int) -> tuple[FloatArray, FloatArray]:
+def exact_map(pg: ResampleProblem, r0: int, r1: int) -> tuple[FloatArray, FloatArray]:
     """Exact (line, sample) of output rows [r0, r1) (float64, (r1 - r0, width) each)."""
     grid = pg.grid
     xn = grid.x_origin + grid.pixel * np.arange(grid.width, dtype=float)
@@ -163,7 +163,7 @@ def _warp_tiled(
 
 
 def geometric_error(
-    pg: PairGeometry, *, margin_px: float = 2.0, block: int = 256
+    pg: ResampleProblem, *, margin_px: float = 2.0, block: int = 256
 ) -> dict[str, Any]:
     """Error of ``resample`` (bilinear) against the exact map, source pixels.
 
@@ -242,7 +242,7 @@ def bench_resample(cfg: BenchConfig, log: Log = log_stderr) -> dict[str, Any]:
 
     cv2.setNumThreads(2)
     t_all = time.perf_counter()
-    pg = pair_geometry(cfg.lines, cfg.detectors)
+    pg = resample_problem(cfg.lines, cfg.detectors)
     grid = pg.grid
     px = grid.width * grid.height
     img = texture(cfg.lines, cfg.detectors)
@@ -323,7 +323,7 @@ def bench_scaling(cfg: BenchConfig, log: Log = log_stderr) -> list[dict[str, Any
     cv2.setNumThreads(2)
     rows = []
     for lines, dets in cfg.scaling:
-        pg = pair_geometry(lines, dets)
+        pg = resample_problem(lines, dets)
         img = texture(lines, dets, seed=1)
         g = pg.grid
         t_res = _best(partial(resample, img, pg.geom, pg.grid, nodata=0.0), cfg.repeats)

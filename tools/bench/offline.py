@@ -119,7 +119,8 @@ def bench_offline(
     from reading a pair's last strip to its outputs written (s), and the profile breakdown.
     """
     from parproj_ros.offline import process_bag
-    from parproj_ros.pipeline import Outputs, PipelineConfig
+    from parproj_ros.pipeline import PipelineConfig
+    from parproj_ros.results import Outputs
 
     plat = make_platform(cfg.lines, cfg.detectors)
     pairs = cfg.offline_pairs

@@ -18,8 +18,8 @@ import numpy as np
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader, get_message_class
 from parproj_ros.evaluate import normalized_px
-from parproj_ros.pipeline import GroundPoint
 from parproj_ros.recording import views_from_bag
+from parproj_ros.results import GroundPoint
 
 SUMMARY_NAME = "parproj_node: summary"
 _REP = re.compile(r"^r(\d+)_(.*)$")

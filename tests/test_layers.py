@@ -1,0 +1,405 @@
+"""The package's layering, read from the source (README "Architecture").
+
+Every module's imports are parsed with ``ast``: module level, inside functions and classes, and
+under ``if TYPE_CHECKING:``. All three count as dependencies, for cycles too: an import moved into
+a function (or under TYPE_CHECKING) to dodge a circular import only hides the cycle; the two
+modules still cannot be read, tested or layered apart. The implicit import of a package's
+``__init__`` when one of its submodules is imported is not counted (``geometry/__init__.py``
+re-exports its submodules, which import one another by their own names).
+
+Layers, bottom up: ``geometry/`` (numpy, scipy, the standard library), ``imaging/``, the ROS-free
+core, then the ROS adapters and the applications (:data:`LAYERS`). Only the modules in
+:data:`ROS_MODULES` (and ``tools/``, not checked here) import rclpy, rosidl or message packages.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "parproj_ros"
+
+#: The modules that import ROS (rclpy, rosidl, *_msgs, rcl_interfaces): the adapters between
+#: the pipeline and ROS, the `parproj` command (replay), and the writers of input bags.
+ROS_MODULES = {
+    "parproj_ros.conversions",  # messages <-> arrays: the one place message fields are touched
+    "parproj_ros.node",  # the rclpy node
+    "parproj_ros.live",  # node process, replay, recorder
+    "parproj_ros.recording",  # simulated acquisitions recorded to bags
+    "parproj_ros.bag",  # MCAP bags: message classes and (de)serialization
+    "parproj_ros.cli",  # `parproj replay` spins an rclpy node
+    "parproj_ros.scene_import",  # `parproj import` writes an input bag
+    "parproj_ros.multi_import",  # the same, more than two images
+    "parproj_ros.synthetic",  # the benchmark's acquisition as messages
+}
+
+#: The layers, bottom up (README "Architecture"): a module imports only modules of its own layer
+#: or of lower ones. Packages count with every module in them. A new module goes in one.
+LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("geometry", ("parproj_ros.geometry",)),
+    ("imaging", ("parproj_ros.imaging",)),
+    (
+        "core",
+        (
+            "parproj_ros.results",
+            "parproj_ros.trajectory",
+            "parproj_ros.streaming",
+            "parproj_ros.tiepoints",
+            "parproj_ros.pipeline",
+            "parproj_ros.rpc",
+            "parproj_ros.preview",
+            "parproj_ros.scenarios",
+        ),
+    ),
+    (
+        "ros",
+        (
+            "parproj_ros.conversions",
+            "parproj_ros.node",
+            "parproj_ros.live",
+            "parproj_ros.recording",
+            "parproj_ros.bag",
+            "parproj_ros.gcp_file",
+            "parproj_ros.cli_io",
+        ),
+    ),
+    (
+        "apps",
+        (
+            "parproj_ros",  # the package's __init__ (its version)
+            "parproj_ros.cli",
+            "parproj_ros.demo",
+            "parproj_ros.offline",
+            "parproj_ros.evaluate",
+            "parproj_ros.paper",
+            "parproj_ros.long_scene",
+            "parproj_ros.ventoux",
+            "parproj_ros.scene_import",
+            "parproj_ros.multi_import",
+            "parproj_ros.raster_io",
+            "parproj_ros.synthetic",
+        ),
+    ),
+)
+#: What the ROS-free core (geometry, imaging, core) may import besides itself.
+CORE_THIRD_PARTY = {"numpy", "scipy", "cv2", "tifffile"}
+
+
+@dataclass(frozen=True)
+class Import:
+    """One imported module: where (file, line), how (module, function, type_checking)."""
+
+    source: str
+    target: str
+    line: int
+    how: str
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+MODULES = {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def layer_of(module: str) -> int | None:
+    """Index in :data:`LAYERS` of a module (the longest matching entry), None if in none."""
+    best: tuple[int, int] | None = None
+    for k, (_, names) in enumerate(LAYERS):
+        for n in names:
+            if module == n or (module.startswith(n + ".") and n != "parproj_ros"):
+                if best is None or len(n) > best[1]:
+                    best = (k, len(n))
+    return None if best is None else best[0]
+
+
+CORE_LAYER = 2
+#: The ROS-free core: every module of the geometry, imaging and core layers.
+CORE = tuple(m for m in MODULES if layer_of(m) is not None and layer_of(m) <= CORE_LAYER)
+
+
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
+def _resolve(name: str, path: Path, node: ast.ImportFrom) -> str:
+    """The absolute module of a ``from ... import`` (relative levels resolved)."""
+    if node.level == 0:
+        return node.module or ""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    base = package.split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def imports_of(name: str) -> list[Import]:
+    """Every import of module ``name``; a ``from pkg import sub`` of a submodule names it."""
+    path = MODULES[name]
+    found: list[Import] = []
+
+    def visit(node: ast.AST, how: str) -> None:
+        for child in ast.iter_child_nodes(node):
+            inner = how
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef | ast.Lambda):
+                inner = "function"
+            if isinstance(child, ast.If) and _is_type_checking(child.test) and how == "module":
+                for stmt in child.body:
+                    visit_stmt(stmt, "type_checking")
+                for stmt in child.orelse:
+                    visit_stmt(stmt, how)
+                continue
+            visit_stmt(child, inner)
+
+    def visit_stmt(stmt: ast.AST, how: str) -> None:
+        if isinstance(stmt, ast.Import):
+            for alias in stmt.names:
+                found.append(Import(name, alias.name, stmt.lineno, how))
+        elif isinstance(stmt, ast.ImportFrom):
+            base = _resolve(name, path, stmt)
+            for alias in stmt.names:
+                sub = f"{base}.{alias.name}"
+                found.append(Import(name, sub if sub in MODULES else base, stmt.lineno, how))
+        else:
+            visit(stmt, how)
+
+    visit(ast.parse(path.read_text(), str(path)), "module")
+    return found
+
+
+ALL_IMPORTS = {name: imports_of(name) for name in MODULES}
+
+
+def _is_ros(target: str) -> bool:
+    top = target.split(".")[0]
+    return (
+        top == "rclpy"
+        or top.startswith(("rosidl", "rcl_", "rosbag2"))
+        or top.endswith(("_msgs", "_interfaces"))
+    )
+
+
+def _where(imp: Import) -> str:
+    return f"{MODULES[imp.source].relative_to(ROOT)}:{imp.line} ({imp.how})"
+
+
+def test_the_parser_sees_every_kind_of_import() -> None:
+    """A sanity check of :func:`imports_of` on modules known to hold each kind."""
+    node = {(i.target, i.how) for i in ALL_IMPORTS["parproj_ros.node"]}
+    assert ("rclpy", "module") in node
+    assert ("parproj_ros.conversions", "module") in node  # `from . import conversions as conv`
+    assert ("parproj_ros.pipeline", "module") in node
+    assert ("rclpy.duration", "function") in node
+    geometry = {i.target for i in ALL_IMPORTS["parproj_ros.geometry"]}
+    assert "parproj_ros.geometry.epipolar" in geometry
+    resample = {(i.target, i.how) for i in ALL_IMPORTS["parproj_ros.imaging.resample"]}
+    assert ("parproj_ros.geometry.ptp", "function") in resample
+
+
+def _cycles() -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan), and self-imports."""
+    graph = {
+        name: sorted({i.target for i in imps if i.target in MODULES})
+        for name, imps in ALL_IMPORTS.items()
+    }
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1 or v in graph[v]:
+                out.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            strong(v)
+    return out
+
+
+def test_no_import_cycles() -> None:
+    """No module depends on itself through others (module, function or TYPE_CHECKING imports)."""
+    problems = []
+    for comp in _cycles():
+        edges = [
+            f"  {i.source} -> {i.target} at {_where(i)}"
+            for name in comp
+            for i in ALL_IMPORTS[name]
+            if i.target in comp
+        ]
+        problems.append("cycle among " + ", ".join(comp) + ":\n" + "\n".join(edges))
+    assert not problems, "\n".join(problems)
+
+
+def test_ros_imports_only_in_ros_modules() -> None:
+    """ROS packages are imported only in :data:`ROS_MODULES`; each of those does import them."""
+    outside = [
+        f"{i.target} in {_where(i)}"
+        for name, imps in ALL_IMPORTS.items()
+        if name not in ROS_MODULES
+        for i in imps
+        if _is_ros(i.target)
+    ]
+    assert not outside, "ROS imports outside ROS_MODULES:\n" + "\n".join(outside)
+    stale = sorted(m for m in ROS_MODULES if not any(_is_ros(i.target) for i in ALL_IMPORTS[m]))
+    assert not stale, f"in ROS_MODULES but importing no ROS package (remove them): {stale}"
+
+
+def test_geometry_imports_only_numpy_scipy_stdlib() -> None:
+    allowed = set(sys.stdlib_module_names) | {"numpy", "scipy"}
+    bad = [
+        f"{i.target} in {_where(i)}"
+        for name, imps in ALL_IMPORTS.items()
+        if name == "parproj_ros.geometry" or name.startswith("parproj_ros.geometry.")
+        for i in imps
+        if not i.target.startswith("parproj_ros.geometry")
+        and i.target.split(".")[0] not in allowed
+    ]
+    assert not bad, "geometry/ imports outside numpy, scipy and the standard library:\n" + (
+        "\n".join(bad)
+    )
+
+
+def _in_core(target: str) -> bool:
+    layer = layer_of(target)
+    return layer is not None and layer <= CORE_LAYER
+
+
+def test_every_module_has_a_layer() -> None:
+    missing = sorted(m for m in MODULES if layer_of(m) is None)
+    assert not missing, f"modules in no layer (add them to LAYERS, and README): {missing}"
+    assert "parproj_ros.pipeline" in CORE and "parproj_ros.geometry.rotation" in CORE
+
+
+def test_imports_go_down_the_layers() -> None:
+    """A module imports modules of its own layer or of lower ones (any kind of import)."""
+    layer = {m: layer_of(m) or 0 for m in MODULES}  # (a module in none fails above)
+    names = [n for n, _ in LAYERS]
+    up = [
+        f"{i.source} ({names[layer[i.source]]}) -> {i.target} ({names[layer[i.target]]}) "
+        f"at {_where(i)}"
+        for imps in ALL_IMPORTS.values()
+        for i in imps
+        if i.target in MODULES and layer[i.target] > layer[i.source]
+    ]
+    assert not up, "imports up the layers:\n" + "\n".join(up)
+
+
+def test_core_imports_only_core() -> None:
+    """The core (geometry, imaging, results, pipeline, ...) imports no adapter or application."""
+    allowed = set(sys.stdlib_module_names) | CORE_THIRD_PARTY
+    bad = [
+        f"{i.target} in {_where(i)}"
+        for name, imps in ALL_IMPORTS.items()
+        if _in_core(name)
+        for i in imps
+        if not _in_core(i.target) and i.target.split(".")[0] not in allowed
+    ]
+    assert not bad, "the ROS-free core imports outside itself:\n" + "\n".join(bad)
+
+
+# Runs in a fresh interpreter in which rclpy, rosidl and every *_msgs package fail to import.
+WITHOUT_ROS = textwrap.dedent(
+    """
+    import importlib
+    import sys
+
+
+    class NoRos:
+        @staticmethod
+        def find_spec(name, path=None, target=None):
+            top = name.split(".")[0]
+            if (
+                top == "rclpy"
+                or top.startswith(("rosidl", "rcl_", "rosbag2"))
+                or top.endswith(("_msgs", "_interfaces"))
+            ):
+                raise ImportError(f"{name}: ROS is not available in this test")
+            return None
+
+
+    sys.meta_path.insert(0, NoRos())
+    try:
+        import rclpy  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        raise SystemExit("the ROS blocker does not work")
+    for name in sys.argv[1:]:
+        importlib.import_module(name)
+
+    import numpy as np
+
+    from parproj_ros.pipeline import Pipeline, PipelineConfig
+    from parproj_ros.results import Level, Method
+    from parproj_ros.synthetic import acquisition, make_platform, texture_blocks
+    from parproj_ros.trajectory import NavSample
+
+    lines, dets, strip = 512, 256, 64
+    plat = make_platform(lines, dets)
+    # the aft camera sees the fore camera's ground some scenes later: base-to-height >= 0.005
+    plat = make_platform(lines, dets, lag_scenes=int(np.ceil(0.005 / (2 * np.tan(plat.theta)))))
+    pipe = Pipeline(PipelineConfig(plat.views, scene_lines=lines, tie_points=False))
+    (block,) = texture_blocks(1, lines, dets, seed=1)
+    out = None
+    for ev in acquisition(plat, 1, strip, 50.0):
+        if ev.kind == "nav":
+            s = NavSample(ev.stamp_ns, plat.position(ev.t_s), plat.body, plat.velocity)
+            step = pipe.add_navigation(s)
+        else:
+            rows = block[ev.row0 : ev.row0 + ev.rows]
+            step = pipe.add_strip(("left", "right")[ev.view], ev.stamp_ns, ev.scene_id, rows)
+        out = step if out is None else (out.extend(step) or out)
+    out.extend(pipe.flush())
+    errors = [i for i in out.issues if i.level == Level.ERROR]
+    assert not errors, errors
+    assert len(out.pairs) == 1, out.issues
+    assert {s.method for s in out.scenes[:2]} == {Method.NAVIGATION}, out.scenes
+    assert out.blocks, "the pair was not streamed"
+    rms = out.pairs[0].y_parallax_stats[1]
+    assert rms < 0.05, rms
+    leaked = sorted(m for m in sys.modules if m.split(".")[0] in ("rclpy", "parproj_msgs"))
+    assert not leaked, leaked
+    print("ok", len(out.pairs), f"{rms:.4f}")
+    """
+)
+
+
+def test_core_imports_and_runs_without_ros() -> None:
+    """The core imports, and a streamed fore/aft pair is made, with every ROS import failing."""
+    proc = subprocess.run(
+        [sys.executable, "-c", WITHOUT_ROS, *CORE],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stdout.startswith("ok 1"), proc.stdout
