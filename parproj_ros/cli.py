@@ -417,8 +417,7 @@ def _check_rpc(path: Path, image: bool = False) -> None:
 
 def cmd_import(args: argparse.Namespace) -> int:
     """``parproj import``: two or more images with RPC -> a single-camera bag with virtual GCP."""
-    from .multi_import import parse_pairs, scene_ids_of
-    from .scene_import import import_scenes
+    from .importer import import_scenes, parse_pairs, scene_ids_of
 
     images = [args.left, args.right, *args.more]
     rpcs = _rpc_files(args, images)

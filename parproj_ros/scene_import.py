@@ -1,11 +1,12 @@
-"""``parproj import``: satellite images with RPC models -> a single-camera input bag.
+"""``parproj import``, its lower half: images with RPC models, their checks, virtual points.
 
-The one importer (:func:`import_scenes`; :func:`import_pair` is it with two images). The
+The bag itself is written by parproj_ros/importer.py (:func:`parproj_ros.importer.import_scenes`;
+:func:`parproj_ros.importer.import_pair` is it with two images), from what this module reads. The
 images (e.g. the crops of a Pleiades stereo pair, or more acquisitions) become the scenes of one
 view (:data:`VIEW`, single-camera mode), cut into strips of :data:`STRIP_LINES` image rows with
 increasing stamps, each scene after the one before. Which scenes pair up: without a selection
 (two images, no ``--pairs``) consecutive scenes, as the node pairs them; with one (three or more
-images, or ``--pairs``), the pairs chosen by parproj_ros/multi_import.py (B/H), written on the
+images, or ``--pairs``), the pairs chosen by parproj_ros/importer.py (B/H), written on the
 latched ``pairs`` topic. Image
 rows are scan lines (pushbroom time), columns are detectors. There is no navigation: the node
 gets its parameters from the virtual ground control points on the ``gcp`` topic (Eq 8, roll
@@ -63,7 +64,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -124,7 +125,7 @@ def read_image(path: str | Path, band: int = 1) -> NDArray[np.generic]:
     """One band of a raster as a 2-D array (rows = lines), no-data as 0 (small images only).
 
     uint8, uint16 and float32 stay as they are (the strip encodings mono8, mono16, 32FC1); other
-    types become float32. :func:`import_pair` never calls this: it reads by windows.
+    types become float32. The importer never calls this: it reads by windows.
     """
     return raster_io.read_band(path, band)
 
@@ -705,7 +706,7 @@ def default_heights(img: ImportedImage) -> tuple[float, float]:
     return r.height_off - 0.5 * abs(r.height_scale), r.height_off + 0.5 * abs(r.height_scale)
 
 
-def _check_options(
+def check_options(
     heights: tuple[float, float] | None,
     geoid_undulation: float,
     principal_distance: float,
@@ -736,277 +737,6 @@ def _check_options(
             )
 
 
-def import_scenes(
-    paths: Sequence[str | Path],
-    output: str | Path,
-    *,
-    pairs: str | Sequence[tuple[str, str]] | None = "bh",
-    bh_range: tuple[float, float] | None = None,
-    scene_ids: Sequence[str] | None = None,
-    rpcs: Sequence[str | Path | None] | None = None,
-    offsets: Sequence[tuple[float, float] | None] | None = None,
-    band: int | None = None,
-    dem: str | Path | HeightFunction | None = None,
-    geoid_undulation: float = 0.0,
-    heights: tuple[float, float] | None = None,
-    principal_distance: float = PRINCIPAL_DISTANCE,
-    pixel_size: float = PIXEL_SIZE,
-    line_period: float = LINE_PERIOD,
-    dem_margin: float = DEM_MARGIN,
-    truth_points: int = TRUTH_POINTS,
-    overwrite: bool = False,
-    log: Callable[[str], None] = print,
-) -> dict[str, Any]:
-    """Write the input bag of two or more images with RPC (module docstring); return a summary.
-
-    Every image is read by windows of :data:`STRIP_LINES` rows (one strip in memory at a time),
-    checked (:func:`check_image`; its notes and figures logged), and every pair considered
-    must overlap (:func:`check_overlap`; automatic selections leave out those that do not).
-
-    Args:
-        paths: the images (any raster GDAL reads), in acquisition order.
-        output: bag folder to create.
-        pairs: None (no selection: consecutive images pair up, no ``pairs`` topic), ``"bh"``,
-            ``"all"`` or (left, right) scene ids
-            (:func:`parproj_ros.multi_import.select_pairs`).
-        bh_range: (low, high) B/H of a useful pair for ``pairs="bh"`` (default
-            :data:`parproj_ros.multi_import.BH_RANGE`).
-        scene_ids: one per image (default :func:`parproj_ros.multi_import.scene_ids_of`).
-        rpcs: per image, an RPC file of its full scene, or None for :func:`find_rpc`.
-        offsets: per image, the crop origin (line, sample) in its RPC's grid, pixels, or None:
-            from GDAL's geotransform (:func:`crop_offset`), else (0, 0), a named assumption
-            (logged).
-        band: the band to import from every image (1-based); None: band 1 (logged when an
-            image has more).
-        dem: SRTM ``.hgt`` path or a height function ``(lon, lat) -> ellipsoidal h`` (m); None:
-            ``heights``.
-        geoid_undulation: metres added to the SRTM heights (geoid -> ellipsoid).
-        heights: (hmin, hmax) metres without a DEM (default :func:`default_heights` of the
-            first image).
-        principal_distance: c written in the scanner info, metres.
-        pixel_size: detector pitch written in the scanner info, metres.
-        line_period: seconds between lines (stamps).
-        dem_margin: half height range of the virtual points about the DEM, metres.
-        truth_points: number of truth points per pair.
-        overwrite: replace an existing bag.
-        log: where to report.
-
-    Returns:
-        Summary: sizes, counts, frame_id, per scene the RPC and offset sources, band, checks
-        and notes; every candidate pair with its B/H, convergence (deg), common points and
-        whether it was selected; the pairs.
-
-    Raises:
-        SceneImportError: bad options (NaN, zero height range, scene ids, per-image lists of
-            the wrong length), an unreadable image, no RPC, a failed check, pixel types that
-            differ, a pair asked for that does not overlap, no pair selected.
-        RPCFormatError: a malformed RPC (file, key and value named).
-
-    """
-    from parproj_msgs.msg import GroundControlPoints, PairSelection, ScannerInfo
-    from sensor_msgs.msg import Image
-
-    from .bag import BagWriter
-    from .conversions import array_to_image, gcp_to_msg, ns_to_stamp, pairs_to_msg
-    from .multi_import import BH_RANGE, scene_ids_of, select_pairs
-
-    n = len(paths)
-    if n < 2:
-        raise SceneImportError("at least two images are needed")
-    ids = list(scene_ids) if scene_ids is not None else scene_ids_of(paths)
-    if len(ids) != n or len(set(ids)) != n or not all(ids):
-        raise SceneImportError(f"one distinct, non-empty scene id per image needed, got {ids}")
-    rpc_files = list(rpcs) if rpcs is not None else [None] * n
-    origins = list(offsets) if offsets is not None else [None] * n
-    if len(rpc_files) != n or len(origins) != n:
-        raise SceneImportError(
-            f"one RPC file and one crop origin (or None) per image needed: {len(rpc_files)} and "
-            f"{len(origins)} for {n} images"
-        )
-    _check_options(
-        heights, geoid_undulation, principal_distance, pixel_size, line_period, dem_margin
-    )
-    images = [
-        load_image(p, sid, rpc_path=r, offset=o, band=band)
-        for p, sid, r, o in zip(paths, ids, rpc_files, origins, strict=True)
-    ]
-    if len({img.dtype for img in images}) > 1:
-        raise SceneImportError(
-            "pixel types differ: " + ", ".join(f"{img.path} {img.dtype}" for img in images)
-        )
-    h: Heights
-    if dem is None:
-        h = heights if heights is not None else default_heights(images[0])
-    elif callable(dem):
-        h = dem
-    else:
-        h = dem_from_path(dem, geoid_undulation=geoid_undulation)
-    for img in images:
-        check_image(img, height_range(img, h, dem_margin))
-        for note in img.notes:
-            log(note)
-        c = img.checks
-        log(
-            f"{img.path.name}: RPC {img.rpc_source}, crop origin {img.offset} "
-            f"({img.offset_source}); round trip {c['round_trip_px']:.1e} px, "
-            f"{c['round_trip_deg']:.1e} deg"
-        )
-    frame = make_frame(images[0], h)
-    frame_id = frame_id_of(frame)
-    gcp = gcp_points(images, h, dem_margin)
-    table, truth = select_pairs(
-        images, pairs, bh_range or BH_RANGE, h, frame, truth_points, dem_margin, log
-    )
-    chosen = [(r["left"], r["right"]) for r in table if r["selected"]]
-
-    period_ns = line_period * 1e9
-    starts, t = [], START_NS
-    for img in images:
-        starts.append(t)
-        t += round(img.lines * period_ns) + round(SCENE_GAP_S * 1e9)
-    t_info = START_NS - 1_000_000_000
-    detectors = max(img.samples for img in images)
-    custom = {
-        "parproj_import": "parproj import (parproj_ros/scene_import.py)",
-        "object_frame": frame_id,
-        "images": ", ".join(f"{img.path.name} ({img.scene_id})" for img in images),
-        "rpc": "; ".join(img.rpc_source for img in images),
-        "crop_offsets_line_sample": "; ".join(str(img.offset) for img in images),
-    }
-    if pairs is not None:
-        custom["pairs"] = ", ".join(
-            f"{r['left']}:{r['right']} (B/H {r['base_to_height']:.3f})"
-            for r in table
-            if r["selected"]
-        )
-    with BagWriter(
-        Path(output), compression="zstd", overwrite=overwrite, custom_data=custom
-    ) as bw:
-        bw.add_topic(f"{VIEW}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
-        bw.add_topic(f"{VIEW}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local")
-        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        info = ScannerInfo()
-        ns_to_stamp(t_info, info.header.stamp)
-        info.header.frame_id = VIEW
-        info.camera_name = VIEW
-        info.principal_distance = float(principal_distance)
-        info.pixel_size = float(pixel_size)
-        info.detectors = int(detectors)
-        info.principal_point = (images[0].samples - 1) / 2.0
-        info.line_period = float(line_period)
-        info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = 0.0, 0.0, 0.0, 1.0
-        bw.write(f"{VIEW}/scanner_info", info, t_info)
-        for topic, vp in (("gcp", gcp), ("truth/points", truth)):
-            msg = gcp_to_msg(
-                vp.ground_points(frame), GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info
-            )
-            bw.write(topic, msg, t_info)
-        if pairs is not None:
-            bw.add_topic("pairs", "parproj_msgs/msg/PairSelection", "transient_local")
-            bw.write("pairs", pairs_to_msg(chosen, PairSelection(), stamp_ns=t_info), t_info)
-        for img, t0 in zip(images, starts, strict=True):
-            # One camera has one detector count: a narrower crop is padded on the right with
-            # no-data (0) columns, which changes no pixel's position.
-            # Read by windows of STRIP_LINES rows: one strip in memory at a time.
-            masked = 0
-            for r0, pixels, n_masked in raster_io.read_rows(
-                img.path, img.band, STRIP_LINES, detectors
-            ):
-                masked += n_masked
-                stamp = t0 + round(r0 * period_ns)
-                msg = array_to_image(pixels, Image(), frame_id=img.scene_id, stamp_ns=stamp)
-                bw.write(f"{VIEW}/image_strip", msg, stamp)
-            img.checks["nodata_pixels"] = masked
-            if masked:
-                log(f"{img.path.name}: {masked} no-data pixels (GDAL mask) written as 0")
-    size = sum(f.stat().st_size for f in Path(output).iterdir())
-    n_gcp = sum(1 for c in gcp.check if not c)
-    summary = {
-        "output": str(output),
-        "size_mb": size / 1e6,
-        "frame_id": frame_id,
-        "scenes": {
-            img.scene_id: {
-                "image": str(img.path),
-                "lines": img.lines,
-                "samples": img.samples,
-                "rpc": img.rpc_source,
-                "offset_line_sample": list(img.offset),
-                "offset_source": img.offset_source,
-                "band": img.band,
-                "driver": img.info.driver,
-                "dtype": str(img.dtype),
-                "checks": img.checks,
-                "notes": list(img.notes),
-                "gcp": sum(
-                    1
-                    for o, c in zip(gcp.observations, gcp.check, strict=True)
-                    if img.scene_id in o and not c
-                ),
-            }
-            for img in images
-        },
-        "candidates": table,
-        "pairs": chosen,
-        "gcp": n_gcp,
-        "check": len(gcp.ids) - n_gcp,
-        "gcp_in_both": sum(1 for o in gcp.observations if len(o) >= 2),
-        "truth": len(truth.ids),
-        "heights": "DEM" if callable(h) else list(h),
-    }
-    log(
-        f"wrote {output} ({size / 1e6:.2f} MB): scenes "
-        + ", ".join(f"{img.scene_id} {img.lines}x{img.samples}" for img in images)
-        + (f"; pairs {', '.join(a + ':' + b for a, b in chosen)}" if pairs is not None else "")
-        + f"; {n_gcp} GCP, {summary['check']} check, {len(truth.ids)} truth points; object "
-        f"frame {frame_id}"
-    )
-    return summary
-
-
-def import_pair(
-    left_path: str | Path,
-    right_path: str | Path,
-    output: str | Path,
-    *,
-    rpc_left: str | Path | None = None,
-    rpc_right: str | Path | None = None,
-    scene_ids: tuple[str, str] = ("left", "right"),
-    offsets: tuple[tuple[float, float] | None, tuple[float, float] | None] = (None, None),
-    **options: Any,
-) -> dict[str, Any]:
-    """The bag of a pair: :func:`import_scenes` of two images without a pair selection.
-
-    Args:
-        left_path: first image (scene ``scene_ids[0]``, the left scene of the pair).
-        right_path: second image.
-        output: bag folder to create.
-        rpc_left: RPC file of the first image's full scene (default: :func:`find_rpc`).
-        rpc_right: RPC file of the second image's full scene.
-        scene_ids: the two scene ids.
-        offsets: crop origins (line, sample) per image in its RPC's grid, pixels (None: from
-            the file, else (0, 0)).
-        **options: the other keyword arguments of :func:`import_scenes` (dem, heights, band,
-            principal_distance, ..., log).
-
-    Raises:
-        SceneImportError, RPCFormatError: as :func:`import_scenes`.
-
-    """
-    if scene_ids[0] == scene_ids[1]:
-        raise SceneImportError("the two scene ids must differ")
-    return import_scenes(
-        [left_path, right_path],
-        output,
-        pairs=None,
-        scene_ids=scene_ids,
-        rpcs=(rpc_left, rpc_right),
-        offsets=offsets,
-        **options,
-    )
-
-
 def geodetic_of(points: Sequence[Any], frame_id: str) -> FloatArray:
     """(n, 3) lon deg, lat deg, h m of GroundPoints given in the frame named ``frame_id``."""
     frame = frame_from_id(frame_id)
@@ -1023,7 +753,5 @@ __all__ = [
     "find_rpc",
     "frame_from_id",
     "frame_id_of",
-    "import_pair",
-    "import_scenes",
     "load_image",
 ]

@@ -26,9 +26,9 @@ from rasterio.rpc import RPC
 
 from parproj_ros import raster_io, rpc
 from parproj_ros.evaluate import evaluate_bag, normalized_px
+from parproj_ros.importer import import_pair
 from parproj_ros.offline import process_bag
 from parproj_ros.rpc import RPCModel
-from parproj_ros.scene_import import import_pair
 from parproj_ros.ventoux import read_stereo_pair
 
 DATA = Path(__file__).parent / "data" / "ventoux"

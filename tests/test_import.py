@@ -21,6 +21,7 @@ import tifffile
 from parproj_ros import rpc
 from parproj_ros.bag import BagReader
 from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
+from parproj_ros.importer import import_pair
 from parproj_ros.offline import process_bag
 from parproj_ros.results import METHODS
 from parproj_ros.rpc import RPCModel
@@ -32,7 +33,6 @@ from parproj_ros.scene_import import (
     find_rpc,
     frame_from_id,
     frame_id_of,
-    import_pair,
 )
 from parproj_ros.ventoux import (
     EpipolarGrid,

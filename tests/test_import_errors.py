@@ -17,8 +17,9 @@ from rasterio.transform import from_origin
 from test_conventions import DATA, crop_rpcs, pixels, to_rasterio, write
 
 from parproj_ros import cli, rpc
+from parproj_ros.importer import import_pair
 from parproj_ros.rpc import RPCFormatError, RPCModel
-from parproj_ros.scene_import import SceneImportError, import_pair
+from parproj_ros.scene_import import SceneImportError
 
 QUIET: dict[str, Any] = {"log": lambda _: None}
 

@@ -33,8 +33,7 @@ ROS_MODULES = {
     "parproj_ros.recording",  # simulated acquisitions recorded to bags
     "parproj_ros.bag",  # MCAP bags: message classes and (de)serialization
     "parproj_ros.cli",  # `parproj replay` spins an rclpy node
-    "parproj_ros.scene_import",  # `parproj import` writes an input bag
-    "parproj_ros.multi_import",  # the same, more than two images
+    "parproj_ros.importer",  # `parproj import` writes an input bag
     "parproj_ros.synthetic",  # the benchmark's acquisition as messages
 }
 
@@ -80,7 +79,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
             "parproj_ros.long_scene",
             "parproj_ros.ventoux",
             "parproj_ros.scene_import",
-            "parproj_ros.multi_import",
+            "parproj_ros.importer",
             "parproj_ros.raster_io",
             "parproj_ros.synthetic",
         ),

@@ -26,8 +26,8 @@ from parproj_ros.conversions import (
     stamp_to_ns,
 )
 from parproj_ros.evaluate import evaluate_bag
+from parproj_ros.importer import import_scenes, parse_pairs, scene_ids_of
 from parproj_ros.live import run_through_node
-from parproj_ros.multi_import import import_scenes, parse_pairs, scene_ids_of
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import Outputs, Pipeline
 from parproj_ros.recording import config_from_bag, node_parameters, views_from_bag

@@ -247,8 +247,8 @@ def test_long_geotiff_pair_import_process_evaluate(ventoux: dict, tmp_path: Path
     under 0.5 px, truth points (random, in no fit) through the published transforms.
     """
     from parproj_ros.evaluate import evaluate_bag
+    from parproj_ros.importer import import_pair
     from parproj_ros.offline import process_bag
-    from parproj_ros.scene_import import import_pair
 
     strip = ventoux["strip"]
     for name, model, n in (("L", strip.left, strip.lines[0]), ("R", strip.right, strip.lines[1])):
