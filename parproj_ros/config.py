@@ -606,6 +606,30 @@ def view_config(name: str, values: Mapping[str, Any]) -> ViewConfig:
     )
 
 
+def view_values(view: ViewConfig) -> dict[str, Any]:
+    """The :data:`VIEW_PARAMS` values of ``view``: the inverse of :func:`view_config`.
+
+    Names without the ``<view>.`` prefix; the principal point is given explicitly (pixels), the
+    mounting as roll, pitch, yaw in degrees, the encoding from the pixel type ("" for any).
+    """
+    import numpy as np
+
+    from .geometry import angles_from_rotation
+
+    c = view.camera
+    encodings = {dtype: enc for enc, dtype in ENCODING_DTYPES.items()}
+    rpy = np.degrees(angles_from_rotation(view.mounting))
+    return {
+        "principal_distance": c.principal_distance,
+        "pixel_size": c.pixel_size,
+        "detectors": c.detectors,
+        "principal_point": c.pp,
+        "line_period": c.line_period,
+        "mounting_rpy_deg": [float(a) for a in rpy],
+        "encoding": encodings.get(view.dtype or "", ""),
+    }
+
+
 def _typed(p: Param, value: Any) -> Any:
     """``value`` as the Python type of ``p`` (ROS gives e.g. integers for some doubles)."""
     if p.type == "double":

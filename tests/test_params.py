@@ -177,6 +177,33 @@ def test_config_from_values_builds_the_views() -> None:
     assert config_from_values({"views": ["pan"]}).single_camera
 
 
+def test_view_values_is_the_inverse_of_view_config() -> None:
+    given = {
+        "principal_distance": 2.0,
+        "pixel_size": 1e-5,
+        "detectors": 101,
+        "principal_point": 40.5,
+        "line_period": 1e-3,
+        "mounting_rpy_deg": [1.0, -2.0, 30.0],
+        "encoding": "mono8",
+    }
+    vc = config.view_config("fore", given)
+    back = config.view_values(vc)
+    assert set(back) == {p.name for p in VIEW_PARAMS}
+    np.testing.assert_allclose(back.pop("mounting_rpy_deg"), given.pop("mounting_rpy_deg"))
+    assert back == given
+    plain = config.view_values(config.view_config("pan", {}))
+    assert plain["principal_point"] == (13816 - 1) / 2 and plain["encoding"] == ""
+
+
+def test_node_parameters_of_a_bag_are_table_names() -> None:
+    from parproj_ros.bag import BagReader
+    from parproj_ros.recording import node_parameters, views_from_bag
+
+    params = node_parameters(views_from_bag(BagReader(BAG)))
+    assert set(params) == {"views"} | {f"pan.{p.name}" for p in VIEW_PARAMS}
+
+
 def test_pipeline_config_docstring_lists_the_table() -> None:
     doc = PipelineConfig.__doc__ or ""
     for p in PARAMS:
