@@ -23,6 +23,7 @@ from .cli_io import (
     number,
     staged_output,
 )
+from .config import PARAMS
 
 #: Exit codes of every ``parproj`` command (README, "Exit codes").
 EXIT_OK, EXIT_NOT_MET, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
@@ -30,6 +31,10 @@ EXIT_OK, EXIT_NOT_MET, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 EXIT_SIGINT, EXIT_SIGTERM = 128 + signal.SIGINT, 128 + signal.SIGTERM
 #: Largest wait between two messages ``parproj replay`` accepts without --max-gap, s.
 MAX_REPLAY_IDLE_S = 3600.0
+#: The parameters of parproj_node that ``parproj process`` has options for.
+OFFLINE_PARAMS = tuple(p for p in PARAMS if p.offline)
+#: Option value names of ``parproj process`` by unit.
+METAVARS = {"m": "M", "px": "PX", "s": "S", "lines": "N", "points": "N"}
 #: Largest JSON file read (``bench --include-quick``), bytes.
 MAX_JSON_BYTES = 16 * 1024 * 1024
 
@@ -177,17 +182,7 @@ def cmd_process(args: argparse.Namespace) -> int:
     out = check_output(args.output, inputs=[bag], force=args.force)
     args.outputs = [out]
     check_input_bag(bag)
-    overrides = {
-        "z_avg": args.z_avg,
-        "height_range": args.height_range,
-        "gcp_roll": args.gcp_roll,
-        "interpolation": args.interpolation,
-        "scene_lines": args.scene_lines,
-        "streaming": not args.no_streaming,
-        "tie_points": not args.no_tie_points,
-        "segment_max_error_px": args.segment_max_error,
-        "output_extent": args.output_extent,
-    }
+    overrides = {p.field: getattr(args, p.name) for p in OFFLINE_PARAMS if p.field}
     if args.no_gcp:
         overrides["min_gcp"] = 10**9
     with staged_output(out, force=args.force) as work:
@@ -532,6 +527,34 @@ def cmd_segments(args: argparse.Namespace) -> int:
     return 0 if all(r["reached"] for r in res["runs"]) else 1
 
 
+def _add_parameter_options(p: argparse.ArgumentParser) -> None:
+    """One option per parameter of parproj_node that makes sense offline (config.PARAMS).
+
+    The same name with dashes (``--z-avg``), default and range (numbers are checked: finite, in
+    range, else exit 2), and the description; booleans have ``--no-<name>`` as well.
+    """
+    for prm in OFFLINE_PARAMS:
+        unit = f" [{prm.unit}]" if prm.unit else ""
+        rng = f"; {prm.option_range_text}" if prm.option_range_text else ""
+        shown = "on" if prm.default is True else "off" if prm.default is False else prm.default
+        text = f"{prm.description}{unit}{rng}; default {shown}".replace("%", "%%")
+        names = [prm.option, *prm.aliases]
+        kw: dict[str, Any] = {"dest": prm.name, "default": prm.default, "help": text}
+        if prm.type == "bool":
+            p.add_argument(*names, action=argparse.BooleanOptionalAction, **kw)
+            continue
+        if prm.choices:
+            kw["choices"] = list(prm.choices)
+        elif prm.type == "integer":
+            lo, hi = (None if b is None else int(b) for b in (prm.low, prm.high))
+            kw["type"] = integer(lo, hi)
+        elif prm.type == "double":
+            kw["type"] = number(prm.low, prm.high, lo_open=prm.low_open)
+        if not prm.choices:
+            kw["metavar"] = METAVARS.get(prm.unit, "N" if prm.type == "integer" else "X")
+        p.add_argument(*names, **kw)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse with one-line errors: ``parproj <command>: <option>: <problem>``, exit 2.
 
@@ -590,52 +613,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_simulate)
 
-    # process: the ranges of parproj_node's parameters (node.PARAMS), not imported (rclpy)
     p = sub.add_parser("process", help="run the pipeline over a bag offline, write outputs")
     p.add_argument("bag")
     p.add_argument("-o", "--output", required=True, help="output bag folder")
     p.add_argument("--force", action="store_true", help="replace an existing output bag")
-    p.add_argument(
-        "--z-avg", type=number(-1000.0, 9000.0), default=0.0, help="average terrain height, m"
-    )
-    p.add_argument(
-        "--height-range",
-        type=number(0.0, 9000.0, lo_open=True),
-        default=500.0,
-        help="height half range, m (> 0)",
-    )
-    p.add_argument("--gcp-roll", choices=["estimate", "navigation", "none"], default="estimate")
-    p.add_argument("--interpolation", choices=["linear", "cubic"], default="linear")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
-    p.add_argument(
-        "--scene-lines",
-        type=integer(0, 10_000_000),
-        default=0,
-        help="lines per scene (0: by id/gap)",
-    )
-    p.add_argument(
-        "--no-tie-points",
-        action="store_true",
-        help="do not refine pairs with tie points matched in the images",
-    )
-    p.add_argument(
-        "--no-streaming",
-        action="store_true",
-        help="whole images after both scenes, never column blocks",
-    )
-    p.add_argument(
-        "--segment-max-error",
-        type=number(0.0, 1000.0),
-        default=1.0,
-        metavar="PX",
-        help="cut long GCP/RPC pairs into segments whose model error is within PX (0: never)",
-    )
-    p.add_argument(
-        "--output-extent",
-        choices=["overlap", "union"],
-        default="overlap",
-        help="columns of the normalized pair: the two scenes' overlap (default) or their union",
-    )
+    _add_parameter_options(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_process)
 

@@ -1,9 +1,10 @@
 """parproj_node: the rclpy adapter around :class:`parproj_ros.pipeline.Pipeline`.
 
-It declares the parameters, converts messages to arrays (conversions.py), queues them to one worker
-thread that runs the pipeline (so a long resampling never blocks message reception), and publishes
-what the pipeline returns. Topic names are relative, to be remapped. See README for the topic and
-parameter tables.
+It declares the parameters from the one table (:mod:`parproj_ros.config`, which also builds the
+pipeline's settings from their values), converts messages to arrays (conversions.py), queues
+them to one worker thread that runs the pipeline (so a long resampling never blocks message
+reception), and publishes what the pipeline returns. Topic names are relative, to be remapped.
+See README for the topic and parameter tables.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
@@ -51,9 +51,9 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 
 from . import conversions as conv
+from .config import PARAMS, VIEW_PARAMS, Param, config_from_values
 from .gcp_file import load_gcp_file
-from .geometry import LineCamera, rotation_from_angles
-from .pipeline import Issue, Outputs, Pipeline, PipelineConfig, ViewConfig
+from .pipeline import Issue, Outputs, Pipeline
 
 
 class InputKind(StrEnum):
@@ -65,20 +65,6 @@ class InputKind(StrEnum):
     PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
     CLOSE = "close"  # the scene timeout: close the idle scenes
     FLUSH = "flush"  # the flush at stop (a _FlushRequest)
-
-
-@dataclass(frozen=True)
-class Param:
-    """One declared parameter: name, default, description with unit, range, read-only."""
-
-    name: str
-    default: Any
-    description: str
-    low: float | None = None
-    high: float | None = None
-    read_only: bool = True
-    choices: tuple[str, ...] = ()
-    strict: bool = False  # no safe default: an invalid value ends the node (exit 2)
 
 
 #: Exit codes of parproj_node (README, "Exit codes").
@@ -93,179 +79,17 @@ class StartupError(Exception):
     """
 
 
-#: Node-wide parameters (per-view camera parameters are in VIEW_PARAMS).
-PARAMS: tuple[Param, ...] = (
-    Param(
-        "views",
-        ["left", "right"],
-        "view names: two (left, right) for fore/aft cameras, or "
-        "one for single-camera mode (consecutive scenes pair up); each a letter, then letters, "
-        "digits or underscores; invalid: the node does not start (exit 2)",
-        strict=True,
-    ),
-    Param("frame_id", "map", "object frame (local Cartesian, Z up, metres) of navigation and GCP"),
-    Param(
-        "scene_lines",
-        0,
-        "lines per scene; 0 = scenes end only on a gap or a frame_id change",
-        0,
-        10_000_000,
-    ),
-    Param(
-        "max_gap_lines",
-        64,
-        "a larger jump between strips ends the scene; a smaller one is "
-        "filled with nodata and reported",
-        0,
-        1_000_000,
-    ),
-    Param(
-        "z_avg", 0.0, "average terrain height, m (Eq 12; zero-disparity height)", -1000.0, 9000.0
-    ),
-    Param(
-        "height_range",
-        500.0,
-        "half range of terrain heights, m (virtual check points)",
-        0.0,
-        9000.0,
-    ),
-    Param(
-        "crab_tolerance_px",
-        0.05,
-        "largest predicted crab-angle error accepted from Eqs 10-13, "
-        "px; above it A1..A8 are fitted to the rigorous model",
-        0.0,
-        1000.0,
-    ),
-    Param(
-        "scene_timeout",
-        2.0,
-        "close the open scenes when no strip arrived for this long, s (wall clock), once the "
-        "navigation has moved past them (or without navigation); 0 = never",
-        0.0,
-        3600.0,
-    ),
-    Param(
-        "gcp_roll",
-        "estimate",
-        "with GCP: 'estimate' the roll (Eq 8), use the 'navigation' roll, or 'none' (no PTP)",
-        choices=("estimate", "navigation", "none"),
-    ),
-    Param("min_gcp", 5, "non-check GCP observed in a scene needed to use them", 4, 100000),
-    Param("gcp_file", "", "CSV/YAML file of GCP loaded at start ('' = none); see README"),
-    Param("nodata", 0.0, "output value outside a scene and for missing lines", -1e30, 1e30),
-    Param(
-        "interpolation", "linear", "'linear' or 'cubic' resampling", choices=("linear", "cubic")
-    ),
-    Param(
-        "output_pixel", 0.0, "normalized metres per output pixel; 0 = native resolution", 0.0, 1.0
-    ),
-    Param(
-        "max_output_pixels", 200_000_000, "larger normalized images are refused", 1, 2_000_000_000
-    ),
-    Param(
-        "output_extent",
-        "overlap",
-        "columns of the normalized pair: 'overlap' (the ground both scenes see, at the heights "
-        "of the pair's GCP, else z_avg +- height_range) or 'union' (both footprints whole)",
-        choices=("overlap", "union"),
-    ),
-    Param(
-        "tie_points",
-        True,
-        "refine whole-scene pairs with tie points matched between the normalized images "
-        "(RANSAC on G1..G4), removing y-parallax left by biased navigation, GCP or RPC",
-    ),
-    Param(
-        "tie_threshold_px", 1.0, "RANSAC inlier threshold on the epipolar residual, px", 0.05, 50.0
-    ),
-    Param(
-        "segment_max_error_px",
-        1.0,
-        "model error bound of a long GCP/RPC scene, px: a pair whose parallel model misses its "
-        "points by more is cut along track into segment pairs (0 = never cut)",
-        0.0,
-        1000.0,
-    ),
-    Param(
-        "segment_overlap",
-        0.1,
-        "fraction of a segment's length by which it extends into its neighbours",
-        0.0,
-        0.5,
-    ),
-    Param(
-        "streaming",
-        True,
-        "publish normalized column blocks while the scenes arrive (two views, scene_lines > 0, "
-        "navigation-derived parameters); otherwise whole images after both scenes",
-    ),
-    Param(
-        "worker_stall_s",
-        120.0,
-        "the 1 Hz summary turns ERROR when the worker has been on one input (a strip, the "
-        "scene or pair it completes) for longer than this, s; a full-size pair takes tens of s",
-        1.0,
-        86400.0,
-    ),
-    Param(
-        "error_hold_s",
-        60.0,
-        "the 1 Hz summary stays at ERROR for this long after an ERROR status, s",
-        0.0,
-        86400.0,
-    ),
-    Param(
-        "stop_timeout_s",
-        60.0,
-        "at SIGINT/SIGTERM: longest wait for the worker to process what is queued and the open "
-        "scenes, s; after it (or at a second signal) the node exits with code 1",
-        0.0,
-        3600.0,
-    ),
-)
-
-#: Per-view parameters, declared as "<view>.<name>".
-VIEW_PARAMS: tuple[Param, ...] = (
-    Param("principal_distance", 10.0, "principal distance c, m", 1e-4, 100.0),
-    Param("pixel_size", 12e-6, "detector pitch, m", 1e-7, 1e-3),
-    Param("detectors", 13816, "detectors in the line", 1, 1_000_000),
-    Param(
-        "principal_point",
-        -1.0,
-        "sample coordinate of the principal point, px; -1 = centre",
-        -1.0,
-        1e6,
-    ),
-    Param("line_period", 1.0 / 6500.0, "time between scan lines, s", 1e-7, 10.0),
-    Param(
-        "mounting_rpy_deg",
-        [0.0, 0.0, 0.0],
-        "sensor frame in the body frame: roll, pitch, "
-        "yaw in degrees, R = Rx(roll) Ry(pitch) Rz(yaw); 3 finite numbers within +-360; "
-        "invalid: the node does not start (exit 2)",
-        strict=True,
-    ),
-    Param(
-        "encoding",
-        "",
-        "pixel encoding the camera delivers (mono8, mono16, 32FC1); strips of another encoding "
-        "are dropped; '' = whatever a scene's first strip has",
-        choices=("", "mono8", "mono16", "32FC1"),
-    ),
-)
-
-ENCODING_DTYPES = {"mono8": "uint8", "mono16": "uint16", "32FC1": "float32"}
-
-
-def _descriptor(p: Param, name: str) -> ParameterDescriptor:
+def _descriptor(p: Param) -> ParameterDescriptor:
+    """The descriptor of ``p``: description with the unit, read-only, range, choices."""
     # Strict parameters take any type, so that the node's own check (check_views,
     # check_mounting) gives the message, and [1, 2, 3] (integers) is a valid mounting.
     d = ParameterDescriptor(
-        description=p.description, read_only=p.read_only, dynamic_typing=p.strict
+        description=p.ros_description, read_only=p.read_only, dynamic_typing=p.strict
     )
+    if p.choices:
+        d.additional_constraints = f"one of {p.range_text}"
     if p.low is not None and p.high is not None:
-        if isinstance(p.default, int) and not isinstance(p.default, bool):
+        if p.type == "integer":
             d.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high), step=0)]
         else:
             d.floating_point_range = [
@@ -343,7 +167,7 @@ class ParprojNode(Node):
         safe default (``p.strict``: ``views``, ``<view>.mounting_rpy_deg``) is checked by its
         caller instead; rclpy refusing it raises :class:`StartupError`.
         """
-        desc = _descriptor(p, name)
+        desc = _descriptor(p)
         try:
             value = self.declare_parameter(name, p.default, desc).value
         except (InvalidParameterValueException, InvalidParameterTypeException) as err:
@@ -376,47 +200,13 @@ class ParprojNode(Node):
         super().__init__("parproj_node", **kwargs)
         self._startup_issues: list[Issue] = []
         vals = {p.name: self._declare(p.name, p) for p in PARAMS}
-        views = []
-        for name in check_views(vals["views"]):
-            v = {p.name: self._declare(f"{name}.{p.name}", p) for p in VIEW_PARAMS}
-            rpy = check_mounting(f"{name}.mounting_rpy_deg", v["mounting_rpy_deg"])
-            pp = None if v["principal_point"] < 0 else float(v["principal_point"])
-            cam = LineCamera(
-                float(v["principal_distance"]),
-                float(v["pixel_size"]),
-                int(v["detectors"]),
-                float(v["line_period"]),
-                pp,
-            )
-            views.append(
-                ViewConfig(
-                    name,
-                    cam,
-                    rotation_from_angles(*np.radians(rpy)),
-                    ENCODING_DTYPES.get(v["encoding"]),
-                )
-            )
+        vals["views"] = check_views(vals["views"])
+        for view in vals["views"]:
+            vals |= {f"{view}.{p.name}": self._declare(f"{view}.{p.name}", p) for p in VIEW_PARAMS}
+            key = f"{view}.mounting_rpy_deg"
+            vals[key] = check_mounting(key, vals[key])
         self.frame_id = str(vals["frame_id"])
-        config = PipelineConfig(
-            views=tuple(views),
-            scene_lines=int(vals["scene_lines"]),
-            max_gap_lines=int(vals["max_gap_lines"]),
-            z_avg=float(vals["z_avg"]),
-            height_range=float(vals["height_range"]),
-            crab_tolerance_px=float(vals["crab_tolerance_px"]),
-            gcp_roll=vals["gcp_roll"],
-            min_gcp=int(vals["min_gcp"]),
-            nodata=float(vals["nodata"]),
-            interpolation=vals["interpolation"],
-            output_pixel=float(vals["output_pixel"]),
-            output_extent=vals["output_extent"],
-            max_output_pixels=int(vals["max_output_pixels"]),
-            streaming=bool(vals["streaming"]),
-            tie_points=bool(vals["tie_points"]),
-            tie_threshold_px=float(vals["tie_threshold_px"]),
-            segment_max_error_px=float(vals["segment_max_error_px"]),
-            segment_overlap=float(vals["segment_overlap"]),
-        )
+        config = config_from_values(vals)
         self.pipeline = Pipeline(config)
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
@@ -453,7 +243,7 @@ class ParprojNode(Node):
         )
         overrides = QoSOverridingOptions.with_default_policies()
         inputs: list[tuple[str, Any, QoSProfile]] = [("navigation", self._on_nav, nav_qos)]
-        for vc in views:
+        for vc in config.views:
             inputs.append(
                 (
                     f"{vc.name}/image_strip",

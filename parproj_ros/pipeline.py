@@ -18,17 +18,17 @@ types (issues, scene and pair results, the closed sets they name) are in
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
-from typing import Literal
+from dataclasses import replace
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .config import PipelineConfig as PipelineConfig
+from .config import ViewConfig as ViewConfig
 from .geometry import (
     DegenerateGeometryError,
     GeometryError,
-    LineCamera,
     Normalization,
     ParallelProjection,
     PushbroomModel,
@@ -57,103 +57,6 @@ from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavigationError, NavSample, TrajectoryBuffer
 
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class ViewConfig:
-    """One camera (view) of the platform.
-
-    Attributes:
-        name: view name, also the topic namespace ("left", "right", "fore", "aft", ...).
-        camera: interior orientation.
-        mounting: 3x3 rotation of the sensor frame in the body frame.
-        dtype: expected pixel type ("uint8", "uint16", "float32"); None accepts the type of a
-            scene's first strip.
-    """
-
-    name: str
-    camera: LineCamera
-    mounting: FloatArray = field(default_factory=lambda: np.eye(3))
-    dtype: str | None = None
-
-
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Settings of the pipeline (the node declares one ROS parameter per field).
-
-    Attributes:
-        views: two views (left, right), or one view for single-camera mode.
-        scene_lines: lines per scene (0: scenes end only on a gap or a scene-id change).
-        max_gap_lines: a larger jump between strips ends the scene; a smaller one is filled.
-        z_avg: average terrain height, metres (Eq 12; zero-disparity height of the output).
-        height_range: half range of terrain heights, metres (virtual points, checks, and the
-            overlap output extent of a pair without GCP).
-        crab_tolerance_px: largest predicted crab error accepted from Eqs 10-13, pixels.
-        gcp_roll: with GCP, "estimate" the roll (Eq 8), use the "navigation" roll, or "none".
-        min_gcp: GCP (non-check) observed in a scene needed to use them instead of navigation.
-        nodata: value of output pixels outside a scene, and of filled missing lines.
-        interpolation: "linear" or "cubic".
-        output_pixel: normalized metres per output pixel (0: the scenes' native resolution).
-        output_extent: columns (along the epipolar lines) the normalized pair covers:
-            "overlap", the ground both scenes see at the pair's heights (those of its GCP and
-            check points, widened by 10 %, else ``z_avg`` +- ``height_range``): the overlap of
-            the two footprints widened by the x-parallax of those heights, never beyond the
-            union; or "union", both footprints whole (the other image's area is no-data). Rows
-            always cover the overlap across the epipolar lines.
-        max_output_pixels: larger normalized images are refused (the pair is skipped).
-        tie_points: refine each whole-scene pair with tie points matched between the normalized
-            images (RANSAC on paper 2's G1..G4, then an affine correction of the right image's
-            rows), so that a bias of navigation, GCP or RPC leaves no y-parallax.
-        tie_threshold_px: RANSAC inlier threshold on the epipolar residual, pixels.
-        nav_jump_s: a navigation stamp this far from the newest one is suspicious (held until
-            confirmed when ahead, reported when behind), seconds.
-        nav_position_tolerance_m: RMS of navigation positions about the constant-velocity line
-            above which a scene's navigation is reported as inconsistent, metres.
-        nav_history_s: navigation kept before the earliest line that a scene may still need it
-            for (open scenes, scenes waiting for navigation, streamed pairs, the next scene of
-            each view); older samples are forgotten, so memory stays flat, seconds.
-        streaming: publish normalized column blocks while the scenes arrive, when possible
-            (two views, ``scene_lines`` > 0, navigation-derived parameters): see streaming.py.
-        segment_max_error_px: model error bound of a long scene, pixels: a pair of GCP (or
-            RPC virtual GCP) scenes whose parallel model misses its points by more than this
-            is cut along track into segment pairs, each with its own parameters
-            (geometry/segmentation.py); 0 never cuts.
-        segment_overlap: each segment extends this fraction of its length into its neighbours.
-        start_margin_s: strips carry no line number, so a view's first scene is only known to
-            begin at its first strip when navigation was received from at least this long
-            before that strip (the pipeline was listening before the scene began); otherwise it
-            may be the rest of a scene already under way (a node started or restarted
-            mid-scene) and it is skipped. Without any navigation this cannot be told and the
-            scene is taken as whole. Seconds.
-    """
-
-    views: tuple[ViewConfig, ...]
-    scene_lines: int = 0
-    max_gap_lines: int = 64
-    z_avg: float = 0.0
-    height_range: float = 500.0
-    crab_tolerance_px: float = 0.05
-    gcp_roll: Literal["estimate", "navigation", "none"] = "estimate"
-    min_gcp: int = 5
-    nodata: float = 0.0
-    interpolation: Literal["linear", "cubic"] = "linear"
-    output_pixel: float = 0.0
-    output_extent: Literal["overlap", "union"] = "overlap"
-    max_output_pixels: int = 200_000_000
-    streaming: bool = True
-    tie_points: bool = True
-    tie_threshold_px: float = 1.0
-    nav_jump_s: float = 10.0
-    nav_position_tolerance_m: float = 5.0
-    segment_max_error_px: float = 1.0
-    segment_overlap: float = 0.1
-    start_margin_s: float = 0.5
-    nav_history_s: float = 10.0
-
-    @property
-    def single_camera(self) -> bool:
-        """Whether consecutive scenes of the one view form the pairs."""
-        return len(self.views) == 1
 
 
 class Pipeline:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .bag import BagError, BagReader, BagWriter
+from .config import view_values
 from .conversions import (
     OUTPUT_TOPICS,
     array_to_image,
@@ -28,7 +29,7 @@ from .conversions import (
     sample_to_odometry,
     scanner_info_msg,
 )
-from .geometry import GeometryError, LineCamera, angles_from_rotation, quaternion_to_rotation
+from .geometry import GeometryError, LineCamera, quaternion_to_rotation
 from .pipeline import GroundPoint, PipelineConfig, ViewConfig
 from .scenarios import Scenario, ground_points
 from .trajectory import NavSample
@@ -305,18 +306,7 @@ def node_parameters(views: tuple[ViewConfig, ...], **extra: Any) -> dict[str, An
     """parproj_node parameters for these cameras (for --params-file or -p)."""
     params: dict[str, Any] = {"views": [v.name for v in views]}
     for v in views:
-        c = v.camera
-        rpy = np.degrees(angles_from_rotation(v.mounting))
-        params.update(
-            {
-                f"{v.name}.principal_distance": c.principal_distance,
-                f"{v.name}.pixel_size": c.pixel_size,
-                f"{v.name}.detectors": c.detectors,
-                f"{v.name}.principal_point": c.pp,
-                f"{v.name}.line_period": c.line_period,
-                f"{v.name}.mounting_rpy_deg": [float(a) for a in rpy],
-            }
-        )
+        params.update({f"{v.name}.{name}": x for name, x in view_values(v).items()})
     params.update(extra)
     return params
 

@@ -45,6 +45,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     (
         "core",
         (
+            "parproj_ros.config",
             "parproj_ros.results",
             "parproj_ros.trajectory",
             "parproj_ros.streaming",

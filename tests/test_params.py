@@ -1,0 +1,421 @@
+"""The one parameter table (parproj_ros/config.py) and what is generated from it or must agree.
+
+The README's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
+has a field per row that fills one, with the table's default; ``parproj process`` has an option
+per offline row with the same default and range; setup.cfg and package.xml list what the code
+imports. The live half (the node started with config/parproj_node.yaml) is in
+test_params_live.py.
+"""
+
+from __future__ import annotations
+
+import ast
+import configparser
+import math
+import re
+import sys
+import xml.etree.ElementTree as ET
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from parproj_ros import cli, config
+from parproj_ros.config import PARAMS, VIEW_PARAMS, PipelineConfig, config_from_values
+
+ROOT = Path(__file__).resolve().parent.parent
+BAG = ROOT / "bags" / "ikonos_agile"
+
+
+# ---- generated files ----------------------------------------------------------------------------
+
+
+def test_readme_table_is_the_rendered_one() -> None:
+    readme = (ROOT / "README.md").read_text()
+    begin = readme.index(config.README_BEGIN) + len(config.README_BEGIN) + 1
+    end = readme.index(config.README_END)
+    assert readme[begin:end] == config.parameters_markdown(), (
+        "README's Parameters table differs from parproj_ros/config.py: "
+        "run `python -m parproj_ros.config --write .`"
+    )
+
+
+def test_params_file_is_the_rendered_one() -> None:
+    assert (ROOT / config.PARAMS_FILE).read_text() == config.parameters_yaml(), (
+        "config/parproj_node.yaml differs from parproj_ros/config.py: "
+        "run `python -m parproj_ros.config --write .`"
+    )
+
+
+def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            out |= _flat(v, f"{prefix}{k}.")
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def test_params_file_holds_every_default_with_its_type() -> None:
+    doc = yaml.safe_load(config.parameters_yaml())
+    values = _flat(doc["parproj_node"]["ros__parameters"])
+    want = config.default_values()
+    assert values == want
+    for name, v in values.items():
+        assert type(v) is type(want[name]), name
+
+
+def test_params_file_comments_give_unit_and_range() -> None:
+    text = config.parameters_yaml()
+    for p in (*PARAMS, *VIEW_PARAMS):
+        block = re.search(rf"((?:\s*#.*\n)+)\s*{p.name}: ", text)
+        assert block, p.name
+        if p.unit:
+            assert f"unit {p.unit}" in block[1], p.name
+        if p.range_text:
+            assert p.range_text in block[1], p.name
+
+
+def test_readme_says_how_to_regenerate(tmp_path: Path) -> None:
+    (tmp_path / "README.md").write_text(
+        f"x\n{config.README_BEGIN}\nold table\n{config.README_END}\ny\n"
+    )
+    assert config.main(["--write", str(tmp_path)]) == 0
+    text = (tmp_path / "README.md").read_text()
+    assert (
+        text == f"x\n{config.README_BEGIN}\n{config.parameters_markdown()}{config.README_END}\ny\n"
+    )
+    assert (tmp_path / config.PARAMS_FILE).read_text() == config.parameters_yaml()
+
+
+# ---- the table and PipelineConfig ---------------------------------------------------------------
+
+
+def test_every_config_field_has_one_row_with_its_default() -> None:
+    rows = {p.field: p for p in PARAMS if p.field is not None}
+    assert len(rows) == len([p for p in PARAMS if p.field is not None])
+    assert set(rows) == {f.name for f in fields(PipelineConfig)}
+    for f in fields(PipelineConfig):
+        if f.name != "views":
+            assert f.default == rows[f.name].default, f.name
+
+
+def test_table_rows_are_consistent() -> None:
+    names = [p.name for p in PARAMS] + [p.name for p in VIEW_PARAMS]
+    assert len(set(names)) == len(names)
+    for p in (*PARAMS, *VIEW_PARAMS):
+        assert p.description and p.read_only, p.name
+        assert not p.description.endswith("."), p.name
+        if p.type in ("integer", "double") and not p.strict:
+            assert p.low is not None and p.high is not None, f"{p.name}: no range"
+            assert p.low <= p.default <= p.high, p.name
+        if p.choices:
+            assert p.type == "string" and p.default in p.choices, p.name
+        if p.offline:
+            assert p.field is not None, f"{p.name}: an offline option fills no pipeline setting"
+
+
+def _other_value(p: config.Param) -> Any:
+    """A valid value of ``p`` other than its default."""
+    if p.type == "bool":
+        return not p.default
+    if p.choices:
+        return next(c for c in p.choices if c != p.default)
+    assert p.low is not None and p.high is not None
+    v = p.default + 1 if p.default + 1 <= p.high else p.low
+    return int(v) if p.type == "integer" else float(v)
+
+
+def test_config_from_values_fills_each_field_from_its_parameter() -> None:
+    default = config_from_values({})
+    assert [v.name for v in default.views] == ["left", "right"]
+    for p in PARAMS:
+        if p.field not in (None, "views"):
+            assert getattr(default, str(p.field)) == p.default, p.name
+    rows = [p for p in PARAMS if p.field not in (None, "views")]
+    values = {p.name: _other_value(p) for p in rows}
+    cfg = config_from_values(values)
+    for p in rows:
+        assert getattr(cfg, str(p.field)) == values[p.name], p.name
+        assert getattr(cfg, str(p.field)) != p.default, p.name
+    # Integers given for doubles (as ROS gives [1, 2, 3]) come out as floats.
+    assert isinstance(config_from_values({"z_avg": 3}).z_avg, float)
+
+
+def test_config_from_values_builds_the_views() -> None:
+    cfg = config_from_values(
+        {
+            "views": ["fore", "aft"],
+            "fore.principal_distance": 2.0,
+            "fore.pixel_size": 1e-5,
+            "fore.detectors": 100,
+            "fore.principal_point": 40.5,
+            "fore.line_period": 1e-3,
+            "fore.mounting_rpy_deg": (0.0, 0.0, 90.0),
+            "fore.encoding": "mono16",
+            "aft.principal_point": -1.0,
+        }
+    )
+    fore, aft = cfg.views
+    assert (fore.name, aft.name) == ("fore", "aft") and not cfg.single_camera
+    c = fore.camera
+    assert (c.principal_distance, c.pixel_size, c.detectors, c.line_period) == (
+        2.0,
+        1e-5,
+        100,
+        1e-3,
+    )
+    assert c.principal_point == 40.5 and fore.dtype == "uint16"
+    np.testing.assert_allclose(fore.mounting, [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    assert aft.camera.principal_point is None and aft.dtype is None  # -1: line centre; '': any
+    np.testing.assert_array_equal(aft.mounting, np.eye(3))
+    assert aft.camera.principal_distance == 10.0  # the table's default
+    assert config_from_values({"views": ["pan"]}).single_camera
+
+
+def test_view_values_is_the_inverse_of_view_config() -> None:
+    given = {
+        "principal_distance": 2.0,
+        "pixel_size": 1e-5,
+        "detectors": 101,
+        "principal_point": 40.5,
+        "line_period": 1e-3,
+        "mounting_rpy_deg": [1.0, -2.0, 30.0],
+        "encoding": "mono8",
+    }
+    vc = config.view_config("fore", given)
+    back = config.view_values(vc)
+    assert set(back) == {p.name for p in VIEW_PARAMS}
+    np.testing.assert_allclose(back.pop("mounting_rpy_deg"), given.pop("mounting_rpy_deg"))
+    assert back == given
+    plain = config.view_values(config.view_config("pan", {}))
+    assert plain["principal_point"] == (13816 - 1) / 2 and plain["encoding"] == ""
+
+
+def test_node_parameters_of_a_bag_are_table_names() -> None:
+    from parproj_ros.bag import BagReader
+    from parproj_ros.recording import node_parameters, views_from_bag
+
+    params = node_parameters(views_from_bag(BagReader(BAG)))
+    assert set(params) == {"views"} | {f"pan.{p.name}" for p in VIEW_PARAMS}
+
+
+def test_pipeline_config_docstring_lists_the_table() -> None:
+    doc = PipelineConfig.__doc__ or ""
+    for p in PARAMS:
+        if p.field is not None:
+            assert f"        {p.field}: " in doc, p.field
+
+
+def test_node_declares_the_table() -> None:
+    from parproj_ros import node
+
+    assert node.PARAMS is config.PARAMS and node.VIEW_PARAMS is config.VIEW_PARAMS
+    d = node._descriptor(next(p for p in PARAMS if p.name == "z_avg"))
+    assert d.description.endswith("[m]") and d.read_only
+    assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (
+        -1000.0,
+        9000.0,
+    )
+    d = node._descriptor(next(p for p in PARAMS if p.name == "scene_lines"))
+    assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (0, 10_000_000)
+    d = node._descriptor(next(p for p in PARAMS if p.name == "gcp_roll"))
+    assert "navigation" in d.additional_constraints
+
+
+# ---- parproj process options --------------------------------------------------------------------
+
+
+def _process_args(*extra: str) -> Any:
+    return cli.build_parser().parse_args(["process", "b", "-o", "o", *extra])
+
+
+def test_process_has_an_option_per_offline_parameter_with_its_default() -> None:
+    args = _process_args()
+    offline = [p for p in PARAMS if p.offline]
+    assert len(offline) >= 15
+    for p in offline:
+        assert getattr(args, p.name) == p.default, p.name
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = cli.main(argv)
+    return code, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("p", [p for p in PARAMS if p.offline and p.low is not None], ids=str)
+def test_process_option_takes_the_parameter_range(
+    p: config.Param, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert p.low is not None and p.high is not None
+    fmt = (lambda v: str(int(v))) if p.type == "integer" else repr
+    low_ok = p.low + (abs(p.high - p.low) * 1e-3 if p.low_open else 0.0)
+    for v in (low_ok, p.high):
+        value = int(v) if p.type == "integer" else v
+        assert getattr(_process_args(p.option, fmt(v)), p.name) == value
+    bad = [p.high + max(1.0, abs(p.high)), "nan", "inf"] + ([p.low] if p.low_open else [])
+    bad.append(p.low - max(1.0, abs(p.low)))
+    for v in bad:
+        with pytest.raises(SystemExit) as ex:
+            _process_args(p.option, v if isinstance(v, str) else fmt(v))
+        assert ex.value.code == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and p.option in err, err
+
+
+def test_process_keeps_the_old_option_names() -> None:
+    args = _process_args(
+        "--scene-lines",
+        "500",
+        "--no-tie-points",
+        "--no-streaming",
+        "--no-gcp",
+        "--segment-max-error",
+        "0.5",
+        "--output-extent",
+        "union",
+        "--z-avg",
+        "-1e2",
+        "--height-range",
+        "20",
+        "--gcp-roll",
+        "navigation",
+        "--interpolation",
+        "cubic",
+    )
+    assert (args.scene_lines, args.tie_points, args.streaming, args.no_gcp) == (
+        500,
+        False,
+        False,
+        True,
+    )
+    assert (args.segment_max_error_px, args.output_extent, args.z_avg) == (0.5, "union", -100.0)
+    assert (args.height_range, args.gcp_roll, args.interpolation) == (20.0, "navigation", "cubic")
+
+
+def test_process_passes_every_option_to_the_pipeline(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from parproj_ros import offline
+
+    seen: dict[str, Any] = {}
+
+    def fake(src: Path, dst: Path, *, overrides: dict[str, Any], **kw: Any) -> Any:
+        seen.update(overrides)
+        dst.mkdir(parents=True, exist_ok=True)
+        return offline.ProcessSummary()
+
+    monkeypatch.setattr(offline, "process_bag", fake)
+    rows = [p for p in PARAMS if p.offline]
+    argv = ["process", str(BAG), "-o", str(tmp_path / "o"), "-q"]
+    for p in rows:
+        v = _other_value(p)
+        if p.type == "bool":
+            argv.append(p.option if v else f"--no-{p.option[2:]}")
+        else:
+            argv += [p.option, str(v)]
+    assert cli.main(argv) == 1  # no pairs from the fake
+    assert seen == {p.field: _other_value(p) for p in rows}
+    cli.main(["process", str(BAG), "-o", str(tmp_path / "o2"), "-q", "--no-gcp"])
+    assert seen["min_gcp"] > 10**6
+
+
+# ---- dependencies -------------------------------------------------------------------------------
+
+#: import name -> PyPI distribution (setup.cfg install_requires)
+PYPI = {
+    "numpy": "numpy",
+    "scipy": "scipy",
+    "cv2": "opencv-python-headless",
+    "tqdm": "tqdm",
+    "matplotlib": "matplotlib",
+    "yaml": "pyyaml",
+    "tifffile": "tifffile",
+    "rasterio": "rasterio",
+    "mcap": "mcap",
+    "zstandard": "zstandard",
+    "lz4": "lz4",
+}
+#: import name -> rosdep key (package.xml); None: none exists (installed with pip)
+ROSDEP = {
+    "numpy": "python3-numpy",
+    "scipy": "python3-scipy",
+    "cv2": "python3-opencv",
+    "tqdm": "python3-tqdm",
+    "matplotlib": "python3-matplotlib",
+    "yaml": "python3-yaml",
+    "tifffile": "python3-tifffile",
+    "rasterio": "python3-rasterio",
+    "zstandard": "python3-zstandard",
+    "lz4": "python3-lz4",
+    "mcap": None,
+}
+#: ROS packages imported (package.xml exec_depend under the same name)
+ROS = {"rclpy", "rcl_interfaces", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "parproj_msgs"}
+
+
+def _optional(tree: ast.AST) -> set[int]:
+    """ids of import nodes inside ``try: ... except ImportError`` (optional imports)."""
+    out: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Try) and any(
+            h.type is not None and "ImportError" in ast.unparse(h.type) for h in node.handlers
+        ):
+            for stmt in node.body:
+                out |= {
+                    id(n) for n in ast.walk(stmt) if isinstance(n, ast.Import | ast.ImportFrom)
+                }
+    return out
+
+
+def third_party_imports() -> set[str]:
+    """Top-level names of what parproj_ros imports, the standard library and itself aside."""
+    found: set[str] = set()
+    for path in sorted((ROOT / "parproj_ros").rglob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        optional = _optional(tree)
+        for node in ast.walk(tree):
+            if id(node) in optional:
+                continue
+            if isinstance(node, ast.Import):
+                found |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module.split(".")[0])
+    return {m for m in found if m not in sys.stdlib_module_names and m != "parproj_ros"}
+
+
+def test_imports_are_known() -> None:
+    unknown = third_party_imports() - set(PYPI) - ROS
+    assert not unknown, f"add {unknown} to setup.cfg or package.xml, and to this test's maps"
+
+
+def test_setup_cfg_lists_what_the_code_imports() -> None:
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    listed = {
+        re.split(r"[<>=!~ ;\[]", line.strip())[0].lower()
+        for line in cfg["options"]["install_requires"].splitlines()
+        if line.strip()
+    }
+    imported = {PYPI[m] for m in third_party_imports() if m in PYPI}
+    assert listed == imported, (
+        f"setup.cfg lists {listed - imported} unused, misses {imported - listed}"
+    )
+
+
+def test_package_xml_lists_what_the_code_imports() -> None:
+    root = ET.parse(ROOT / "package.xml").getroot()
+    listed = {e.text for e in root.iter("exec_depend")}
+    imports = third_party_imports()
+    want = (imports & ROS) | {ROSDEP[m] for m in imports if ROSDEP.get(m)}
+    assert listed == want, f"package.xml lists {listed - want} unused, misses {want - listed}"
+
+
+def test_numbers_in_the_table_are_finite() -> None:
+    for p in (*PARAMS, *VIEW_PARAMS):
+        for b in (p.low, p.high):
+            assert b is None or math.isfinite(b), p.name

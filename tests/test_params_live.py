@@ -1,0 +1,146 @@
+"""config/parproj_node.yaml through the real node: parproj_node in its own process (DDS on
+localhost), started with ``--params-file config/parproj_node.yaml``.
+
+It must start with no parameter ERROR (its 1 Hz summary OK), declare exactly the table's
+parameters (parproj_ros/config.py), with the table's defaults, descriptions (with units) and
+ranges, as its own parameter services report them, and stop cleanly.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rcl_interfaces.srv import DescribeParameters, GetParameters, ListParameters
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import parameter_value_to_python
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+from parproj_ros import config
+from parproj_ros.live import NodeProcess, ros_environment, wait_until
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Parameters every rclpy node has (not in the table).
+ROS_OWN = {"use_sim_time", "start_type_description_service"}
+
+
+def _level(s: DiagnosticStatus) -> int:
+    return s.level[0] if isinstance(s.level, bytes | bytearray) else int(s.level)
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
+    assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
+    tmp = tmp_path_factory.mktemp("params_live")
+    ctx = Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node("test_params_live", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    statuses: list[DiagnosticStatus] = []
+    lock = threading.Lock()
+
+    def on_diag(msg: DiagnosticArray) -> None:
+        with lock:
+            statuses.extend(msg.status)
+
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, qos)
+    thread = threading.Thread(target=executor.spin, daemon=True)
+    thread.start()
+    proc = NodeProcess(
+        ROOT / config.PARAMS_FILE, ros_environment(log_dir=tmp / "ros_log"), tmp / "node.log"
+    )
+    result: dict[str, Any] = {}
+
+    def call(srv: Any, name: str, request: Any) -> Any:
+        client = node.create_client(srv, f"/parproj_node/{name}")
+        assert client.wait_for_service(timeout_sec=30), f"{name}: not available"
+        future = client.call_async(request)
+        assert wait_until(future.done, 20), f"{name}: no response"
+        return future.result()
+
+    def summaries() -> list[DiagnosticStatus]:
+        with lock:
+            return [s for s in statuses if s.name == "parproj_node: summary"]
+
+    try:
+        listed = call(ListParameters, "list_parameters", ListParameters.Request())
+        names = sorted(listed.result.names)
+        result["names"] = names
+        get = GetParameters.Request()
+        get.names = names
+        values = call(GetParameters, "get_parameters", get).values
+        result["values"] = {
+            n: parameter_value_to_python(v) for n, v in zip(names, values, strict=True)
+        }
+        desc = DescribeParameters.Request()
+        desc.names = names
+        descs = call(DescribeParameters, "describe_parameters", desc).descriptors
+        result["descriptors"] = {d.name: d for d in descs}
+        wait_until(lambda: len(summaries()) >= 2, 10, lambda: proc.proc.poll() is None)
+        time.sleep(0.2)
+        with lock:
+            result["statuses"] = list(statuses)
+        result["summaries"] = summaries()
+        result["alive"] = proc.proc.poll() is None
+    finally:
+        result["code"] = proc.stop()
+        executor.shutdown()
+        thread.join(timeout=5)
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    result["log"] = proc.output()
+    yield result
+
+
+def test_starts_without_parameter_errors(started: dict[str, Any]) -> None:
+    log = started["log"]
+    assert started["alive"] and started["code"] == 0, log
+    assert "ERROR" not in log and "Traceback" not in log, log
+    bad = [s for s in started["statuses"] if _level(s) >= DiagnosticStatus.WARN[0]]
+    assert not bad, [f"{s.name}: {s.message}" for s in bad]
+    assert started["summaries"], "no 1 Hz summary on /diagnostics"
+    for s in started["summaries"]:
+        assert _level(s) == DiagnosticStatus.OK[0] and s.message == "running", s.message
+
+
+def test_declares_exactly_the_table(started: dict[str, Any]) -> None:
+    names = {
+        n for n in started["names"] if n not in ROS_OWN and not n.startswith("qos_overrides.")
+    }
+    assert names == set(config.default_values())
+
+
+def test_values_are_the_table_defaults(started: dict[str, Any]) -> None:
+    got = started["values"]
+    for name, want in config.default_values().items():
+        assert got[name] == want and type(got[name]) is type(want), (name, got[name], want)
+
+
+def test_descriptors_are_the_table_rows(started: dict[str, Any]) -> None:
+    descs = started["descriptors"]
+    rows = [(p.name, p) for p in config.PARAMS]
+    for view in config.default_values()["views"]:
+        rows += [(f"{view}.{p.name}", p) for p in config.VIEW_PARAMS]
+    for name, p in rows:
+        d = descs[name]
+        assert d.description == p.ros_description and d.read_only, name
+        if p.unit:
+            assert d.description.endswith(f"[{p.unit}]"), name
+        ranges = list(d.integer_range) + list(d.floating_point_range)
+        if p.low is None:
+            assert not ranges, name
+        else:
+            (r,) = ranges
+            assert (r.from_value, r.to_value) == (p.low, p.high), name
+        if p.choices:
+            assert all(c in d.additional_constraints for c in p.choices if c), name
