@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_pipeline import feed, nav_events, render, strip_events
+from testkit.scenes import feed, nav_events, render, strip_events
 
 from parproj_ros.bag import BagReader
 from parproj_ros.evaluate import normalized_px
