@@ -31,6 +31,8 @@ from parproj_ros.rpc import RPCModel
 from parproj_ros.scene_import import import_pair
 from parproj_ros.ventoux import read_stereo_pair
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # imports to bags and processes them
+
 DATA = Path(__file__).parent / "data" / "ventoux"
 NAMES = ("left", "right")
 #: Crop origins (line, sample) of the Ventoux crops in their full scenes (data README).

@@ -56,6 +56,8 @@ from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import Outputs, PairResult
 from parproj_ros.recording import node_parameters, views_from_bag
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
+
 BAG = Path(__file__).resolve().parent.parent / "bags" / "ikonos_agile"
 #: Pipeline settings of the node and of the offline reference: scenes end on their length (as
 #: in the bag, 768 lines), tie points off.

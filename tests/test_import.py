@@ -123,6 +123,7 @@ def _gcp_msg(bag: Path, topic: str = "gcp") -> Any:
     return next(BagReader(bag).messages(topics=[topic])).msg
 
 
+@pytest.mark.ros
 def test_synthetic_bag_topics_strips_and_scanner(synthetic: dict[str, Any]) -> None:
     reader = BagReader(synthetic["tag"])
     assert set(reader.topics()) == {"pan/image_strip", "pan/scanner_info", "gcp", "truth/points"}
@@ -147,6 +148,7 @@ def test_synthetic_bag_topics_strips_and_scanner(synthetic: dict[str, Any]) -> N
     assert info.detectors == max(c[3] for c in CROPS)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize("kind", ["tag", "geom"])
 def test_synthetic_gcp_project_through_the_crop_rpc(synthetic: dict[str, Any], kind: str) -> None:
     """Every observation is the crop RPC's projection of the point's geodetic position."""
@@ -174,6 +176,7 @@ def test_synthetic_gcp_project_through_the_crop_rpc(synthetic: dict[str, Any], k
     assert len(truth) == 300 and all(len(p.observations) == 2 and p.check for p in truth)
 
 
+@pytest.mark.ros
 def test_tag_and_geom_pairs_agree(synthetic: dict[str, Any]) -> None:
     """RPC shifted into the tag == full-scene sidecar + ModelTransformationTag offset."""
     a, b = _gcp_msg(synthetic["tag"]), _gcp_msg(synthetic["geom"])
@@ -191,6 +194,7 @@ def test_tag_and_geom_pairs_agree(synthetic: dict[str, Any]) -> None:
     assert "(GeoTIFF tag 50844" in synthetic["tag_summary"]["scenes"]["left"]["rpc"]
 
 
+@pytest.mark.ros
 def test_synthetic_process_single_camera(synthetic: dict[str, Any], tmp_path: Path) -> None:
     summary = process_bag(synthetic["tag"], tmp_path / "out", progress=False, overrides=GCP_ONLY)
     assert summary.scenes == 2 and summary.pairs == 1, summary.issues
@@ -289,6 +293,7 @@ def ventoux(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return {"root": root, "summary": summary, "process": process, "result": result}
 
 
+@pytest.mark.ros
 def test_ventoux_import(ventoux: dict[str, Any]) -> None:
     s = ventoux["summary"]
     assert s["scenes"]["left"]["offset_line_sample"] == [5000.0, 5000.0]
@@ -299,6 +304,7 @@ def test_ventoux_import(ventoux: dict[str, Any]) -> None:
     assert s["size_mb"] < 1.5
 
 
+@pytest.mark.ros
 def test_ventoux_process_gcp_only(ventoux: dict[str, Any]) -> None:
     p = ventoux["process"]
     assert p.scenes == 2 and p.pairs == 1, p.issues
@@ -308,6 +314,7 @@ def test_ventoux_process_gcp_only(ventoux: dict[str, Any]) -> None:
         assert item.msg.sigma0_px < 0.05  # a parallel projection fits a 500 px crop's RPC
 
 
+@pytest.mark.ros
 def test_ventoux_evaluation(ventoux: dict[str, Any]) -> None:
     r = ventoux["result"]
     m = r["methods"]
@@ -332,6 +339,7 @@ def test_ventoux_evaluation(ventoux: dict[str, Any]) -> None:
         assert all(0.95 < v < 1.05 for v in scales)
 
 
+@pytest.mark.ros
 def test_ventoux_tie_points_reach_the_target(ventoux: dict[str, Any]) -> None:
     """With tie points (the pipeline's default), the 4.8 px RPC offset goes: mean |y| <= 0.3."""
     out = ventoux["root"] / "out_tie"
@@ -341,6 +349,7 @@ def test_ventoux_tie_points_reach_the_target(ventoux: dict[str, Any]) -> None:
     assert r["methods"]["ours"]["mean_abs"] <= 0.3
 
 
+@pytest.mark.ros
 def test_cli_import_and_ventoux_eval(
     synthetic: dict[str, Any],
     ventoux: dict[str, Any],

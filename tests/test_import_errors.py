@@ -34,6 +34,7 @@ def pair(tmp_path: Path) -> tuple[Path, Path]:
     return paths[0], paths[1]
 
 
+@pytest.mark.ros
 def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
     bad = tmp_path / "notes.tif"
     bad.write_text("this is not an image\n")
@@ -48,6 +49,7 @@ def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(cut, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_corrupt_rpc(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """A truncated .RPB sidecar, an explicit RPC file that is no RPC."""
     img = tmp_path / "c.tif"
@@ -62,6 +64,7 @@ def test_corrupt_rpc(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(pair[0], pair[1], tmp_path / "o", rpc_left=tmp_path / "junk.txt", **QUIET)
 
 
+@pytest.mark.ros
 def test_decimal_comma_is_an_error(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """Through GDAL: a .RPB with ``lineScale = 250,5;`` is refused, never read as 250."""
     img = tmp_path / "d.tif"
@@ -77,6 +80,7 @@ def test_decimal_comma_is_an_error(pair: tuple[Path, Path], tmp_path: Path) -> N
     assert "d.RPB" in msg and "LINE_SCALE" in msg and "21137 5" in msg, msg
 
 
+@pytest.mark.ros
 def test_nan_coefficients(pair: tuple[Path, Path], tmp_path: Path) -> None:
     vec = crop_rpcs()[0].as_vector()
     vec[12 + 20 + 3] = np.nan  # line denominator, 4th coefficient
@@ -95,6 +99,7 @@ def _moved(model: RPCModel, d_lon: float) -> RPCModel:
     return RPCModel.from_vector(v)
 
 
+@pytest.mark.ros
 def test_no_overlap(pair: tuple[Path, Path], tmp_path: Path) -> None:
     far = tmp_path / "far.tif"
     write(far, pixels("right"), _moved(crop_rpcs()[1], 0.2))  # 16 km east
@@ -102,6 +107,7 @@ def test_no_overlap(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(pair[0], far, tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_image_and_rpc_of_different_scenes(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """A map-georeferenced image whose RPC describes another place (wrong sidecar)."""
     model = crop_rpcs()[0]
@@ -132,6 +138,7 @@ def test_image_and_rpc_of_different_scenes(pair: tuple[Path, Path], tmp_path: Pa
         )
 
 
+@pytest.mark.ros
 def test_denominator_crossing_zero(pair: tuple[Path, Path], tmp_path: Path) -> None:
     model = crop_rpcs()[0]
     lon, lat = model.localize([0.0, 499.0], [0.0, 499.0], 1000.0)
@@ -148,6 +155,7 @@ def test_denominator_crossing_zero(pair: tuple[Path, Path], tmp_path: Path) -> N
         import_pair(img, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_bad_options(pair: tuple[Path, Path], tmp_path: Path) -> None:
     with pytest.raises(SceneImportError, match="HMAX > HMIN"):
         import_pair(*pair, tmp_path / "o", heights=(800.0, 800.0), **QUIET)
@@ -175,6 +183,7 @@ def exit_code(argv: list[str]) -> int:
         return int(err.code or 0)
 
 
+@pytest.mark.ros
 def test_bands(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """Multi-band: band 1 by default (logged); --band chooses; a constant band is refused."""
     img = pixels("left")
@@ -227,6 +236,7 @@ def test_pixel_types_and_nodata(tmp_path: Path) -> None:
         np.testing.assert_array_equal(got, want.astype(got.dtype))
 
 
+@pytest.mark.ros
 def test_named_assumption_without_origin(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """No crop origin in the file: (0, 0), said once per image with the option to override."""
     logged: list[str] = []

@@ -460,6 +460,7 @@ def test_missing_strip_filled_and_reported(airborne: tuple[Scenario, Outputs]) -
 # ---- normalized images --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_float32_strips_give_float32_images() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
@@ -493,6 +494,7 @@ def _source_coordinates(pair: PairResult, side: str) -> tuple[np.ndarray, np.nda
     return res.geometry(to_n).normalized_to_image(xn.astype(float), yn.astype(float))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "dtype", "shift_m"),
     [

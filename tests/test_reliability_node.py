@@ -48,6 +48,8 @@ from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import PipelineConfig
 from parproj_ros.recording import node_parameters, views_from_bag
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
+
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 BAG = BAGS / "ikonos_agile"
 FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}

@@ -47,6 +47,8 @@ from parproj_ros.pipeline import (
 )
 from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
 
+pytestmark = pytest.mark.ros  # message classes, diagnostics, bags
+
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
 
