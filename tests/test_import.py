@@ -13,17 +13,18 @@ import json
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import pytest
 import tifffile
+from testkit.rasters import DATA, FLAT_H
+from testkit.rasters import affine_rpc as _affine_rpc
+from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
 from parproj_ros.bag import BagReader
 from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import METHODS
-from parproj_ros.rpc import RPCModel
 from parproj_ros.scene_import import (
     PRINCIPAL_DISTANCE,
     STRIP_LINES,
@@ -42,53 +43,10 @@ from parproj_ros.ventoux import (
     robust_cut,
 )
 
-DATA = Path(__file__).parent / "data" / "ventoux"
 GRIDS = DATA / "reference_grids"
 #: Full-scene size and crop windows of the synthetic pair: (line0, sample0, lines, samples).
 CROPS = ((1900, 1900, 200, 200), (1905, 1890, 190, 196))
-FLAT_H = 500.0  # m, the synthetic ground
 GCP_ONLY: dict[str, Any] = {"tie_points": False}
-
-
-def _affine_rpc(look: float) -> RPCModel:
-    """A nearly affine RPC of a full 4000 x 4000 px scene; ``look``: line shift per unit H."""
-    line_num = np.zeros(20)
-    samp_num = np.zeros(20)
-    den = np.zeros(20)
-    den[0] = 1.0
-    line_num[[2, 3, 4]] = (-1.0, look, 2e-4)  # P, H, LP (a little curvature)
-    samp_num[[1, 2, 3, 7]] = (1.0, 0.02, 0.01, -1e-4)  # L, P, H, LL
-    return RPCModel(
-        line_off=2000.0,
-        samp_off=2000.0,
-        lat_off=44.2,
-        long_off=5.2,
-        height_off=FLAT_H,
-        line_scale=2000.0,
-        samp_scale=2000.0,
-        lat_scale=0.018,
-        long_scale=0.025,
-        height_scale=500.0,
-        line_num_coeff=line_num,
-        line_den_coeff=den,
-        samp_num_coeff=samp_num,
-        samp_den_coeff=den,
-    )
-
-
-def _render(full: RPCModel, crop: tuple[int, int, int, int]) -> np.ndarray:
-    """uint16 image of a textured flat ground (h = FLAT_H) seen by a crop of ``full``."""
-    l0, s0, nl, ns = crop
-    gl, gs = np.meshgrid(np.arange(nl) + l0, np.arange(ns) + s0, indexing="ij")
-    lon, lat = full.localize(gl, gs, np.full(gl.shape, FLAT_H))
-    # ground texture: smooth noise on a 1 m lattice of a 3 km square (same in both views)
-    rng = np.random.default_rng(7)
-    tex = cv2.GaussianBlur(rng.uniform(0, 1, (3000, 3000)).astype(np.float32), (0, 0), 2.0)
-    x = ((lon - 5.2) * 111_320 * np.cos(np.radians(44.2)) + 1500).astype(np.float32)
-    y = ((lat - 44.2) * 110_540 + 1500).astype(np.float32)
-    img = cv2.remap(tex, x, y, cv2.INTER_LINEAR)
-    img = (img - img.min()) / (img.max() - img.min())
-    return (200 + 3000 * img).astype(np.uint16)
 
 
 @pytest.fixture(scope="module")

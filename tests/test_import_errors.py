@@ -14,7 +14,7 @@ import pytest
 import rasterio
 import tifffile
 from rasterio.transform import from_origin
-from test_conventions import DATA, crop_rpcs, pixels, to_rasterio, write
+from testkit.rasters import DATA, crop_rpcs, pixels, to_rasterio, write
 
 from parproj_ros import cli, rpc
 from parproj_ros.rpc import RPCFormatError, RPCModel

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import rasterio
 from rasterio.windows import Window
-from test_conventions import DATA, to_rasterio
+from testkit.rasters import DATA, to_rasterio
 
 from parproj_ros import rpc
 

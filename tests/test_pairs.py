@@ -13,7 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_import import FLAT_H, _affine_rpc, _render
+from testkit.rasters import FLAT_H
+from testkit.rasters import affine_rpc as _affine_rpc
+from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
 from parproj_ros.bag import BagReader
