@@ -3,16 +3,18 @@
 Markers (registered in setup.cfg): ``ros`` for tests that need rclpy, DDS or ROS message
 packages (live node, replay, recording, bags read or written: the bag reader deserializes with
 rclpy), ``slow`` for tests that take more than about 5 s. ``./dev test`` runs everything;
-``./dev test -m "not ros and not slow"`` is the fast ROS-free part.
+``./dev fast`` (``pytest -m "not ros and not slow"``) is the fast ROS-free part.
 
 A run whose ``-m`` expression leaves out every ``ros`` test is a ROS-free run: any import of
 rclpy, a message package or the rest of the ROS 2 Python packages is refused (ModuleNotFoundError)
 and fails the test that tried it, with a message asking for the ``ros`` marker; test modules
 marked ``ros`` as a whole (``pytestmark``) are not even imported. So a ROS-free run needs no
-ROS 2 installation. ``PARPROJ_NO_ROS=1`` forces this mode whatever ``-m`` says.
+ROS 2 installation. ``PARPROJ_NO_ROS=1`` forces this mode (and deselects the ros tests) whatever
+``-m`` says. Not covered: child processes (a test that runs our code in a subprocess needing ROS
+is marked by hand).
 
-Helpers shared by several test modules are in ``testkit/`` (``testkit.scenes``: ROS-free;
-``testkit.live``: rclpy nodes of the tests).
+Helpers shared by several test modules are in ``testkit/`` (``scenes``, ``diagnostics``,
+``rasters``: ROS-free; ``live``: rclpy nodes of the tests).
 
 This module itself must not import ROS (it is loaded before any test module).
 """
@@ -141,6 +143,16 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
         if collection_path.name.startswith("test_") and _module_marked_ros(collection_path):
             return True
     return None
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """In a ROS-free run (PARPROJ_NO_ROS=1 without -m too), tests marked ros are deselected."""
+    if _blocker is None:
+        return
+    ros = [item for item in items if item.get_closest_marker("ros") is not None]
+    if ros:
+        config.hook.pytest_deselected(items=ros)
+        items[:] = [item for item in items if item.get_closest_marker("ros") is None]
 
 
 @pytest.hookimpl(wrapper=True)
