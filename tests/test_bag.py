@@ -29,6 +29,8 @@ from parproj_ros.bag import (
     qos_yaml,
 )
 
+pytestmark = pytest.mark.ros  # messages built and (de)serialized with rclpy
+
 T0 = 1_700_000_000_000_000_000  # ns
 DT = 50_000_000  # ns between frames
 N_FRAMES = 12

@@ -14,6 +14,8 @@ from parproj_ros.imaging.terrain import procedural_terrain
 from parproj_ros.recording import truth_from_bag, views_from_bag
 from parproj_ros.scenarios import SCENARIOS
 
+pytestmark = pytest.mark.ros  # reads the bags (rclpy deserializes)
+
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 
 

@@ -39,6 +39,8 @@ from parproj_ros.bag import BagError, BagReader, BagWriter
 from parproj_ros.cli_io import MARKER
 from parproj_ros.gcp_file import GcpFileError, load_gcp_file
 
+pytestmark = pytest.mark.ros  # message classes, bags written and read
+
 ROOT = Path(__file__).resolve().parent.parent
 BAG = ROOT / "bags" / "ventoux"  # 19 messages, one pair: processed in about a second
 BIG_BAG = ROOT / "bags" / "ikonos_agile"  # several seconds to process

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 import rasterio
 import rasterio.shutil
-from rasterio.rpc import RPC
+from testkit.rasters import DATA, NAMES, ORIGINS, crop_rpcs, pixels, write
 
 from parproj_ros import raster_io, rpc
 from parproj_ros.evaluate import evaluate_bag, normalized_px
@@ -31,10 +31,7 @@ from parproj_ros.offline import process_bag
 from parproj_ros.rpc import RPCModel
 from parproj_ros.ventoux import read_stereo_pair
 
-DATA = Path(__file__).parent / "data" / "ventoux"
-NAMES = ("left", "right")
-#: Crop origins (line, sample) of the Ventoux crops in their full scenes (data README).
-ORIGINS = ((5000.0, 5000.0), (5162.0, 4915.0))
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # imports to bags and processes them
 
 
 def _dem() -> rpc.HeightFunction:
@@ -45,57 +42,6 @@ def _dem() -> rpc.HeightFunction:
         step_deg=1 / 1200,
         geoid_undulation=50.0,
     )
-
-
-def to_rasterio(m: RPCModel) -> RPC:
-    """Our model as rasterio's RPC (same RPC00B pixel convention)."""
-    return RPC(
-        height_off=m.height_off,
-        height_scale=m.height_scale,
-        lat_off=m.lat_off,
-        lat_scale=m.lat_scale,
-        line_den_coeff=list(m.line_den_coeff),
-        line_num_coeff=list(m.line_num_coeff),
-        line_off=m.line_off,
-        line_scale=m.line_scale,
-        long_off=m.long_off,
-        long_scale=m.long_scale,
-        samp_den_coeff=list(m.samp_den_coeff),
-        samp_num_coeff=list(m.samp_num_coeff),
-        samp_off=m.samp_off,
-        samp_scale=m.samp_scale,
-        err_bias=m.err_bias,
-        err_rand=m.err_rand,
-    )
-
-
-def crop_rpcs() -> list[RPCModel]:
-    """The RPC of each crop in its own grid (full-scene .geom shifted by the crop origin)."""
-    fulls = [rpc.read_rpc(DATA / f"{n}_image.geom") for n in NAMES]
-    return [f.shifted(-o[0], -o[1]) for f, o in zip(fulls, ORIGINS, strict=True)]
-
-
-def pixels(name: str) -> np.ndarray:
-    with rasterio.open(DATA / f"{name}_image.tif") as src:
-        return np.asarray(src.read(1))
-
-
-def write(path: Path, img: np.ndarray, model: RPCModel | None, **opts: Any) -> None:
-    """A raster (driver from the extension) with the RPC as GDAL writes it."""
-    driver = {".tif": "GTiff", ".jp2": "JP2OpenJPEG", ".png": "PNG"}[path.suffix]
-    extra: dict[str, Any] = {} if model is None else {"rpcs": to_rasterio(model)}
-    with rasterio.open(
-        path,
-        "w",
-        driver=driver,
-        width=img.shape[1],
-        height=img.shape[0],
-        count=1,
-        dtype=str(img.dtype),
-        **extra,
-        **opts,
-    ) as dst:
-        dst.write(img, 1)
 
 
 def nitf_representable(m: RPCModel) -> RPCModel:

@@ -19,6 +19,8 @@ from parproj_ros.offline import process_bag
 from parproj_ros.results import METHODS, GroundPoint, SceneResult
 from parproj_ros.trajectory import NavSample
 
+pytestmark = pytest.mark.ros  # message classes and bags
+
 BAGS = Path(__file__).resolve().parents[1] / "bags"
 STAMP = 1_700_000_123 * 1_000_000_000 + 456_789
 
@@ -309,6 +311,7 @@ def test_scene_to_msg_navigation(airborne) -> None:
     assert math.isclose(msgs[0].l, -msgs[1].l, rel_tol=1e-9)
 
 
+@pytest.mark.slow
 def test_scene_to_msg_gcp(ikonos) -> None:
     results, msgs = ikonos
     for msg, res in zip(msgs, results, strict=True):

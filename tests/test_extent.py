@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_pipeline import feed, nav_events, render, strip_events
+from testkit.scenes import feed, nav_events, render, strip_events
 
 from parproj_ros.bag import BagReader
 from parproj_ros.evaluate import normalized_px
@@ -73,6 +73,7 @@ def test_overlap_keeps_every_common_point_and_drops_the_rest() -> None:
     assert cols.min() < 0.05 * w and cols.max() > 0.95 * w  # (41 x 41 grid: ~19 px steps)
 
 
+@pytest.mark.ros
 def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
     """The real pair: 949 -> 507 columns; every truth point inside both images."""
     bag = BAGS / "ventoux"
@@ -106,6 +107,7 @@ def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
         assert c.min() >= 0 and c.max() <= sp.width - 1
 
 
+@pytest.mark.ros
 def test_output_extent_parameter_is_declared() -> None:
     from parproj_ros.node import PARAMS
 

@@ -27,23 +27,21 @@ keep this file at well under a minute.
 
 from __future__ import annotations
 
-import os
 import signal
-import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
-from rclpy.context import Context
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message, serialize_message
+from testkit.diagnostics import level, show
+from testkit.live import GraphNode as Graph
+from testkit.live import wait
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader, BagWriter, get_message_class
@@ -53,11 +51,12 @@ from parproj_ros.live import (
     _qos,
     node_params_yaml,
     ros_environment,
-    wait_until,
 )
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import Outputs, PairResult
 from parproj_ros.recording import node_parameters, views_from_bag
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
 BAG = Path(__file__).resolve().parent.parent / "bags" / "ikonos_agile"
 #: Pipeline settings of the node and of the offline reference: scenes end on their length (as
@@ -176,26 +175,6 @@ def offline(msgs: Iterable[Msg], tmp: Path) -> dict[str, Any]:
 # ---- the live graph -----------------------------------------------------------------------------
 
 
-class Graph:
-    """An rclpy node of the test in a Context (a DDS participant) of its own, spun in a thread."""
-
-    def __init__(self, name: str) -> None:
-        assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
-        self.ctx = Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node(name, context=self.ctx)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.thread.join(timeout=5)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-
-
 class Source(Graph):
     """A publishing node for some input topics (the QoS of ``live.replay``: reliable writers,
     transient local for GCP; the node's readers decide: best effort by default)."""
@@ -249,10 +228,6 @@ def publish(sources: dict[str, Source], msgs: Iterable[Msg], sent: Counter[str])
         time.sleep(PACE_S)
 
 
-def wait(cond: Callable[[], bool], timeout: float, alive: Callable[[], bool] = lambda: True):
-    return wait_until(cond, timeout, alive)
-
-
 class Listener(Graph):
     """Records every output topic of the node (``/diagnostics`` included)."""
 
@@ -289,14 +264,6 @@ class Listener(Graph):
             )
 
         assert wait(matched, 20), "parproj_node outputs not discovered"
-
-
-def level(s: DiagnosticStatus) -> int:
-    return s.level[0] if isinstance(s.level, bytes | bytearray) else int(s.level)
-
-
-def show(sts: Iterable[DiagnosticStatus]) -> str:
-    return "\n".join(f"  [{level(s)}] {s.name}: {s.message}" for s in sts) or "  (none)"
 
 
 def about(sts: Iterable[DiagnosticStatus], case: str) -> list[DiagnosticStatus]:

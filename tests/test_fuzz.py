@@ -38,7 +38,10 @@ from parproj_ros.trajectory import NavSample
 
 # Values up to 1e300 overflow to Inf inside numpy (and are then rejected): expected, not noise
 # worth a warning per example.
-pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
+pytestmark = [
+    pytest.mark.ros,  # sensor_msgs / nav_msgs message classes
+    pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning"),
+]
 
 
 def fuzz(examples: int) -> settings:
@@ -200,6 +203,7 @@ def strips_through_pipeline(msgs: list[Image], views: list[str]) -> None:
     event(f"scenes with parameters: {min(len(total.scenes), 2)}")
 
 
+@pytest.mark.slow
 @fuzz(400)
 @given(
     msgs=st.lists(random_images(), min_size=1, max_size=4),

@@ -346,6 +346,7 @@ def test_render_is_deterministic_and_independent_of_strips(hills: Terrain) -> No
     assert np.corrcoef(one.ravel(), four.ravel())[0, 1] > 0.8
 
 
+@pytest.mark.slow
 def test_rendered_texture_has_corners(stereo: dict) -> None:
     img = stereo["img_fore"]
     assert img.shape == (SIZE, SIZE)
@@ -355,6 +356,7 @@ def test_rendered_texture_has_corners(stereo: dict) -> None:
     assert corners is not None and len(corners) >= 200
 
 
+@pytest.mark.slow
 def test_matched_features_agree_with_the_geometry(stereo: dict, hills: Terrain) -> None:
     """ORB matches fore -> aft against the rigorous prediction: locate the fore feature on the
     terrain and project it into the aft model."""

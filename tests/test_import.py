@@ -13,10 +13,12 @@ import json
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import pytest
 import tifffile
+from testkit.rasters import DATA, FLAT_H
+from testkit.rasters import affine_rpc as _affine_rpc
+from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
 from parproj_ros.bag import BagReader
@@ -24,7 +26,6 @@ from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
 from parproj_ros.importer import import_pair
 from parproj_ros.offline import process_bag
 from parproj_ros.results import METHODS
-from parproj_ros.rpc import RPCModel
 from parproj_ros.scene_import import (
     PRINCIPAL_DISTANCE,
     STRIP_LINES,
@@ -42,53 +43,10 @@ from parproj_ros.ventoux import (
     robust_cut,
 )
 
-DATA = Path(__file__).parent / "data" / "ventoux"
 GRIDS = DATA / "reference_grids"
 #: Full-scene size and crop windows of the synthetic pair: (line0, sample0, lines, samples).
 CROPS = ((1900, 1900, 200, 200), (1905, 1890, 190, 196))
-FLAT_H = 500.0  # m, the synthetic ground
 GCP_ONLY: dict[str, Any] = {"tie_points": False}
-
-
-def _affine_rpc(look: float) -> RPCModel:
-    """A nearly affine RPC of a full 4000 x 4000 px scene; ``look``: line shift per unit H."""
-    line_num = np.zeros(20)
-    samp_num = np.zeros(20)
-    den = np.zeros(20)
-    den[0] = 1.0
-    line_num[[2, 3, 4]] = (-1.0, look, 2e-4)  # P, H, LP (a little curvature)
-    samp_num[[1, 2, 3, 7]] = (1.0, 0.02, 0.01, -1e-4)  # L, P, H, LL
-    return RPCModel(
-        line_off=2000.0,
-        samp_off=2000.0,
-        lat_off=44.2,
-        long_off=5.2,
-        height_off=FLAT_H,
-        line_scale=2000.0,
-        samp_scale=2000.0,
-        lat_scale=0.018,
-        long_scale=0.025,
-        height_scale=500.0,
-        line_num_coeff=line_num,
-        line_den_coeff=den,
-        samp_num_coeff=samp_num,
-        samp_den_coeff=den,
-    )
-
-
-def _render(full: RPCModel, crop: tuple[int, int, int, int]) -> np.ndarray:
-    """uint16 image of a textured flat ground (h = FLAT_H) seen by a crop of ``full``."""
-    l0, s0, nl, ns = crop
-    gl, gs = np.meshgrid(np.arange(nl) + l0, np.arange(ns) + s0, indexing="ij")
-    lon, lat = full.localize(gl, gs, np.full(gl.shape, FLAT_H))
-    # ground texture: smooth noise on a 1 m lattice of a 3 km square (same in both views)
-    rng = np.random.default_rng(7)
-    tex = cv2.GaussianBlur(rng.uniform(0, 1, (3000, 3000)).astype(np.float32), (0, 0), 2.0)
-    x = ((lon - 5.2) * 111_320 * np.cos(np.radians(44.2)) + 1500).astype(np.float32)
-    y = ((lat - 44.2) * 110_540 + 1500).astype(np.float32)
-    img = cv2.remap(tex, x, y, cv2.INTER_LINEAR)
-    img = (img - img.min()) / (img.max() - img.min())
-    return (200 + 3000 * img).astype(np.uint16)
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +81,7 @@ def _gcp_msg(bag: Path, topic: str = "gcp") -> Any:
     return next(BagReader(bag).messages(topics=[topic])).msg
 
 
+@pytest.mark.ros
 def test_synthetic_bag_topics_strips_and_scanner(synthetic: dict[str, Any]) -> None:
     reader = BagReader(synthetic["tag"])
     assert set(reader.topics()) == {"pan/image_strip", "pan/scanner_info", "gcp", "truth/points"}
@@ -147,6 +106,7 @@ def test_synthetic_bag_topics_strips_and_scanner(synthetic: dict[str, Any]) -> N
     assert info.detectors == max(c[3] for c in CROPS)
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize("kind", ["tag", "geom"])
 def test_synthetic_gcp_project_through_the_crop_rpc(synthetic: dict[str, Any], kind: str) -> None:
     """Every observation is the crop RPC's projection of the point's geodetic position."""
@@ -174,6 +134,7 @@ def test_synthetic_gcp_project_through_the_crop_rpc(synthetic: dict[str, Any], k
     assert len(truth) == 300 and all(len(p.observations) == 2 and p.check for p in truth)
 
 
+@pytest.mark.ros
 def test_tag_and_geom_pairs_agree(synthetic: dict[str, Any]) -> None:
     """RPC shifted into the tag == full-scene sidecar + ModelTransformationTag offset."""
     a, b = _gcp_msg(synthetic["tag"]), _gcp_msg(synthetic["geom"])
@@ -191,6 +152,7 @@ def test_tag_and_geom_pairs_agree(synthetic: dict[str, Any]) -> None:
     assert "(GeoTIFF tag 50844" in synthetic["tag_summary"]["scenes"]["left"]["rpc"]
 
 
+@pytest.mark.ros
 def test_synthetic_process_single_camera(synthetic: dict[str, Any], tmp_path: Path) -> None:
     summary = process_bag(synthetic["tag"], tmp_path / "out", progress=False, overrides=GCP_ONLY)
     assert summary.scenes == 2 and summary.pairs == 1, summary.issues
@@ -289,6 +251,7 @@ def ventoux(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return {"root": root, "summary": summary, "process": process, "result": result}
 
 
+@pytest.mark.ros
 def test_ventoux_import(ventoux: dict[str, Any]) -> None:
     s = ventoux["summary"]
     assert s["scenes"]["left"]["offset_line_sample"] == [5000.0, 5000.0]
@@ -299,6 +262,7 @@ def test_ventoux_import(ventoux: dict[str, Any]) -> None:
     assert s["size_mb"] < 1.5
 
 
+@pytest.mark.ros
 def test_ventoux_process_gcp_only(ventoux: dict[str, Any]) -> None:
     p = ventoux["process"]
     assert p.scenes == 2 and p.pairs == 1, p.issues
@@ -308,6 +272,7 @@ def test_ventoux_process_gcp_only(ventoux: dict[str, Any]) -> None:
         assert item.msg.sigma0_px < 0.05  # a parallel projection fits a 500 px crop's RPC
 
 
+@pytest.mark.ros
 def test_ventoux_evaluation(ventoux: dict[str, Any]) -> None:
     r = ventoux["result"]
     m = r["methods"]
@@ -332,6 +297,7 @@ def test_ventoux_evaluation(ventoux: dict[str, Any]) -> None:
         assert all(0.95 < v < 1.05 for v in scales)
 
 
+@pytest.mark.ros
 def test_ventoux_tie_points_reach_the_target(ventoux: dict[str, Any]) -> None:
     """With tie points (the pipeline's default), the 4.8 px RPC offset goes: mean |y| <= 0.3."""
     out = ventoux["root"] / "out_tie"
@@ -341,6 +307,7 @@ def test_ventoux_tie_points_reach_the_target(ventoux: dict[str, Any]) -> None:
     assert r["methods"]["ours"]["mean_abs"] <= 0.3
 
 
+@pytest.mark.ros
 def test_cli_import_and_ventoux_eval(
     synthetic: dict[str, Any],
     ventoux: dict[str, Any],

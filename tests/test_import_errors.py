@@ -14,7 +14,7 @@ import pytest
 import rasterio
 import tifffile
 from rasterio.transform import from_origin
-from test_conventions import DATA, crop_rpcs, pixels, to_rasterio, write
+from testkit.rasters import DATA, crop_rpcs, pixels, to_rasterio, write
 
 from parproj_ros import cli, rpc
 from parproj_ros.importer import import_pair
@@ -35,6 +35,7 @@ def pair(tmp_path: Path) -> tuple[Path, Path]:
     return paths[0], paths[1]
 
 
+@pytest.mark.ros
 def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
     bad = tmp_path / "notes.tif"
     bad.write_text("this is not an image\n")
@@ -49,6 +50,7 @@ def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(cut, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_corrupt_rpc(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """A truncated .RPB sidecar, an explicit RPC file that is no RPC."""
     img = tmp_path / "c.tif"
@@ -63,6 +65,7 @@ def test_corrupt_rpc(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(pair[0], pair[1], tmp_path / "o", rpc_left=tmp_path / "junk.txt", **QUIET)
 
 
+@pytest.mark.ros
 def test_decimal_comma_is_an_error(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """Through GDAL: a .RPB with ``lineScale = 250,5;`` is refused, never read as 250."""
     img = tmp_path / "d.tif"
@@ -78,6 +81,7 @@ def test_decimal_comma_is_an_error(pair: tuple[Path, Path], tmp_path: Path) -> N
     assert "d.RPB" in msg and "LINE_SCALE" in msg and "21137 5" in msg, msg
 
 
+@pytest.mark.ros
 def test_nan_coefficients(pair: tuple[Path, Path], tmp_path: Path) -> None:
     vec = crop_rpcs()[0].as_vector()
     vec[12 + 20 + 3] = np.nan  # line denominator, 4th coefficient
@@ -96,6 +100,7 @@ def _moved(model: RPCModel, d_lon: float) -> RPCModel:
     return RPCModel.from_vector(v)
 
 
+@pytest.mark.ros
 def test_no_overlap(pair: tuple[Path, Path], tmp_path: Path) -> None:
     far = tmp_path / "far.tif"
     write(far, pixels("right"), _moved(crop_rpcs()[1], 0.2))  # 16 km east
@@ -103,6 +108,7 @@ def test_no_overlap(pair: tuple[Path, Path], tmp_path: Path) -> None:
         import_pair(pair[0], far, tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_image_and_rpc_of_different_scenes(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """A map-georeferenced image whose RPC describes another place (wrong sidecar)."""
     model = crop_rpcs()[0]
@@ -133,6 +139,7 @@ def test_image_and_rpc_of_different_scenes(pair: tuple[Path, Path], tmp_path: Pa
         )
 
 
+@pytest.mark.ros
 def test_denominator_crossing_zero(pair: tuple[Path, Path], tmp_path: Path) -> None:
     model = crop_rpcs()[0]
     lon, lat = model.localize([0.0, 499.0], [0.0, 499.0], 1000.0)
@@ -149,6 +156,7 @@ def test_denominator_crossing_zero(pair: tuple[Path, Path], tmp_path: Path) -> N
         import_pair(img, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
+@pytest.mark.ros
 def test_bad_options(pair: tuple[Path, Path], tmp_path: Path) -> None:
     with pytest.raises(SceneImportError, match="HMAX > HMIN"):
         import_pair(*pair, tmp_path / "o", heights=(800.0, 800.0), **QUIET)
@@ -178,6 +186,7 @@ def exit_code(argv: list[str]) -> int:
         return int(err.code or 0)
 
 
+@pytest.mark.ros
 def test_bands(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """Multi-band: band 1 by default (logged); --band chooses; a constant band is refused."""
     img = pixels("left")
@@ -230,6 +239,7 @@ def test_pixel_types_and_nodata(tmp_path: Path) -> None:
         np.testing.assert_array_equal(got, want.astype(got.dtype))
 
 
+@pytest.mark.ros
 def test_named_assumption_without_origin(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """No crop origin in the file: (0, 0), said once per image with the option to override."""
     logged: list[str] = []

@@ -20,9 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import rasterio
 from rasterio.windows import Window
-from test_conventions import DATA, to_rasterio
+from testkit.rasters import DATA, to_rasterio
 
 from parproj_ros import rpc
 
@@ -97,6 +98,8 @@ def peak_rss_mb(images: list[Path], out: Path) -> float:
     return int(res.stdout.split()[-1]) / 1024.0  # ru_maxrss is in kB on Linux
 
 
+@pytest.mark.ros  # the imports run in subprocesses: they write bags (parproj_msgs, rclpy)
+@pytest.mark.slow
 def test_import_peak_memory_does_not_grow_with_the_raster(tmp_path: Path) -> None:
     small = peak_rss_mb(make_pair(tmp_path / "small", 500), tmp_path / "bag_small")
     large = peak_rss_mb(make_pair(tmp_path / "large", 6000), tmp_path / "bag_large")

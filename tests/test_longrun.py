@@ -67,6 +67,7 @@ def test_repetition_ids_round_trip() -> None:
     assert split_repetition("pan_scene_0000") is None
 
 
+@pytest.mark.ros
 def test_repetition_shifts_stamps_and_renames_scenes() -> None:
     plan = plan_bag(IKONOS, margin_s=1.0)
     assert plan.pairs == ["pan_scene_0000+pan_scene_0001"] and plan.single_camera
@@ -104,6 +105,7 @@ def test_compare_pairs_is_exact_and_names_the_field() -> None:
 # ---- the node's memory: what it holds stays bounded ----------------------------------------
 
 
+@pytest.mark.ros
 def test_pipeline_forgets_navigation_and_gcp_of_finished_pairs() -> None:
     """Repetitions of ikonos_agile (GCP scenes): navigation and GCP held stay bounded.
 
@@ -136,6 +138,7 @@ def test_pipeline_forgets_navigation_and_gcp_of_finished_pairs() -> None:
         assert cmp == {"differ": [], "max_rel_diff": 0.0}, pair.pair_id
 
 
+@pytest.mark.ros
 def test_navigation_is_kept_while_a_scene_may_need_it() -> None:
     """Pruning never costs a scene its navigation: strips held back until navigation ended."""
     plan = plan_bag(IKONOS)
@@ -162,6 +165,7 @@ def test_navigation_is_kept_while_a_scene_may_need_it() -> None:
     assert [i for i in out.issues if i.level != "ok"] == []
 
 
+@pytest.mark.ros
 def test_gcp_arriving_after_their_scene_are_reported_not_kept() -> None:
     """What the first 20-minute run met once: a GCP set delayed past its first scene.
 
@@ -212,6 +216,7 @@ def _checked(plan: Any, out: Outputs, tamper: Any = None) -> PairChecker:
     return checker
 
 
+@pytest.mark.ros
 def test_checker_on_streamed_pairs() -> None:
     plan = plan_bag(AIRBORNE)
     cfg = config_from_bag(BagReader(AIRBORNE), scene_lines=768, tie_points=False)
@@ -238,6 +243,7 @@ def test_checker_on_streamed_pairs() -> None:
     assert any("right block 1 at column" in p for p in bad[1].problems), bad[1].problems
 
 
+@pytest.mark.ros
 def test_checker_flags_a_changed_parameter_and_a_wrong_image() -> None:
     plan = plan_bag(IKONOS)
     out = feed(Pipeline(config_from_bag(BagReader(IKONOS), tie_points=False)), plan, 3)
@@ -262,6 +268,8 @@ def test_checker_flags_a_changed_parameter_and_a_wrong_image() -> None:
 # ---- the command, live ---------------------------------------------------------------------
 
 
+@pytest.mark.slow
+@pytest.mark.ros
 def test_longrun_live(tmp_path: Path) -> None:
     """A few repetitions through the real node: every pair, well formed, identical, no drops."""
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"

@@ -31,6 +31,8 @@ from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
+pytestmark = pytest.mark.ros  # the built parproj_msgs interfaces
+
 M = TypeVar("M")
 
 MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"

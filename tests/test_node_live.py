@@ -19,6 +19,8 @@ from parproj_ros.live import run_through_node
 from parproj_ros.offline import process_bag
 from parproj_ros.recording import node_parameters, views_from_bag
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
+
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 ALL_BAGS = ["ikonos_agile", "airborne_foreaft", "crab_foreaft", "ventoux"]
 

@@ -73,6 +73,8 @@ from parproj_ros.node import StartupError, check_mounting, check_views
 from parproj_ros.pipeline import GroundPoint
 from parproj_ros.recording import node_parameters, views_from_bag
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
+
 NAV_MARGIN_S = 1.5  # navigation kept before and after each scene
 GAP_MARGIN_S = 0.6  # the navigation gap: from this long before the scene's first line to after
 OK = 0

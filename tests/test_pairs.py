@@ -13,7 +13,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_import import FLAT_H, _affine_rpc, _render
+from testkit.rasters import FLAT_H
+from testkit.rasters import affine_rpc as _affine_rpc
+from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
 from parproj_ros.bag import BagReader
@@ -68,6 +70,7 @@ def all_bag(tifs: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> 
     return {"bag": dst, "summary": _import(tifs, dst, "all")}
 
 
+@pytest.mark.ros
 def test_base_to_height_from_the_rpcs(all_bag: dict[str, Any]) -> None:
     """B/H: 4 px per m per unit look, 1 m per line: |look_1 - look_2| x 4."""
     rows = {(r["left"], r["right"]): r for r in all_bag["summary"]["candidates"]}
@@ -78,6 +81,7 @@ def test_base_to_height_from_the_rpcs(all_bag: dict[str, Any]) -> None:
         assert r["convergence_deg"] > 0 and r["common_points"] >= 100 and r["selected"]
 
 
+@pytest.mark.ros
 def test_bh_selection_leaves_out_the_narrow_pair(tifs: dict[str, Path], tmp_path: Path) -> None:
     s = _import(tifs, tmp_path / "bh", "bh")
     assert s["pairs"] == [("a", "c"), ("b", "c")]
@@ -99,6 +103,7 @@ def test_pairs_option_parsing() -> None:
     assert scene_ids_of(["x/left.tif", "y/left.tif", "z.tif"]) == ["left", "left_2", "z"]
 
 
+@pytest.mark.ros
 def test_bag_of_three_images(all_bag: dict[str, Any]) -> None:
     reader = BagReader(all_bag["bag"])
     assert set(reader.topics()) == {
@@ -119,6 +124,7 @@ def test_bag_of_three_images(all_bag: dict[str, Any]) -> None:
         assert sum(1 for p in truth if set(pair) <= set(p.observations)) >= 300
 
 
+@pytest.mark.ros
 def test_process_makes_every_selected_pair(all_bag: dict[str, Any], tmp_path: Path) -> None:
     """3 scenes, 3 pairs (each scene in two), each within the single-pair tolerances."""
     summary = process_bag(all_bag["bag"], tmp_path / "out", progress=False, overrides=GCP_ONLY)
@@ -164,6 +170,7 @@ def _issues(out: Outputs, level: str) -> list[str]:
     return [f"{i.where}: {i.message}" for i in out.issues if i.level == level]
 
 
+@pytest.mark.ros
 def test_bad_pair_selections_reported_others_kept(all_bag: dict[str, Any]) -> None:
     """Self pair, duplicate (either order), empty id, unknown id: reported; good pairs made."""
     sel = [("a", "a"), ("a", "c"), ("c", "a"), ("", "b"), ("a", "zzz"), ("b", "c"), ("a", "c")]
@@ -179,6 +186,7 @@ def test_bad_pair_selections_reported_others_kept(all_bag: dict[str, Any]) -> No
     assert len(out.scenes) == 3
 
 
+@pytest.mark.ros
 def test_scene_in_no_pair_released_with_warning(all_bag: dict[str, Any]) -> None:
     pipe, out = _feed(all_bag["bag"], [("c", "a")])
     assert [p.pair_id for p in out.pairs] == ["c+a"]
@@ -186,12 +194,14 @@ def test_scene_in_no_pair_released_with_warning(all_bag: dict[str, Any]) -> None
     assert not pipe._ready["pan"]
 
 
+@pytest.mark.ros
 def test_without_selection_2k_and_2k1_pair(all_bag: dict[str, Any]) -> None:
     """No pairs topic: acquisitions 0 and 1 pair up, the third waits for a fourth."""
     _pipe, out = _feed(all_bag["bag"], None)
     assert [p.pair_id for p in out.pairs] == ["a+b"]
 
 
+@pytest.mark.ros
 def test_late_selection_cannot_use_released_scenes(all_bag: dict[str, Any]) -> None:
     """A selection naming scenes already paired and released: reported, not crashing."""
     pipe, _out = _feed(all_bag["bag"], None)
@@ -202,6 +212,7 @@ def test_late_selection_cannot_use_released_scenes(all_bag: dict[str, Any]) -> N
     assert late.pairs == []
 
 
+@pytest.mark.ros
 def test_pair_without_base(tifs: dict[str, Path], tmp_path: Path) -> None:
     """The same image twice (B/H 0): normalization is degenerate; the pair is skipped."""
     s = import_scenes(
@@ -226,6 +237,7 @@ def test_two_view_mode_ignores_selection() -> None:
     assert [i.level for i in out.issues] == ["warn"] and "ignored" in out.issues[0].message
 
 
+@pytest.mark.ros
 def test_pair_selection_message_round_trip() -> None:
     from parproj_msgs.msg import PairSelection
 
@@ -256,6 +268,7 @@ def _with_selection(src_bag: Path, dst: Path, left: list[str], right: list[str])
     return dst
 
 
+@pytest.mark.ros
 def test_mismatched_selection_message_in_a_bag(all_bag: dict[str, Any], tmp_path: Path) -> None:
     """process: a PairSelection whose lists differ is dropped (ERROR); 2k/2k+1 pairing then."""
     bad = _with_selection(all_bag["bag"], tmp_path / "bad", ["a", "b"], ["c"])
@@ -268,6 +281,8 @@ def test_mismatched_selection_message_in_a_bag(all_bag: dict[str, Any], tmp_path
 # Through the live node over DDS
 
 
+@pytest.mark.slow
+@pytest.mark.ros
 def test_selected_pairs_through_the_live_node(all_bag: dict[str, Any], tmp_path: Path) -> None:
     """3 images, 3 good pairs among bad entries: every good pair published, the bad reported.
 
@@ -309,6 +324,7 @@ def test_selected_pairs_through_the_live_node(all_bag: dict[str, Any], tmp_path:
         assert any(text in d for d in diag), (text, diag)
 
 
+@pytest.mark.ros
 def test_cli_import_process_evaluate_three_images(
     tifs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

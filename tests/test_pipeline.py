@@ -8,80 +8,20 @@ of the right shape at the right times.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+from testkit.scenes import feed, nav_events, render, strip_events
 
 from parproj_ros.geometry import ptp_inverse
 from parproj_ros.pipeline import Outputs, PairResult, Pipeline, SceneResult
 from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
-from parproj_ros.trajectory import NavSample
-
-Event = tuple[int, int, Any]
 
 # These tests are about whole-scene processing: keep the streaming mode (scene_lines > 0 with two
 # views, when the pipeline has it) out of the way.
 WHOLE = {"streaming": False}
-
-
-def render(scn: Scenario, dtype: type, *, smooth: bool = False, low: int = 1) -> list[np.ndarray]:
-    """One image per scene: random texture in [low, high), or a smooth pattern."""
-    rng = np.random.default_rng(0)
-    out = []
-    for sc in scn.scenes:
-        det = next(v for v in scn.views if v.name == sc.view).camera.detectors
-        if smooth:
-            ll, ss = np.mgrid[0 : sc.lines, 0:det].astype(float)
-            img = 1000.0 + 400.0 * np.sin(ll / 41.0 + 0.3) * np.cos(ss / 53.0) + 0.5 * ss
-        else:
-            img = rng.integers(low, 250 if dtype == np.uint8 else 2000, (sc.lines, det))
-        out.append(img.astype(dtype))
-    return out
-
-
-def nav_events(
-    scn: Scenario, *, offset: Callable[[float], np.ndarray] | None = None
-) -> list[Event]:
-    lp = scn.views[0].camera.line_period
-    first = min(sc.start_s for sc in scn.scenes) - 1.0
-    last = max(sc.start_s + sc.lines * lp for sc in scn.scenes) + 1.0
-    vel = np.array(scn.velocity)
-    ev = []
-    for t in np.arange(first, last, 1.0 / scn.nav_rate_hz):
-        pos = np.array(scn.position0) + t * vel
-        if offset is not None:
-            pos = pos + offset(float(t))
-        s = NavSample(scn.time_ns(float(t)), pos, scn.body_rotation(float(t)), vel)
-        ev.append((s.t_ns, 0, s))
-    return ev
-
-
-def strip_events(
-    scn: Scenario, images: list[np.ndarray], skip: Iterable[tuple[int, int]] = ()
-) -> list[Event]:
-    skipped = set(skip)
-    ev = []
-    for i, sc in enumerate(scn.scenes):
-        lp = next(v for v in scn.views if v.name == sc.view).camera.line_period
-        for r0 in range(0, sc.lines, scn.strip_lines):
-            if (i, r0) in skipped:
-                continue
-            st = scn.time_ns(sc.start_s + r0 * lp)
-            ev.append(
-                (st, 1, (sc.view, st, scn.scene_id(i), images[i][r0 : r0 + scn.strip_lines]))
-            )
-    return ev
-
-
-def feed(pipe: Pipeline, events: list[Event], *, flush: bool = True) -> Outputs:
-    out = Outputs()
-    for _, kind, item in sorted(events, key=lambda e: (e[0], e[1])):
-        out.extend(pipe.add_navigation(item) if kind == 0 else pipe.add_strip(*item))
-    if flush:
-        out.extend(pipe.flush())
-    return out
 
 
 def run(scn: Scenario, images: list[np.ndarray], **config: Any) -> tuple[Pipeline, Outputs]:
@@ -520,6 +460,7 @@ def test_missing_strip_filled_and_reported(airborne: tuple[Scenario, Outputs]) -
 # ---- normalized images --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_float32_strips_give_float32_images() -> None:
     scn = SCENARIOS["airborne_foreaft"]()
     t_mid = (scn.scenes[0].start_s + scn.scenes[1].start_s) / 2
@@ -553,6 +494,7 @@ def _source_coordinates(pair: PairResult, side: str) -> tuple[np.ndarray, np.nda
     return res.geometry(to_n).normalized_to_image(xn.astype(float), yn.astype(float))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "dtype", "shift_m"),
     [

@@ -15,7 +15,6 @@ the offline reference) to keep this file within about a minute.
 from __future__ import annotations
 
 import math
-import os
 import shutil
 import threading
 import time
@@ -25,16 +24,16 @@ from typing import Any
 
 import numpy as np
 import pytest
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from nav_msgs.msg import Odometry
 from rcl_interfaces.srv import GetParameters, SetParameters
-from rclpy.context import Context
 from rclpy.duration import Duration
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
+from testkit import live
+from testkit.diagnostics import level, show
+from testkit.live import wait
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader
@@ -44,11 +43,12 @@ from parproj_ros.live import (
     node_params_yaml,
     replay,
     ros_environment,
-    wait_until,
 )
 from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import PipelineConfig
 from parproj_ros.recording import node_parameters, views_from_bag
+
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 BAG = BAGS / "ikonos_agile"
@@ -58,29 +58,11 @@ WARN = DiagnosticStatus.WARN[0]
 ERROR = DiagnosticStatus.ERROR[0]
 
 
-def level(s: DiagnosticStatus) -> int:
-    return s.level[0] if isinstance(s.level, bytes | bytearray) else int(s.level)
-
-
-def show(sts: list[DiagnosticStatus]) -> str:
-    return "\n".join(f"  [{level(s)}] {s.name}: {s.message}" for s in sts) or "  (none)"
-
-
-def wait(cond: Callable[[], bool], timeout: float, alive: Callable[[], bool] = lambda: True):
-    return wait_until(cond, timeout, alive)
-
-
-class GraphNode:
-    """An rclpy node of the test in its own Context, spun in a thread."""
+class GraphNode(live.GraphNode):
+    """An rclpy node of the test in its own Context, spun in a thread (from :meth:`start`)."""
 
     def __init__(self, name: str) -> None:
-        assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
-        self.ctx = Context()
-        rclpy.init(context=self.ctx)
-        self.node = rclpy.create_node(name, context=self.ctx)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        super().__init__(name, start=False)
         self.diagnostics: list[DiagnosticStatus] = []
         self._lock = threading.Lock()
 
@@ -95,15 +77,6 @@ class GraphNode:
     def statuses(self) -> list[DiagnosticStatus]:
         with self._lock:
             return list(self.diagnostics)
-
-    def start(self) -> None:
-        self.thread.start()
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.thread.join(timeout=5)
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
 
 
 # ---- crafted messages ---------------------------------------------------------------------------

@@ -30,6 +30,9 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Image
+from testkit.diagnostics import level, show
+from testkit.scenes import Event, feed, nav_events, nav_samples
+from testkit.scenes import render as render_as
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader, BagWriter
@@ -43,11 +46,11 @@ from parproj_ros.pipeline import (
     SceneResult,
 )
 from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
-from parproj_ros.trajectory import NavSample
+
+pytestmark = pytest.mark.ros  # message classes, diagnostics, bags
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
-Event = tuple[int, int, Any]  # (arrival ns, 0 = navigation / 1 = strip, payload)
 
 #: Words that say what was done with bad input.
 DROPPED = ("dropped", "rejected", "ignored", "skipped")
@@ -78,33 +81,7 @@ def line_period_ns(scn: Scenario) -> float:
 
 
 def render(scn: Scenario) -> list[np.ndarray]:
-    rng = np.random.default_rng(0)
-    out = []
-    for sc in scn.scenes:
-        det = next(v for v in scn.views if v.name == sc.view).camera.detectors
-        hi = 250 if scn.dtype == "uint8" else 2000
-        out.append(rng.integers(1, hi, (sc.lines, det)).astype(scn.dtype))
-    return out
-
-
-def nav_samples(
-    scn: Scenario, offset: Callable[[float], np.ndarray] | None = None
-) -> list[NavSample]:
-    lp = scn.views[0].camera.line_period
-    first = min(sc.start_s for sc in scn.scenes) - 1.0
-    last = max(sc.start_s + sc.lines * lp for sc in scn.scenes) + 1.0
-    vel = np.array(scn.velocity)
-    out = []
-    for t in np.arange(first, last, 1.0 / scn.nav_rate_hz):
-        pos = np.array(scn.position0) + t * vel
-        if offset is not None:
-            pos = pos + offset(float(t))
-        out.append(NavSample(scn.time_ns(float(t)), pos, scn.body_rotation(float(t)), vel))
-    return out
-
-
-def nav_events(scn: Scenario, **kw: Any) -> list[Event]:
-    return [(s.t_ns, 0, s) for s in nav_samples(scn, **kw)]
+    return render_as(scn, np.dtype(scn.dtype))
 
 
 def strip_events(scn: Scenario, images: list[np.ndarray]) -> list[Event]:
@@ -124,15 +101,6 @@ def is_strip(e: Event, scn: Scenario, scene: int, r0: int) -> bool:
     return e[1] == 1 and e[2][2] == scn.scene_id(scene) and e[2][1] == strip_time(scn, scene, r0)
 
 
-def feed(pipe: Pipeline, events: Iterable[Event]) -> Outputs:
-    """Events in arrival order, then end of data (as the node on SIGINT and ``process``)."""
-    out = Outputs()
-    for _, kind, item in sorted(events, key=lambda e: (e[0], e[1])):
-        out.extend(pipe.add_navigation(item) if kind == 0 else pipe.add_strip(*item))
-    out.extend(pipe.flush())
-    return out
-
-
 def run(
     scn: Scenario, events: Iterable[Event], gcp: Iterable[GroundPoint] = (), **kw: Any
 ) -> Outputs:
@@ -148,14 +116,6 @@ def run(
 def statuses(out: Outputs) -> list[DiagnosticStatus]:
     """The pipeline's issues as the node publishes them on /diagnostics."""
     return list(conv.issues_to_diagnostics(out.issues, stamp_ns=0, hardware_id="map").status)
-
-
-def level(s: DiagnosticStatus) -> int:
-    return s.level[0] if isinstance(s.level, bytes | bytearray) else int(s.level)
-
-
-def show(sts: Iterable[DiagnosticStatus]) -> str:
-    return "\n".join(f"  [{level(s)}] {s.name}: {s.message}" for s in sts) or "  (none)"
 
 
 def expect_status(

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from testkit.rasters import to_rasterio as _gdal_rpc
 
 from parproj_ros import rpc
 from parproj_ros.rpc import RPCModel
@@ -559,27 +560,6 @@ def test_sigma0_invariant_to_pixel_size_with_psi_estimated(
 
 # ---------------------------------------------------------------------------------------------
 # Independent check: GDAL's RPC transformer (rasterio.transform.RPCTransformer)
-
-
-def _gdal_rpc(m: RPCModel) -> object:
-    from rasterio.rpc import RPC
-
-    return RPC(
-        height_off=m.height_off,
-        height_scale=m.height_scale,
-        lat_off=m.lat_off,
-        lat_scale=m.lat_scale,
-        line_den_coeff=list(m.line_den_coeff),
-        line_num_coeff=list(m.line_num_coeff),
-        line_off=m.line_off,
-        line_scale=m.line_scale,
-        long_off=m.long_off,
-        long_scale=m.long_scale,
-        samp_den_coeff=list(m.samp_den_coeff),
-        samp_num_coeff=list(m.samp_num_coeff),
-        samp_off=m.samp_off,
-        samp_scale=m.samp_scale,
-    )
 
 
 def _out_of_domain(left: RPCModel) -> RPCModel:

@@ -194,6 +194,7 @@ def test_pipeline_without_cutting_leaves_pixels_of_y_parallax(ventoux: dict) -> 
     assert np.abs(pairs[0].y_parallax_px).max() > 3.0
 
 
+@pytest.mark.ros
 def test_segment_parameters_message(piped: dict) -> None:
     """ParallelProjection of a segment: where it was cut from, its first line, the bound."""
     from parproj_msgs.msg import ParallelProjection
@@ -239,6 +240,8 @@ def test_evaluate_maps_truth_points_into_segments() -> None:
     assert _observation(p, seg2) is None  # before the segment's first line
 
 
+@pytest.mark.slow
+@pytest.mark.ros
 def test_long_geotiff_pair_import_process_evaluate(ventoux: dict, tmp_path: Path) -> None:
     """The user's path on a long pair: GeoTIFFs with the RPC tag -> import -> process -> evaluate.
 

@@ -13,6 +13,8 @@ from parproj_ros.offline import process_bag
 from parproj_ros.pipeline import Pipeline
 from parproj_ros.recording import config_from_bag
 
+pytestmark = pytest.mark.ros  # reads and processes bags
+
 BAG = Path(__file__).resolve().parent.parent / "bags" / "airborne_foreaft"
 LINES = 768
 

@@ -13,6 +13,8 @@ from parproj_ros.evaluate import normalized_px
 from parproj_ros.pipeline import GroundPoint, Outputs, Pipeline
 from parproj_ros.recording import config_from_bag, truth_from_bag
 
+pytestmark = [pytest.mark.ros, pytest.mark.slow]  # reads bags/ikonos_agile
+
 BAG = Path(__file__).resolve().parent.parent / "bags" / "ikonos_agile"
 BIAS = 2.5  # pixels added to every sample of the right scene's GCP observations
 
