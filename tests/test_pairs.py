@@ -346,6 +346,7 @@ def test_cli_import_process_evaluate_three_images(
     assert all(p["geometric"]["y_parallax_px"]["max_abs"] < 0.05 for p in res["pairs"])
 
 
+@pytest.mark.ros
 def test_crop_origin_band_and_rpc_of_the_third_image(
     tifs: dict[str, Path], all_bag: dict[str, Any], tmp_path: Path
 ) -> None:

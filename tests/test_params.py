@@ -196,6 +196,7 @@ def test_view_values_is_the_inverse_of_view_config() -> None:
     assert plain["principal_point"] == (13816 - 1) / 2 and plain["encoding"] == ""
 
 
+@pytest.mark.ros
 def test_node_parameters_of_a_bag_are_table_names() -> None:
     from parproj_ros.bag import BagReader
     from parproj_ros.recording import node_parameters, views_from_bag
@@ -211,6 +212,7 @@ def test_pipeline_config_docstring_lists_the_table() -> None:
             assert f"        {p.field}: " in doc, p.field
 
 
+@pytest.mark.ros
 def test_node_declares_the_table() -> None:
     from parproj_ros import node
 
@@ -297,6 +299,7 @@ def test_process_keeps_the_old_option_names() -> None:
     assert (args.height_range, args.gcp_roll, args.interpolation) == (20.0, "navigation", "cubic")
 
 
+@pytest.mark.ros
 def test_process_passes_every_option_to_the_pipeline(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

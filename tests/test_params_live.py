@@ -27,6 +27,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from parproj_ros import config
 from parproj_ros.live import NodeProcess, ros_environment, wait_until
 
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parent.parent
 #: Parameters every rclpy node has (not in the table).
 ROS_OWN = {"use_sim_time", "start_type_description_service"}
