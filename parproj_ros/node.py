@@ -746,6 +746,38 @@ def _params_files(argv: Sequence[str]) -> list[str]:
     return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
 
 
+#: Largest parameters file the node reads, bytes (a real one is a few kB).
+MAX_PARAMS_FILE_BYTES = 16 * 1024 * 1024
+
+
+def _check_params_files(argv: Sequence[str]) -> None:
+    """Each ``--params-file`` a regular file of at most :data:`MAX_PARAMS_FILE_BYTES`.
+
+    Checked before rcl opens them: rcl would wait forever on a FIFO and read any size.
+
+    Raises:
+        StartupError: a parameters file that is missing, not a regular file, or too large.
+    """
+    import os
+    import stat
+
+    for f in _params_files(argv):
+        try:
+            st = os.stat(f)
+        except OSError as err:
+            raise StartupError(f"parameters file {f}: {err.strerror or err}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise StartupError(
+                f"parameters file {f}: not a regular file (a folder, FIFO, socket or device): "
+                "not read"
+            )
+        if st.st_size > MAX_PARAMS_FILE_BYTES:
+            raise StartupError(
+                f"parameters file {f}: {st.st_size} bytes, more than the "
+                f"{MAX_PARAMS_FILE_BYTES} bytes a parameters file may have"
+            )
+
+
 def _init_rclpy(argv: list[str]) -> None:
     """``rclpy.init`` with rcl's own console output held back, shown again if init works.
 
@@ -753,11 +785,13 @@ def _init_rclpy(argv: list[str]) -> None:
     the node's one-line error says it all.
 
     Raises:
-        StartupError: the ROS arguments or a parameters file cannot be parsed.
+        StartupError: the ROS arguments or a parameters file cannot be parsed (or are not a
+            regular file of a sensible size: :func:`_check_params_files`).
     """
     import os
     import tempfile
 
+    _check_params_files(argv)
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         saved = os.dup(2)

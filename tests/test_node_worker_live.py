@@ -26,6 +26,7 @@ navigation from ``NAV_MARGIN_S`` before to after each scene; reliable inputs; ti
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -553,7 +554,9 @@ BAD_START: dict[str, tuple[str | None, dict[str, Any], str]] = {
         {},
         "cannot parse the parameters file",
     ),
-    "file missing": ("", {}, "cannot parse the parameters file"),
+    "file missing": ("", {}, "No such file or directory"),
+    "file a FIFO": ("@fifo", {}, "not a regular file"),
+    "file too large": ("@large", {}, "more than the 16777216 bytes"),
 }
 
 
@@ -569,6 +572,10 @@ def bad_start(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, 
         if text is None:
             params = {**node_parameters(views, **CONFIG), **override}
             node_params_yaml(params, path, reliable_inputs=[])
+        elif text == "@fifo":
+            os.mkfifo(path)  # rcl would wait for a writer forever
+        elif text == "@large":
+            path.write_text("# padding\n" * (17 * 1024 * 1024 // 10))
         elif text:
             path.write_text(text)
         cmd = [sys.executable, "-m", "parproj_ros.node", "--ros-args", "--params-file", str(path)]

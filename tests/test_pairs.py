@@ -359,7 +359,7 @@ def test_crop_origin_band_and_rpc_of_the_third_image(
     """
     import numpy as np
     import rasterio
-    from test_conventions import to_rasterio
+    from testkit.rasters import to_rasterio
 
     from parproj_ros import cli
 
