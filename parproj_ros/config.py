@@ -485,8 +485,6 @@ VIEW_PARAMS: tuple[Param, ...] = (
     ),
 )
 
-#: Pixel type of each ``<view>.encoding`` ("" accepts the type of a scene's first strip).
-ENCODING_DTYPES = {"mono8": "uint8", "mono16": "uint16", "32FC1": "float32"}
 
 _BY_NAME = {p.name: p for p in PARAMS}
 
@@ -590,6 +588,7 @@ def view_config(name: str, values: Mapping[str, Any]) -> ViewConfig:
     import numpy as np
 
     from .geometry import LineCamera, rotation_from_angles
+    from .imaging.encodings import ENCODING_DTYPES
 
     v = {p.name: values.get(p.name, p.default) for p in VIEW_PARAMS}
     rpy = tuple(float(a) for a in v["mounting_rpy_deg"])
@@ -601,8 +600,12 @@ def view_config(name: str, values: Mapping[str, Any]) -> ViewConfig:
         float(v["line_period"]),
         None if pp < 0 else pp,
     )
+    dtype = ENCODING_DTYPES.get(v["encoding"])  # "" accepts a scene's first strip's type
     return ViewConfig(
-        name, camera, rotation_from_angles(*np.radians(rpy)), ENCODING_DTYPES.get(v["encoding"])
+        name,
+        camera,
+        rotation_from_angles(*np.radians(rpy)),
+        None if dtype is None else dtype.name,
     )
 
 
@@ -615,9 +618,10 @@ def view_values(view: ViewConfig) -> dict[str, Any]:
     import numpy as np
 
     from .geometry import angles_from_rotation
+    from .imaging.encodings import DTYPE_ENCODINGS
 
     c = view.camera
-    encodings = {dtype: enc for enc, dtype in ENCODING_DTYPES.items()}
+    encodings = {dtype.name: enc for dtype, enc in DTYPE_ENCODINGS.items()}
     rpy = np.degrees(angles_from_rotation(view.mounting))
     return {
         "principal_distance": c.principal_distance,

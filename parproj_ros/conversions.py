@@ -14,22 +14,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .geometry.rotation import rotation_to_quaternion
+from .imaging.encodings import DTYPE_ENCODINGS, ENCODING_DTYPES
 from .results import METHODS, BlockResult, GroundPoint, Level, PairResult, SceneResult
 from .trajectory import NavSample, make_sample
-
-#: Supported single-channel encodings: name -> (dtype, bytes per pixel).
-ENCODING_DTYPES: dict[str, np.dtype] = {
-    "mono8": np.dtype(np.uint8),
-    "8UC1": np.dtype(np.uint8),
-    "mono16": np.dtype(np.uint16),
-    "16UC1": np.dtype(np.uint16),
-    "32FC1": np.dtype(np.float32),
-}
-DTYPE_ENCODINGS = {
-    np.dtype(np.uint8): "mono8",
-    np.dtype(np.uint16): "mono16",
-    np.dtype(np.float32): "32FC1",
-}
 
 
 class ConversionError(ValueError):

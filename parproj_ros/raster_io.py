@@ -37,11 +37,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .imaging.encodings import DTYPE_ENCODINGS
 from .rpc import _COEFF_NAMES, _SCALARS, RPCError, RPCFormatError, RPCModel, _float, _model
 
 FloatArray = NDArray[np.float64]
-#: Pixel types kept as they are (the strip encodings mono8, mono16, 32FC1).
-KEPT_DTYPES = ("uint8", "uint16", "float32")
+#: Pixel types kept as they are (those with a strip encoding: mono8, mono16, 32FC1).
+KEPT_DTYPES = tuple(d.name for d in DTYPE_ENCODINGS)
 
 
 class SceneImportError(RPCError):

@@ -422,3 +422,12 @@ def test_numbers_in_the_table_are_finite() -> None:
     for p in (*PARAMS, *VIEW_PARAMS):
         for b in (p.low, p.high):
             assert b is None or math.isfinite(b), p.name
+
+
+def test_encoding_choices_are_the_supported_pixel_types() -> None:
+    """``<view>.encoding`` offers exactly the encodings the pipeline writes (and "")."""
+    from parproj_ros.config import VIEW_PARAMS
+    from parproj_ros.imaging.encodings import DTYPE_ENCODINGS
+
+    choices = next(p.choices for p in VIEW_PARAMS if p.name == "encoding")
+    assert set(choices) == {"", *DTYPE_ENCODINGS.values()}

@@ -16,15 +16,12 @@ from numpy.typing import NDArray
 from ..geometry.epipolar import invert_affine_2x3
 from ..geometry.navigation import SceneFrame
 from ..geometry.ptp import ptp_inverse
+from .encodings import DTYPE_ENCODINGS
 
 FloatArray = NDArray[np.float64]
 
 #: Supported pixel types (numpy dtype -> ROS encoding of a single-channel image).
-ENCODINGS = {
-    np.dtype(np.uint8): "mono8",
-    np.dtype(np.uint16): "mono16",
-    np.dtype(np.float32): "32FC1",
-}
+ENCODINGS = DTYPE_ENCODINGS
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ import numpy as np
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader, get_message_class
 from parproj_ros.evaluate import normalized_px
+from parproj_ros.imaging.encodings import ENCODING_DTYPES
 from parproj_ros.recording import views_from_bag
 from parproj_ros.results import GroundPoint
 
@@ -200,8 +201,8 @@ def compare_pairs(ref: dict[str, Any], new: dict[str, Any], rtol: float = 0.0) -
 
 
 #: Bytes per pixel and channels of the encodings the node publishes.
-_ENCODINGS = {"mono8": (1, 1), "8UC1": (1, 1), "mono16": (2, 1), "16UC1": (2, 1)}
-_ENCODINGS |= {"32FC1": (4, 1), "rgb8": (3, 3), "bgr8": (3, 3)}
+_ENCODINGS = {enc: (dtype.itemsize, 1) for enc, dtype in ENCODING_DTYPES.items()}
+_ENCODINGS |= {"rgb8": (3, 3), "bgr8": (3, 3)}
 
 
 def _image_problems(img: Any, what: str, width: int, height: int, channels: int) -> list[str]:
