@@ -341,6 +341,9 @@ class Pipeline:
         self._nav_pending: NavSample | None = None
         self._nav_first_ns: int | None = None  # earliest navigation stamp accepted
         self._no_stream: set[int] = set()
+        # Pairs whose streaming decision waits for navigation (it lagged behind their first
+        # strips): pair index -> the scene start it must reach (see _predict_scene).
+        self._stream_wait: dict[int, int] = {}
         # The latest scenes done with (processed or skipped): scene id -> (view, method), so
         # that GCP arriving after their scene are reported, not kept.
         self._done: dict[str, tuple[str, str]] = {}
@@ -393,6 +396,12 @@ class Pipeline:
             )
             return out
         self._add_nav(sample)
+        if self._stream_wait and self._can_stream:
+            # A streaming decision held for navigation may be taken now (before any scene it
+            # holds is processed whole below).
+            out.extend(self._stream_start())
+            for view in self.assemblers:
+                out.extend(self._stream_advance(view))
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
@@ -606,21 +615,49 @@ class Pipeline:
         A side whose scene is still arriving gets parameters extrapolated from the latest
         navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
         sees the same ground later) keeps its parameters and has all its blocks emitted at once.
+        When navigation lags behind the strips (separate topics, no ordering between them), the
+        decision is held until navigation reaches the scenes' start; a scene completed in the
+        meantime is held too (it waits for navigation anyway) and is then streamed at once, so
+        the outputs do not depend on the order in which the topics were delivered.
         """
         out = Outputs()
+        for k in list(self._stream_wait):
+            if k in self._streams or k in self._no_stream:
+                del self._stream_wait[k]
         names = [v.name for v in self.config.views]
         opened = {n: self.assemblers[n].open_scene() for n in names}
-        for k in sorted({o[1] for o in opened.values() if o is not None}):
+        pending = {o[1] for o in opened.values() if o is not None} | set(self._stream_wait)
+        for k in sorted(pending):
             if k in self._streams or k in self._no_stream:
                 continue
             parts: list[tuple[str, tuple[str, int, int, int] | SceneResult]] = []
+            held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
             for n in names:
                 o = opened[n]
                 if o is not None and o[1] == k:
                     parts.append((n, o))
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
+                elif k in self._stream_wait:
+                    sc = next((w for w in self._waiting_nav if w.view == n and w.index == k), None)
+                    if sc is not None:
+                        held[n] = sc
+                        parts.append((n, (sc.scene_id, k, sc.first_line_ns, sc.lines)))
             if len(parts) < 2:
+                continue
+            short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
+            if short:
+                self._no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"pair {k}",
+                        "not streamed: navigation lagged behind the strips until "
+                        + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
+                        + f" ended short ({short[0].lines} of {self.config.scene_lines} "
+                        "lines): processed whole",
+                    )
+                )
                 continue
             if k == 0 and any(
                 not isinstance(part, SceneResult) and not self._start_seen(part[2])
@@ -632,7 +669,7 @@ class Pipeline:
                 continue
             # Time of the line after the last one received, per open scene.
             ends = {o[0]: o[2] + o[3] * self._period(o) for o in opened.values() if o is not None}
-            newest = max(ends.values())
+            newest = max(ends.values(), default=0)
             duration = self.config.scene_lines * max(
                 v.camera.line_period for v in self.config.views
             )
@@ -640,7 +677,9 @@ class Pipeline:
             overdue = [
                 part
                 for _, part in parts
-                if not isinstance(part, SceneResult) and newest - ends[part[0]] > stale_ns
+                if not isinstance(part, SceneResult)
+                and part[0] in ends
+                and newest - ends[part[0]] > stale_ns
             ]
             if overdue:
                 # Strips of a scene stopped coming while the other view went on (by more than
@@ -664,13 +703,19 @@ class Pipeline:
                 if isinstance(part, SceneResult):
                     results.append(part)
                     continue
-                res = self._predict_scene(name, part, out)
+                sc = held.get(name)
+                res = self._predict_scene(name, part, out, None if sc is None else sc.image.dtype)
                 if res is None:
                     return out
                 results.append(res)
             if k in self._no_stream:
                 continue
             out.extend(self._open_stream(k, results))
+            stream = self._streams.get(k)
+            if stream is not None:
+                for sc in held.values():
+                    self._waiting_nav.remove(sc)
+                    out.extend(self._stream_close(stream, sc))
         return out
 
     def _period(self, opened: tuple[str, int, int, int]) -> float:
@@ -681,9 +726,19 @@ class Pipeline:
         return 0.0
 
     def _predict_scene(
-        self, name: str, opened: tuple[str, int, int, int], out: Outputs
+        self,
+        name: str,
+        opened: tuple[str, int, int, int],
+        out: Outputs,
+        dtype: np.dtype | None = None,
     ) -> SceneResult | None:
-        """Parameters of a scene that has just started, from the latest navigation."""
+        """Parameters of a scene that has just started, from the latest navigation.
+
+        When navigation has not reached within ``max_gap_s`` of the scene start at its first
+        strip (it lags: separate topics), the pair waits (``_stream_wait``) until navigation
+        reaches the scene start, and the motion is then fitted on the navigation up to the
+        scene start only, as an on-time decision would have been. None: not (yet) possible.
+        """
         sid, k, t0, _ = opened
         n_gcp = sum(1 for p in self.gcp.values() if sid in p.observations and not p.check)
         if n_gcp >= self.config.min_gcp:
@@ -691,10 +746,34 @@ class Pipeline:
             return None
         view = self.views[name]
         lines = self.config.scene_lines
+        waited = k in self._stream_wait
+        last = self.nav.last_ns
+        if waited and (last is None or last < t0):
+            return None  # navigation has not reached the scene start yet: keep waiting
         try:
-            fit = self.nav.fit_recent(t0, view.mounting)
-        except NavigationError:
-            return None  # not yet: try again with the next strip
+            fit = self.nav.fit_recent(t0, view.mounting, until_ns=t0 if waited else None)
+        except NavigationError as err:
+            if not waited:
+                self._stream_wait[k] = t0  # navigation lags: wait for it (see above)
+                return None
+            self._no_stream.add(k)
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{name}/{sid}",
+                    f"not streamed (navigation at the scene start: {err}): processed whole",
+                )
+            )
+            return None
+        if waited:
+            out.issues.append(
+                Issue(
+                    "ok",
+                    f"{name}/{sid}",
+                    "navigation reached the scene start after its first strips: streaming "
+                    "decision held until then",
+                )
+            )
         model = PushbroomModel(view.camera, fit.motion)
         try:
             nav = parameters_from_navigation(
@@ -711,7 +790,8 @@ class Pipeline:
                 Issue("warn", f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing")
             )
             return None
-        dtype = self.assemblers[name].retained()[1].dtype
+        if dtype is None:
+            dtype = self.assemblers[name].retained()[1].dtype
         placeholder = Scene(
             name,
             sid,
@@ -939,6 +1019,7 @@ class Pipeline:
                 )
             )
         self._waiting_nav = []
+        self._stream_wait.clear()
         out.extend(self._unmade_pairs())
         return out
 
