@@ -713,6 +713,15 @@ class Pipeline:
             out.extend(self._open_stream(k, results))
             stream = self._streams.get(k)
             if stream is not None:
+                if k in self._stream_wait:
+                    out.issues.append(
+                        Issue(
+                            "ok",
+                            f"pair {stream.geometry.pair_id}",
+                            "navigation reached the scenes' start after their first strips: "
+                            "streaming decision held until then",
+                        )
+                    )
                 for sc in held.values():
                     self._waiting_nav.remove(sc)
                     out.extend(self._stream_close(stream, sc))
@@ -765,15 +774,6 @@ class Pipeline:
                 )
             )
             return None
-        if waited:
-            out.issues.append(
-                Issue(
-                    "ok",
-                    f"{name}/{sid}",
-                    "navigation reached the scene start after its first strips: streaming "
-                    "decision held until then",
-                )
-            )
         model = PushbroomModel(view.camera, fit.motion)
         try:
             nav = parameters_from_navigation(

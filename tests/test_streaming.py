@@ -206,7 +206,7 @@ def test_navigation_behind_the_strips_still_streams(delay_s: float) -> None:
         assert a.scene.scene_id == b.scene.scene_id
         assert np.array_equal(a.affine, b.affine) and a.psi == b.psi
     held = [i for i in late["issues"] if "decision held" in i.message]
-    assert [(i.level, i.where) for i in held] == [("ok", "right/right_scene_0001")]
+    assert [(i.level, i.where) for i in held] == [("ok", "pair left_scene_0000+right_scene_0001")]
     assert not [i for i in late["issues"] if i.level in ("warn", "error")], late["issues"]
 
 
