@@ -396,22 +396,64 @@ class Pipeline:
             )
             return out
         self._add_nav(sample)
+        out.extend(self._process_waiting())
         if self._stream_wait and self._can_stream:
-            # A streaming decision held for navigation may be taken now (before any scene it
-            # holds is processed whole below).
+            # A streaming decision held for navigation may be taken now; then the scenes it
+            # held, if it could not stream them.
             out.extend(self._stream_start())
             for view in self.assemblers:
                 out.extend(self._stream_advance(view))
+            out.extend(self._process_waiting())
+        self._prune_navigation()
+        return out
+
+    def _process_waiting(self) -> Outputs:
+        """Process the waiting scenes that navigation now covers, except held ones (_held)."""
+        out = Outputs()
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
-            if self.nav.covers(scene.first_line_ns, end):
-                out.extend(self._process_scene(scene))
-            else:
+            if self._held(scene) or not self.nav.covers(scene.first_line_ns, end):
                 still.append(scene)
+                continue
+            k = scene.index
+            if self._undecided(scene):
+                # Navigation has passed the whole scene and its pair could still not be
+                # decided (its other scene cannot be processed): give up streaming.
+                self._no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"{scene.view}/{scene.scene_id}",
+                        "not streamed: navigation lagged behind the strips and its pair could "
+                        "not be decided before navigation passed the scene: processed whole",
+                    )
+                )
+            out.extend(self._process_scene(scene))
         self._waiting_nav = still
-        self._prune_navigation()
         return out
+
+    def _undecided(self, scene: Scene) -> bool:
+        """Whether ``scene``'s pair waits for navigation to decide streaming (``_stream_wait``).
+
+        Only a scene still arriving at the decision time counts: one complete before it would
+        have been processed whole anyway.
+        """
+        t = self._stream_wait.get(scene.index)
+        return (
+            t is not None
+            and scene.index not in self._streams
+            and scene.index not in self._no_stream
+            and scene.last_line_ns >= t
+        )
+
+    def _held(self, scene: Scene) -> bool:
+        """Whether a complete scene is held for its pair's streaming decision.
+
+        Undecided (:meth:`_undecided`), and navigation has not passed the scene yet (the bound).
+        """
+        last = self.nav.last_ns
+        return self._undecided(scene) and (last is None or last <= scene.last_line_ns)
 
     def _add_nav(self, sample: NavSample) -> None:
         self.nav.add(sample)
@@ -616,9 +658,11 @@ class Pipeline:
         navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
         sees the same ground later) keeps its parameters and has all its blocks emitted at once.
         When navigation lags behind the strips (separate topics, no ordering between them), the
-        decision is held until navigation reaches the scenes' start; a scene completed in the
-        meantime is held too (it waits for navigation anyway) and is then streamed at once, so
-        the outputs do not depend on the order in which the topics were delivered.
+        decision is held (``_stream_wait``: pair -> the decision time, the first line of the
+        later scene) until navigation reaches that time; a scene still arriving then but
+        completed in the meantime is held too (it waits for navigation anyway) and streamed at
+        once, and a scene completed before it is processed whole first, as it would have been.
+        So the outputs do not depend on the order in which the topics were delivered.
         """
         out = Outputs()
         for k in list(self._stream_wait):
@@ -632,18 +676,31 @@ class Pipeline:
                 continue
             parts: list[tuple[str, tuple[str, int, int, int] | SceneResult]] = []
             held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
+            waiting = False  # a complete scene of the pair waits for navigation
             for n in names:
                 o = opened[n]
+                sc = next((w for w in self._waiting_nav if w.view == n and w.index == k), None)
                 if o is not None and o[1] == k:
                     parts.append((n, o))
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
-                elif k in self._stream_wait:
-                    sc = next((w for w in self._waiting_nav if w.view == n and w.index == k), None)
-                    if sc is not None:
-                        held[n] = sc
-                        parts.append((n, (sc.scene_id, k, sc.first_line_ns, sc.lines)))
+                elif sc is not None and self._held(sc):
+                    held[n] = sc
+                    parts.append((n, (sc.scene_id, k, sc.first_line_ns, sc.lines)))
+                elif sc is not None:
+                    waiting = True
             if len(parts) < 2:
+                opens = [p[2] for _, p in parts if not isinstance(p, SceneResult)]
+                last = self.nav.last_ns
+                if (
+                    waiting
+                    and opens
+                    and k not in self._stream_wait
+                    and (last is None or last < max(opens) - self.nav.max_gap_s * 1e9)
+                ):
+                    # The other scene, complete, waits for navigation, which lags far behind
+                    # this one's start: the decision waits for navigation (see above).
+                    self._stream_wait[k] = max(opens)
                 continue
             short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
             if short:
@@ -704,7 +761,13 @@ class Pipeline:
                     results.append(part)
                     continue
                 sc = held.get(name)
-                res = self._predict_scene(name, part, out, None if sc is None else sc.image.dtype)
+                res = self._predict_scene(
+                    name,
+                    part,
+                    out,
+                    max(p[2] for _, p in parts if not isinstance(p, SceneResult)),
+                    None if sc is None else sc.image.dtype,
+                )
                 if res is None:
                     return out
                 results.append(res)
@@ -739,14 +802,16 @@ class Pipeline:
         name: str,
         opened: tuple[str, int, int, int],
         out: Outputs,
+        decide_ns: int,
         dtype: np.dtype | None = None,
     ) -> SceneResult | None:
         """Parameters of a scene that has just started, from the latest navigation.
 
-        When navigation has not reached within ``max_gap_s`` of the scene start at its first
-        strip (it lags: separate topics), the pair waits (``_stream_wait``) until navigation
-        reaches the scene start, and the motion is then fitted on the navigation up to the
-        scene start only, as an on-time decision would have been. None: not (yet) possible.
+        ``decide_ns``: the decision time (the first line of the pair's later scene). When
+        navigation has not reached within ``max_gap_s`` of the scene start then (it lags:
+        separate topics), the pair waits (``_stream_wait``) until navigation reaches the
+        decision time, and the motion is then fitted on the navigation up to that time only,
+        as an on-time decision would have been. None: not (yet) possible.
         """
         sid, k, t0, _ = opened
         n_gcp = sum(1 for p in self.gcp.values() if sid in p.observations and not p.check)
@@ -755,15 +820,15 @@ class Pipeline:
             return None
         view = self.views[name]
         lines = self.config.scene_lines
-        waited = k in self._stream_wait
+        until = self._stream_wait.get(k)
         last = self.nav.last_ns
-        if waited and (last is None or last < t0):
-            return None  # navigation has not reached the scene start yet: keep waiting
+        if until is not None and (last is None or last < until):
+            return None  # navigation has not reached the decision time yet: keep waiting
         try:
-            fit = self.nav.fit_recent(t0, view.mounting, until_ns=t0 if waited else None)
+            fit = self.nav.fit_recent(t0, view.mounting, until_ns=until)
         except NavigationError as err:
-            if not waited:
-                self._stream_wait[k] = t0  # navigation lags: wait for it (see above)
+            if until is None:
+                self._stream_wait[k] = decide_ns  # navigation lags: wait for it (see above)
                 return None
             self._no_stream.add(k)
             out.issues.append(

@@ -219,3 +219,43 @@ def test_navigation_missing_at_the_scene_start_is_reported() -> None:
     warns = [i for i in got["issues"] if i.level == "warn" and "not streamed" in i.message]
     assert len(warns) == 1 and warns[0].where == "right/right_scene_0001", got["issues"]
     assert "navigation at the scene start" in warns[0].message
+
+
+@pytest.mark.parametrize("nav_delay_s", [2.0, 6.0])
+def test_two_open_scenes_wait_for_late_navigation(nav_delay_s: float) -> None:
+    """Fore/aft cameras on one line clock, both scenes of a pair arriving together, navigation
+    delivered 2 s (or 6 s: after whole scenes) late: both pairs still stream, each saying that
+    its decision was held, and nothing is processed whole."""
+    from parproj_ros import conversions as conv
+    from parproj_ros.pipeline import PipelineConfig
+    from parproj_ros.synthetic import StripMessages, acquisition, make_platform, nav_message
+
+    lines, strip_lines = 2048, 256
+    plat = make_platform(lines, 256)
+    events = acquisition(plat, 2, strip_lines, 50.0)
+    strips = StripMessages(plat, strip_lines)
+    order = sorted(
+        events, key=lambda e: (e.due_s + (nav_delay_s if e.kind == "nav" else 0.0), e.kind)
+    )
+    pipe = Pipeline(PipelineConfig(views=plat.views, scene_lines=lines))
+    streamed = whole = 0
+    issues = []
+    for e in [*order, None]:
+        if e is None:
+            out = pipe.flush()
+        elif e.kind == "nav":
+            out = pipe.add_navigation(conv.odometry_to_sample(nav_message(plat, e.t_s)))
+        else:
+            m = strips.get(e)
+            out = pipe.add_strip(
+                ("left", "right")[e.view],
+                stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        streamed += sum(p.left_image is None for p in out.pairs)
+        whole += sum(p.left_image is not None for p in out.pairs)
+        issues += out.issues
+    assert (streamed, whole) == (2, 0), issues
+    assert len([i for i in issues if "decision held" in i.message]) == 2, issues
+    assert not [i for i in issues if i.level == "error"], issues
