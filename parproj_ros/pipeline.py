@@ -86,6 +86,9 @@ class Pipeline:
         self._nav_pending: NavSample | None = None
         self._nav_first_ns: int | None = None  # earliest navigation stamp accepted
         self._no_stream: set[int] = set()
+        # Pairs whose streaming decision waits for navigation (it lagged behind their first
+        # strips): pair index -> the scene start it must reach (see _predict_scene).
+        self._stream_wait: dict[int, int] = {}
         # The latest scenes done with (processed or skipped): scene id -> (view, method), so
         # that GCP arriving after their scene are reported, not kept.
         self._done: dict[str, tuple[str, str]] = {}
@@ -138,16 +141,64 @@ class Pipeline:
             )
             return out
         self._add_nav(sample)
+        out.extend(self._process_waiting())
+        if self._stream_wait and self._can_stream:
+            # A streaming decision held for navigation may be taken now; then the scenes it
+            # held, if it could not stream them.
+            out.extend(self._stream_start())
+            for view in self.assemblers:
+                out.extend(self._stream_advance(view))
+            out.extend(self._process_waiting())
+        self._prune_navigation()
+        return out
+
+    def _process_waiting(self) -> Outputs:
+        """Process the waiting scenes that navigation now covers, except held ones (_held)."""
+        out = Outputs()
         still = []
         for scene in self._waiting_nav:
             end = scene.last_line_ns
-            if self.nav.covers(scene.first_line_ns, end):
-                out.extend(self._process_scene(scene))
-            else:
+            if self._held(scene) or not self.nav.covers(scene.first_line_ns, end):
                 still.append(scene)
+                continue
+            k = scene.index
+            if self._undecided(scene):
+                # Navigation has passed the whole scene and its pair could still not be
+                # decided (its other scene cannot be processed): give up streaming.
+                self._no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"{scene.view}/{scene.scene_id}",
+                        "not streamed: navigation lagged behind the strips and its pair could "
+                        "not be decided before navigation passed the scene: processed whole",
+                    )
+                )
+            out.extend(self._process_scene(scene))
         self._waiting_nav = still
-        self._prune_navigation()
         return out
+
+    def _undecided(self, scene: Scene) -> bool:
+        """Whether ``scene``'s pair waits for navigation to decide streaming (``_stream_wait``).
+
+        Only a scene still arriving at the decision time counts: one complete before it would
+        have been processed whole anyway.
+        """
+        t = self._stream_wait.get(scene.index)
+        return (
+            t is not None
+            and scene.index not in self._streams
+            and scene.index not in self._no_stream
+            and scene.last_line_ns >= t
+        )
+
+    def _held(self, scene: Scene) -> bool:
+        """Whether a complete scene is held for its pair's streaming decision.
+
+        Undecided (:meth:`_undecided`), and navigation has not passed the scene yet (the bound).
+        """
+        last = self.nav.last_ns
+        return self._undecided(scene) and (last is None or last <= scene.last_line_ns)
 
     def _add_nav(self, sample: NavSample) -> None:
         self.nav.add(sample)
@@ -351,21 +402,64 @@ class Pipeline:
         A side whose scene is still arriving gets parameters extrapolated from the latest
         navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
         sees the same ground later) keeps its parameters and has all its blocks emitted at once.
+        When navigation lags behind the strips (separate topics, no ordering between them), the
+        decision is held (``_stream_wait``: pair -> the decision time, the first line of the
+        later scene) until navigation reaches that time; a scene still arriving then but
+        completed in the meantime is held too (it waits for navigation anyway) and streamed at
+        once, and a scene completed before it is processed whole first, as it would have been.
+        So the outputs do not depend on the order in which the topics were delivered.
         """
         out = Outputs()
+        for k in list(self._stream_wait):
+            if k in self._streams or k in self._no_stream:
+                del self._stream_wait[k]
         names = [v.name for v in self.config.views]
         opened = {n: self.assemblers[n].open_scene() for n in names}
-        for k in sorted({o.index for o in opened.values() if o is not None}):
+        pending = {o.index for o in opened.values() if o is not None} | set(self._stream_wait)
+        for k in sorted(pending):
             if k in self._streams or k in self._no_stream:
                 continue
             parts: list[tuple[str, OpenScene | SceneResult]] = []
+            held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
+            waiting = False  # a complete scene of the pair waits for navigation
             for n in names:
                 o = opened[n]
+                sc = next((w for w in self._waiting_nav if w.view == n and w.index == k), None)
                 if o is not None and o.index == k:
                     parts.append((n, o))
                 elif k in self._ready[n]:
                     parts.append((n, self._ready[n][k]))
+                elif sc is not None and self._held(sc):
+                    held[n] = sc
+                    parts.append((n, OpenScene(sc.scene_id, k, sc.first_line_ns, sc.lines)))
+                elif sc is not None:
+                    waiting = True
             if len(parts) < 2:
+                opens = [p.first_line_ns for _, p in parts if not isinstance(p, SceneResult)]
+                last = self.nav.last_ns
+                if (
+                    waiting
+                    and opens
+                    and k not in self._stream_wait
+                    and (last is None or last < max(opens) - self.nav.max_gap_s * 1e9)
+                ):
+                    # The other scene, complete, waits for navigation, which lags far behind
+                    # this one's start: the decision waits for navigation (see above).
+                    self._stream_wait[k] = max(opens)
+                continue
+            short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
+            if short:
+                self._no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"pair {k}",
+                        "not streamed: navigation lagged behind the strips until "
+                        + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
+                        + f" ended short ({short[0].lines} of {self.config.scene_lines} "
+                        "lines): processed whole",
+                    )
+                )
                 continue
             if k == 0 and any(
                 not isinstance(part, SceneResult) and not self._start_seen(part.first_line_ns)
@@ -381,7 +475,7 @@ class Pipeline:
                 for o in opened.values()
                 if o is not None
             }
-            newest = max(ends.values())
+            newest = max(ends.values(), default=0)
             duration = self.config.scene_lines * max(
                 v.camera.line_period for v in self.config.views
             )
@@ -389,7 +483,9 @@ class Pipeline:
             overdue = [
                 part
                 for _, part in parts
-                if not isinstance(part, SceneResult) and newest - ends[part.scene_id] > stale_ns
+                if not isinstance(part, SceneResult)
+                and part.scene_id in ends
+                and newest - ends[part.scene_id] > stale_ns
             ]
             if overdue:
                 # Strips of a scene stopped coming while the other view went on (by more than
@@ -413,13 +509,34 @@ class Pipeline:
                 if isinstance(part, SceneResult):
                     results.append(part)
                     continue
-                res = self._predict_scene(name, part, out)
+                sc = held.get(name)
+                res = self._predict_scene(
+                    name,
+                    part,
+                    out,
+                    max(p[2] for _, p in parts if not isinstance(p, SceneResult)),
+                    None if sc is None else sc.image.dtype,
+                )
                 if res is None:
                     return out
                 results.append(res)
             if k in self._no_stream:
                 continue
             out.extend(self._open_stream(k, results))
+            stream = self._streams.get(k)
+            if stream is not None:
+                if k in self._stream_wait:
+                    out.issues.append(
+                        Issue(
+                            "ok",
+                            f"pair {stream.geometry.pair_id}",
+                            "navigation reached the scenes' start after their first strips: "
+                            "streaming decision held until then",
+                        )
+                    )
+                for sc in held.values():
+                    self._waiting_nav.remove(sc)
+                    out.extend(self._stream_close(stream, sc))
         return out
 
     def _period(self, opened: OpenScene) -> float:
@@ -429,8 +546,22 @@ class Pipeline:
                 return self.views[name].camera.line_period * 1e9
         return 0.0
 
-    def _predict_scene(self, name: str, opened: OpenScene, out: Outputs) -> SceneResult | None:
-        """Parameters of a scene that has just started, from the latest navigation."""
+    def _predict_scene(
+        self,
+        name: str,
+        opened: OpenScene,
+        out: Outputs,
+        decide_ns: int,
+        dtype: np.dtype | None = None,
+    ) -> SceneResult | None:
+        """Parameters of a scene that has just started, from the latest navigation.
+
+        ``decide_ns``: the decision time (the first line of the pair's later scene). When
+        navigation has not reached within ``max_gap_s`` of the scene start then (it lags:
+        separate topics), the pair waits (``_stream_wait``) until navigation reaches the
+        decision time, and the motion is then fitted on the navigation up to that time only,
+        as an on-time decision would have been. None: not (yet) possible.
+        """
         sid, k, t0, _ = opened
         n_gcp = sum(1 for p in self.gcp.values() if sid in p.observations and not p.check)
         if n_gcp >= self.config.min_gcp:
@@ -438,10 +569,25 @@ class Pipeline:
             return None
         view = self.views[name]
         lines = self.config.scene_lines
+        until = self._stream_wait.get(k)
+        last = self.nav.last_ns
+        if until is not None and (last is None or last < until):
+            return None  # navigation has not reached the decision time yet: keep waiting
         try:
-            fit = self.nav.fit_recent(t0, view.mounting)
-        except NavigationError:
-            return None  # not yet: try again with the next strip
+            fit = self.nav.fit_recent(t0, view.mounting, until_ns=until)
+        except NavigationError as err:
+            if until is None:
+                self._stream_wait[k] = decide_ns  # navigation lags: wait for it (see above)
+                return None
+            self._no_stream.add(k)
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{name}/{sid}",
+                    f"not streamed (navigation at the scene start: {err}): processed whole",
+                )
+            )
+            return None
         model = PushbroomModel(view.camera, fit.motion)
         try:
             nav = parameters_from_navigation(
@@ -458,7 +604,8 @@ class Pipeline:
                 Issue("warn", f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing")
             )
             return None
-        dtype = self.assemblers[name].retained()[1].dtype
+        if dtype is None:
+            dtype = self.assemblers[name].retained()[1].dtype
         placeholder = Scene(
             name,
             sid,
@@ -679,6 +826,7 @@ class Pipeline:
                 )
             )
         self._waiting_nav = []
+        self._stream_wait.clear()
         out.extend(self._unmade_pairs())
         return out
 

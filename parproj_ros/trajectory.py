@@ -157,18 +157,28 @@ class TrajectoryBuffer:
             and self._t[i1] - t1_ns <= gap
         )
 
-    def fit_recent(self, t0_ns: int, mounting: FloatArray, *, window_s: float = 2.0) -> MotionFit:
+    def fit_recent(
+        self,
+        t0_ns: int,
+        mounting: FloatArray,
+        *,
+        window_s: float = 2.0,
+        until_ns: int | None = None,
+    ) -> MotionFit:
         """Fit the motion on the latest ``window_s`` of navigation, with its origin at ``t0_ns``.
 
         For extrapolation over a scene that has just started at ``t0_ns`` (streaming).
+        ``until_ns``: only the samples up to that time count (a decision taken after more
+        navigation arrived, made as it would have been then).
 
         Raises:
             NavigationError: fewer than 2 samples in the window, or the newest sample is more
                 than ``max_gap_s`` before ``t0_ns``.
         """
-        if len(self._t) < 2:
+        n = len(self._t) if until_ns is None else bisect.bisect_right(self._t, until_ns)
+        if n < 2:
             raise NavigationError("fewer than 2 navigation samples received")
-        last = self._t[-1]
+        last = self._t[n - 1]
         if last < t0_ns - self.max_gap_s * 1e9:
             raise NavigationError(
                 f"newest navigation is {(t0_ns - last) / 1e9:.3f} s older than the scene start"

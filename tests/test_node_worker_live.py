@@ -53,6 +53,8 @@ from test_faults_live import (
     Listener,
     Msg,
     Source,
+    _clone,
+    _shift,
     about,
     by_scene,
     copy_of,
@@ -159,6 +161,31 @@ def navigation_gap(msgs: Sequence[Msg]) -> list[Msg]:
     ]
 
 
+def no_base(base: Sequence[Msg], case: str, k: int) -> list[Msg]:
+    """The first scene twice, as two scenes of one pass: ``copy_of`` (no GCP) its strips and
+    the navigation around them, then the same again, stamps shifted past them and scene id
+    ``<case>_again_<scene>``: one position and attitude for both, so the pair (2k, 2k+1) has
+    no stereo base."""
+    first = copy_of(base, case, k)
+    s0 = strips(first, SCENES[0])
+    lo = conv.stamp_to_ns(first[s0[0]][2].header.stamp) - round(NAV_MARGIN_S * 1e9)
+    hi = conv.stamp_to_ns(first[s0[-1]][2].header.stamp) + round((NAV_MARGIN_S + 0.5) * 1e9)
+    part = [
+        (t, topic, m)
+        for i, (t, topic, m) in enumerate(first)
+        if i in s0 or (topic == "navigation" and lo <= conv.stamp_to_ns(m.header.stamp) <= hi)
+    ]
+    shift = hi - lo
+    again: list[Msg] = []
+    for t, topic, m in part:
+        m = _clone(m)
+        _shift(m.header, shift)
+        if topic == "pan/image_strip":
+            m.header.frame_id = m.header.frame_id.replace(f"{case}_", f"{case}_again_", 1)
+        again.append((t + shift, topic, m))
+    return part + again
+
+
 def bad_strip(frame_id: str) -> Image:
     arr = np.zeros((64, 768), np.uint16)
     msg = conv.array_to_image(arr, Image(), frame_id=frame_id, stamp_ns=1_000_000_000)
@@ -232,14 +259,15 @@ def values(status: Any) -> dict[str, str]:
 # ---- 1. severity sequences ----------------------------------------------------------------------
 
 #: session -> (parameters, the steps in order). Steps: "bad_strip", "bad_nav", "raise" (an
-#: exception in the worker), "navgap" (a copy with the navigation gap), "clean" (a clean copy).
+#: exception in the worker), "navgap" (a copy with the navigation gap), "nobase" (a pair
+#: without stereo base: ``no_base``), "clean" (a clean copy).
 SESSIONS: dict[str, tuple[dict[str, Any], tuple[str, ...]]] = {
-    "warn_first": ({"error_hold_s": 2.0}, ("bad_strip", "navgap", "clean")),
+    "warn_first": ({"error_hold_s": 2.0}, ("bad_strip", "navgap", "nobase", "clean")),
     "error_first": (
         # refused at start (range 0..0.5): ERROR, default used; a misspelt parameter (ERROR,
         # ignored); and an unusable gcp_file
         {"segment_overlap": 0.9, "pan.principle_distance": 10.0},
-        ("bad_strip", "raise", "bad_nav", "navgap", "bad_strip", "clean"),
+        ("bad_strip", "raise", "bad_nav", "navgap", "bad_strip", "nobase", "clean"),
     ),
 }
 
@@ -257,8 +285,13 @@ def sequence(
         extra = {**extra, "gcp_file": str(gcp_file)}
     base = base_messages()
     gap_msgs = navigation_gap(copy_of(base, f"{session}gap", 1))
-    clean_msgs = copy_of(base, f"{session}clean", 2)
-    ref = {"gap": offline(gap_msgs, tmp / "ref_gap"), "clean": offline(clean_msgs, tmp / "ref")}
+    nobase_msgs = no_base(base, f"{session}nobase", 2)
+    clean_msgs = copy_of(base, f"{session}clean", 3)
+    ref = {
+        "gap": offline(gap_msgs, tmp / "ref_gap"),
+        "nobase": offline(nobase_msgs, tmp / "ref_nobase"),
+        "clean": offline(clean_msgs, tmp / "ref"),
+    }
     proc, t_start = start_node(tmp, "node", extra, launcher=session == "error_first")
     listener = Listener(tmp / "output")
     sources = {t: Source(f"test_worker_{session}_{t.replace('/', '_')}", [t]) for t in INPUTS}
@@ -280,6 +313,8 @@ def sequence(
                 publish(sources, [(0, "gcp", gcp_marker("inject_raise"))], sent)
             elif step == "navgap":
                 publish(sources, gap_msgs, sent)
+            elif step == "nobase":
+                publish(sources, nobase_msgs, sent)
             else:
                 publish(sources, clean_msgs, sent)
             for src in sources.values():
@@ -377,6 +412,32 @@ def test_navigation_gap_inside_a_scene(sequence: dict[str, Any]) -> None:
     ref = by_scene(r["ref"]["gap"]["messages"]["parallel_projection"], case)
     assert sorted(live) == sorted(ref) == [f"{case}_{SCENES[1]}"], (sorted(live), sorted(ref))
     same_scene(live[f"{case}_{SCENES[1]}"][0], ref[f"{case}_{SCENES[1]}"][0])
+
+
+def test_pair_without_stereo_base(sequence: dict[str, Any]) -> None:
+    """The same scene twice as a pair (one position and attitude): one ERROR naming the pair
+    and the reason, exactly the offline run's statuses; both scenes' parameters as offline; no
+    pair published; the node carries on (the clean pair after it: test_good_pair_after_...)."""
+    r = sequence
+    case = f"{r['session']}nobase"
+    first, again = f"{case}_{SCENES[0]}", f"{case}_again_{SCENES[0]}"
+    want = [
+        (f"parproj_node: {i.where}", {"warn": WARN, "error": ERROR}[i.level], i.message)
+        for i in r["ref"]["nobase"]["outputs"].issues
+        if i.level in ("warn", "error")
+    ]
+    got = [(s.name, level(s), s.message) for s in about(r["statuses"], case)]
+    assert got == want, show(about(r["statuses"], case))
+    ((name, lvl, message),) = got
+    assert (name, lvl) == (f"parproj_node: pair {first}+{again}", ERROR), got
+    assert "no usable stereo base" in message and "pair skipped" in message, message
+    assert pair_of(r["live"], case) is None
+    assert not [p for p in r["live"]["stereo_pair"] if p.pair_id.startswith(case)]
+    live = by_scene(r["live"]["parallel_projection"], case)
+    ref = by_scene(r["ref"]["nobase"]["messages"]["parallel_projection"], case)
+    assert sorted(live) == sorted(ref) == sorted([first, again]), (sorted(live), sorted(ref))
+    for sid in ref:
+        same_scene(live[sid][0], ref[sid][0])
 
 
 def test_every_issue_reached_diagnostics(sequence: dict[str, Any]) -> None:

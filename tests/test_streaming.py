@@ -151,3 +151,113 @@ def test_a_view_delivered_late_still_streams(delay_s: float) -> None:
         streamed += sum(p.left_image is None for p in out.pairs)
         whole += sum(p.left_image is not None for p in out.pairs)
     assert (streamed, whole) == (2, 0)
+
+
+def _feed(nav_delay_s: float, drop_nav: tuple[float, float] | None = None) -> dict:
+    """The fore/aft bag through the pipeline, navigation delivered ``nav_delay_s`` late (its
+    stamps unchanged: strips overtake it, as across DDS topics); ``drop_nav``: a span of
+    navigation (s from the bag start) never delivered."""
+    from parproj_ros import conversions as conv
+
+    reader = BagReader(BAG)
+    pipe = Pipeline(config_from_bag(reader, scene_lines=LINES, tie_points=False))
+    t_first = reader.start_ns
+    items = []
+    for i, it in enumerate(reader.messages()):
+        t = it.log_time_ns
+        if it.topic == "navigation":
+            if drop_nav and drop_nav[0] <= (t - t_first) / 1e9 < drop_nav[1]:
+                continue
+            t += round(nav_delay_s * 1e9)
+        items.append((t, i, it))
+    got: dict = {"blocks": [], "pairs": [], "scenes": [], "issues": []}
+    for _, _, item in sorted(items, key=lambda x: x[:2]):
+        if item.topic == "navigation":
+            out = pipe.add_navigation(conv.odometry_to_sample(item.msg))
+        elif item.topic in ("left/image_strip", "right/image_strip"):
+            m = item.msg
+            out = pipe.add_strip(
+                item.topic.split("/")[0],
+                stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        else:
+            continue
+        for key in got:
+            got[key] += getattr(out, key)
+    out = pipe.flush()
+    for key in got:
+        got[key] += getattr(out, key)
+    return got
+
+
+@pytest.mark.parametrize("delay_s", [2.0, 5.0])
+def test_navigation_behind_the_strips_still_streams(delay_s: float) -> None:
+    """Navigation on its own topic may arrive after the strips of a scene (more than the
+    1 s that streaming tolerates, here until after the whole right scene): the decision is held
+    until navigation reaches the scene start, and the outputs are those of on-time navigation,
+    bit for bit."""
+    ref, late = _feed(0.0), _feed(delay_s)
+    assert [p.left_image is None for p in late["pairs"]] == [True]
+    assert len(late["blocks"]) == len(ref["blocks"]) >= 4
+    for a, b in zip(ref["blocks"], late["blocks"], strict=True):
+        assert (a.side, a.index, a.col0, a.last) == (b.side, b.index, b.col0, b.last)
+        assert np.array_equal(a.image, b.image)
+    for a, b in zip(ref["scenes"], late["scenes"], strict=True):
+        assert a.scene.scene_id == b.scene.scene_id
+        assert np.array_equal(a.affine, b.affine) and a.psi == b.psi
+    held = [i for i in late["issues"] if "decision held" in i.message]
+    assert [(i.level, i.where) for i in held] == [("ok", "pair left_scene_0000+right_scene_0001")]
+    assert not [i for i in late["issues"] if i.level in ("warn", "error")], late["issues"]
+
+
+def test_navigation_missing_at_the_scene_start_is_reported() -> None:
+    """Navigation late and with a hole around the right scene's start (36.6 s): it cannot be
+    streamed; the fallback to whole-scene processing says why (WARN), never silently."""
+    got = _feed(2.0, drop_nav=(35.0, 36.7))
+    assert [p.left_image is None for p in got["pairs"]] in ([False], [])
+    assert not got["blocks"]
+    warns = [i for i in got["issues"] if i.level == "warn" and "not streamed" in i.message]
+    assert len(warns) == 1 and warns[0].where == "right/right_scene_0001", got["issues"]
+    assert "navigation at the scene start" in warns[0].message
+
+
+@pytest.mark.parametrize("nav_delay_s", [2.0, 6.0])
+def test_two_open_scenes_wait_for_late_navigation(nav_delay_s: float) -> None:
+    """Fore/aft cameras on one line clock, both scenes of a pair arriving together, navigation
+    delivered 2 s (or 6 s: after whole scenes) late: both pairs still stream, each saying that
+    its decision was held, and nothing is processed whole."""
+    from parproj_ros import conversions as conv
+    from parproj_ros.pipeline import PipelineConfig
+    from parproj_ros.synthetic import StripMessages, acquisition, make_platform, nav_message
+
+    lines, strip_lines = 2048, 256
+    plat = make_platform(lines, 256)
+    events = acquisition(plat, 2, strip_lines, 50.0)
+    strips = StripMessages(plat, strip_lines)
+    order = sorted(
+        events, key=lambda e: (e.due_s + (nav_delay_s if e.kind == "nav" else 0.0), e.kind)
+    )
+    pipe = Pipeline(PipelineConfig(views=plat.views, scene_lines=lines))
+    streamed = whole = 0
+    issues = []
+    for e in [*order, None]:
+        if e is None:
+            out = pipe.flush()
+        elif e.kind == "nav":
+            out = pipe.add_navigation(conv.odometry_to_sample(nav_message(plat, e.t_s)))
+        else:
+            m = strips.get(e)
+            out = pipe.add_strip(
+                ("left", "right")[e.view],
+                stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        streamed += sum(p.left_image is None for p in out.pairs)
+        whole += sum(p.left_image is not None for p in out.pairs)
+        issues += out.issues
+    assert (streamed, whole) == (2, 0), issues
+    assert len([i for i in issues if "decision held" in i.message]) == 2, issues
+    assert not [i for i in issues if i.level == "error"], issues
