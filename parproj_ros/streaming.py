@@ -17,6 +17,7 @@ navigation of the scene.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -123,7 +124,7 @@ def render_block(
         m[1, 2] -= first_line
         out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols] = (
             cv2.warpAffine(
-                data,
+                cast("NDArray[Any]", data),
                 m,
                 (t.cols, t.rows),
                 flags=flags,

@@ -236,7 +236,9 @@ class TrajectoryBuffer:
         )
         v_fit = coef[1]
         with np.errstate(all="ignore"):  # absurd (finite) velocities overflow the norm: NaN
-            mismatch = float(np.linalg.norm(v_fit - v_rep) / max(np.linalg.norm(v_fit), 1e-12))
+            mismatch = float(
+                np.linalg.norm(v_fit - v_rep) / max(float(np.linalg.norm(v_fit)), 1e-12)
+            )
         motion = ConstantMotion(coef[0], v_fit, r_mean @ mounting, t0=0.0)
         return MotionFit(
             motion, len(samples), float(np.sqrt(np.mean(resid**2))), spread, mismatch, t0_ns

@@ -33,7 +33,7 @@ class OpenScene(NamedTuple):
     """The scene a :class:`SceneAssembler` is assembling (:meth:`SceneAssembler.open_scene`)."""
 
     scene_id: str
-    index: int
+    index: int  # type: ignore[assignment]  # the scene's index in its view (shadows tuple.index)
     first_line_ns: int
     lines: int  # received so far
 

@@ -68,7 +68,7 @@ def to_uint8(
     a = np.asarray(img, dtype=np.float32)
     valid = np.isfinite(a) & (a != nodata)
     scaled = np.nan_to_num((a - lo) * (254.0 / max(hi - lo, 1e-12)) + 1.0)
-    out = np.clip(scaled, 1, 255).astype(np.uint8)
+    out: NDArray[np.uint8] = np.clip(scaled, 1, 255).astype(np.uint8)
     out[~valid] = 0
     return out
 
@@ -154,11 +154,12 @@ def match_normalized(
     """
     h, w = left.shape
     lim_l, lim_r = stretch_limits(left, nodata), stretch_limits(right, nodata)
+    feat: cv2.Feature2D
     if detector == "orb":
-        feat = cv2.ORB_create(nfeatures=4 * max_per_window, fastThreshold=5)
+        feat = cv2.ORB.create(nfeatures=4 * max_per_window, fastThreshold=5)
         matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
     else:
-        feat = cv2.SIFT_create(nfeatures=4 * max_per_window)
+        feat = cv2.SIFT.create(nfeatures=4 * max_per_window)
         matcher = cv2.BFMatcher(cv2.NORM_L2)
     ws = min(window, h, w)
     r0s = np.unique(np.linspace(0, h - ws, grid).round().astype(int)) if h > ws else [0]

@@ -8,6 +8,7 @@ perspective y -> (line, sample) of the original scene. ``cv2.remap`` then interp
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -242,7 +243,7 @@ def resample(
     for t in plan_tiles(geom, sub, tile=tile, tolerance_px=tolerance_px):
         m = t.affine.copy()
         out[t.row0 : t.row0 + t.rows, t.col0 : t.col0 + t.cols] = cv2.warpAffine(
-            image,
+            cast("NDArray[Any]", image),
             m,
             (t.cols, t.rows),
             flags=flags,
@@ -274,7 +275,7 @@ def resample_remap(
         cg, rg = np.meshgrid(cols, np.arange(r0, r1, dtype=float))
         sample, line = _exact_map(geom, grid, cg, rg)
         out[r0:r1] = cv2.remap(
-            image,
+            cast("NDArray[Any]", image),
             sample.astype(np.float32),
             line.astype(np.float32),
             interpolation,
