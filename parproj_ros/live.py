@@ -395,7 +395,10 @@ def run_through_node(
             bag,
             rate=rate,
             max_gap_s=max_gap_s,
-            wait_for=[f"{v.name}/image_strip" for v in views],
+            # every input stream the node subscribes to: navigation too, so that its first
+            # samples are not published before the node's subscription is matched
+            wait_for=[f"{v.name}/image_strip" for v in views]
+            + [t for t in ("navigation",) if t in BagReader(bag).topics()],
             progress=progress,
             log=log,
         )
