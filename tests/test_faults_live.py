@@ -91,8 +91,8 @@ def _shift(header: Any, shift_ns: int) -> None:
     conv.ns_to_stamp(conv.stamp_to_ns(header.stamp) + shift_ns, header.stamp)
 
 
-def base_messages() -> list[Msg]:
-    """GCP, strips, and the navigation from NAV_BEFORE_S before to NAV_AFTER_S after each
+def base_messages(before_s: float = NAV_BEFORE_S, after_s: float = NAV_AFTER_S) -> list[Msg]:
+    """GCP, strips, and the navigation from ``before_s`` before to ``after_s`` after each
     scene, in log-time order (as recorded)."""
     reader = BagReader(BAG)
     lp = views_from_bag(reader)[0].camera.line_period
@@ -102,7 +102,7 @@ def base_messages() -> list[Msg]:
         end = t + round(m.msg.height * lp * 1e9)
         span = spans.setdefault(m.msg.header.frame_id, [t, end])
         span[0], span[1] = min(span[0], t), max(span[1], end)
-    before, after = round(NAV_BEFORE_S * 1e9), round(NAV_AFTER_S * 1e9)
+    before, after = round(before_s * 1e9), round(after_s * 1e9)
     out: list[Msg] = []
     for m in reader.messages(topics=list(INPUTS)):
         if m.topic == "navigation":

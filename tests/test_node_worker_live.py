@@ -68,6 +68,7 @@ from test_faults_live import (
     wait,
     wait_matched,
 )
+from test_faults_live import base_messages as faults_base_messages
 
 from parproj_ros import conversions as conv
 from parproj_ros.bag import BagReader
@@ -129,22 +130,7 @@ sys.exit(node.main())
 
 def base_messages() -> list[Msg]:
     """GCP, strips, and the navigation from NAV_MARGIN_S before to after each scene."""
-    reader = BagReader(BAG)
-    lp = views_from_bag(reader)[0].camera.line_period
-    spans: dict[str, list[int]] = {}
-    for m in reader.messages(topics=["pan/image_strip"]):
-        t = conv.stamp_to_ns(m.msg.header.stamp)
-        span = spans.setdefault(m.msg.header.frame_id, [t, t])
-        span[1] = max(span[1], t + round(m.msg.height * lp * 1e9))
-    margin = round(NAV_MARGIN_S * 1e9)
-    out: list[Msg] = []
-    for m in reader.messages(topics=list(INPUTS)):
-        if m.topic == "navigation":
-            t = conv.stamp_to_ns(m.msg.header.stamp)
-            if not any(a - margin <= t <= b + margin for a, b in spans.values()):
-                continue
-        out.append((m.log_time_ns, m.topic, m.msg))
-    return out
+    return faults_base_messages(NAV_MARGIN_S, NAV_MARGIN_S)
 
 
 def navigation_gap(msgs: Sequence[Msg]) -> list[Msg]:
