@@ -21,7 +21,7 @@ from rosbags.rosbag2 import Reader as RosbagsReader
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from sensor_msgs.msg import Image
 
-from parproj_ros.bag import (
+from parproj_ros.ros.bag import (
     BagError,
     BagReader,
     BagWriter,

@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from parproj_ros.bag import BagReader
-from parproj_ros.conversions import image_to_array, stamp_to_ns
-from parproj_ros.imaging.simulate import render_scene
-from parproj_ros.imaging.terrain import procedural_terrain
-from parproj_ros.recording import truth_from_bag, views_from_bag
-from parproj_ros.scenarios import SCENARIOS
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.conversions import image_to_array, stamp_to_ns
+from parproj_ros.sim.recording import truth_from_bag, views_from_bag
+from parproj_ros.sim.scenarios import SCENARIOS
+from parproj_ros.sim.simulate import render_scene
+from parproj_ros.sim.terrain import procedural_terrain
 
 pytestmark = pytest.mark.ros  # reads the bags (rclpy deserializes)
 

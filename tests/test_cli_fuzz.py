@@ -34,10 +34,10 @@ from nav_msgs.msg import Odometry
 from parproj_msgs.msg import StereoPair
 from sensor_msgs.msg import Image
 
-from parproj_ros import cli
-from parproj_ros.bag import BagError, BagReader, BagWriter
-from parproj_ros.cli_io import MARKER
-from parproj_ros.gcp_file import GcpFileError, load_gcp_file
+from parproj_ros.apps import cli
+from parproj_ros.io.files import MARKER
+from parproj_ros.io.gcp_file import GcpFileError, load_gcp_file
+from parproj_ros.ros.bag import BagError, BagReader, BagWriter
 
 pytestmark = pytest.mark.ros  # message classes, bags written and read
 
@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parent.parent
 BAG = ROOT / "bags" / "ventoux"  # 19 messages, one pair: processed in about a second
 BIG_BAG = ROOT / "bags" / "ikonos_agile"  # several seconds to process
 DATA = Path(__file__).parent / "data" / "ventoux"
-PARPROJ = [sys.executable, "-m", "parproj_ros.cli"]
+PARPROJ = [sys.executable, "-m", "parproj_ros.apps.cli"]
 FAST = ["-q", "--no-tie-points"]
 
 
@@ -277,7 +277,7 @@ def test_internal_error_is_exit_3(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """A bug (here a TypeError inside the pipeline) is not reported as bad input."""
-    from parproj_ros.pipeline import Pipeline
+    from parproj_ros.core.pipeline import Pipeline
 
     def broken(self: Any, *a: Any, **k: Any) -> Any:
         raise TypeError("simulated bug")
@@ -411,9 +411,9 @@ def test_interrupted_process_leaves_no_output(
     how: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """An error or SIGINT after the output bag was begun: nothing at the output's name."""
-    from parproj_ros import offline
+    from parproj_ros.apps import process
 
-    real = offline.process_bag
+    real = process.process_bag
 
     def dies_half_way(src: Path, dst: Path, **kw: Any) -> Any:
         def on_outputs(out: Any) -> None:
@@ -423,7 +423,7 @@ def test_interrupted_process_leaves_no_output(
 
         return real(src, dst, on_outputs=on_outputs, **kw)
 
-    monkeypatch.setattr(offline, "process_bag", dies_half_way)
+    monkeypatch.setattr(process, "process_bag", dies_half_way)
     out = tmp_path / "out"
     code, _, err = run(["process", str(BAG), "-o", str(out), *FAST], capsys)
     assert code == (130 if how == "SIGINT" else 2), err
@@ -607,7 +607,7 @@ def test_gcp_file_errors_name_the_file(gcp_files: dict[str, Path]) -> None:
 
 
 def test_gcp_file_size_limit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from parproj_ros import gcp_file
+    from parproj_ros.io import gcp_file
 
     p = tmp_path / "big.csv"
     p.write_text("id,X,Y,Z,check,scene_id,line,sample\n" + "g1,1,2,3,0,s,1,2\n" * 100)

@@ -9,7 +9,7 @@ crop scales" convention (every pixel 35..56 scale units outside the declared dom
 TIFF with a ``.geom`` sidecar and ``--crop-origin``. Each is imported and processed (tie points
 on, the default) and must give the reference's normalized pair: rows and columns of a grid of
 crop pixels through the published transforms within 0.01 px, and mean |y-parallax| <= 0.2 px
-of ORB matches between the normalized images (parproj_ros/evaluate.py, not the tie points).
+of ORB matches between the normalized images (parproj_ros/eval/evaluate.py, not the tie points).
 """
 
 from __future__ import annotations
@@ -24,18 +24,20 @@ import rasterio
 import rasterio.shutil
 from testkit.rasters import DATA, NAMES, ORIGINS, crop_rpcs, pixels, write
 
-from parproj_ros import raster_io, rpc
-from parproj_ros.evaluate import evaluate_bag, normalized_px
-from parproj_ros.importer import import_pair
-from parproj_ros.offline import process_bag
+from parproj_ros import rpc
+from parproj_ros.apps.importer import import_pair
+from parproj_ros.apps.process import process_bag
+from parproj_ros.eval.evaluate import evaluate_bag, normalized_px
+from parproj_ros.eval.reference_grids import read_stereo_pair
+from parproj_ros.io import raster
+from parproj_ros.io.dem import grid_height
 from parproj_ros.rpc import RPCModel
-from parproj_ros.ventoux import read_stereo_pair
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # imports to bags and processes them
 
 
 def _dem() -> rpc.HeightFunction:
-    return rpc.grid_height(
+    return grid_height(
         np.loadtxt(DATA / "srtm_N44E005_crop.txt"),
         lat_max=45 - 927 / 1200,
         lon_min=5 + 206 / 1200,
@@ -113,8 +115,8 @@ def _make(kind: str, root: Path) -> tuple[list[Path], dict[str, Any]]:
             # NITF pair must be this twin's pair
             twin = root / "nitf_twin"
             twin.mkdir(exist_ok=True)
-            info = raster_io.raster_info(p)
-            write(twin / f"{name}.tif", img, raster_io.rpc_from_metadata(info.rpc_metadata, p))
+            info = raster.raster_info(p)
+            write(twin / f"{name}.tif", img, raster.rpc_from_metadata(info.rpc_metadata, p))
             kwargs.setdefault("twin", []).append(twin / f"{name}.tif")
         elif kind == "png":
             p = folder / f"{name}.png"

@@ -1,4 +1,4 @@
-"""Message <-> array conversions (parproj_ros.conversions); no ROS graph needed."""
+"""Message <-> array conversions (parproj_ros.ros.conversions); no ROS graph needed."""
 
 from __future__ import annotations
 
@@ -11,13 +11,13 @@ from nav_msgs.msg import Odometry
 from parproj_msgs.msg import GroundControlPoints, ParallelProjection
 from sensor_msgs.msg import Image
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.results import METHODS, GroundPoint, SceneResult
+from parproj_ros.core.trajectory import NavSample
 from parproj_ros.geometry import ParallelProjection as GeomParallelProjection
 from parproj_ros.geometry import nonlinear_to_affine, rotation_from_angles
-from parproj_ros.offline import process_bag
-from parproj_ros.results import METHODS, GroundPoint, SceneResult
-from parproj_ros.trajectory import NavSample
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
 
 pytestmark = pytest.mark.ros  # message classes and bags
 

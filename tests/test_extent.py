@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from testkit.scenes import feed, nav_events, render, strip_events
 
-from parproj_ros.bag import BagReader
-from parproj_ros.evaluate import normalized_px
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.pipeline import PairResult, Pipeline
+from parproj_ros.eval.evaluate import normalized_px
 from parproj_ros.geometry.navigation import virtual_points
-from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import PairResult, Pipeline
-from parproj_ros.recording import truth_from_bag
-from parproj_ros.scenarios import SCENARIOS
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.sim.recording import truth_from_bag
+from parproj_ros.sim.scenarios import SCENARIOS
 
 BAGS = Path(__file__).resolve().parent.parent / "bags"
 
@@ -109,7 +109,7 @@ def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
 
 @pytest.mark.ros
 def test_output_extent_parameter_is_declared() -> None:
-    from parproj_ros.node import PARAMS
+    from parproj_ros.ros.node import PARAMS
 
     (p,) = [p for p in PARAMS if p.name == "output_extent"]
     assert p.default == "overlap" and p.choices == ("overlap", "union")
@@ -118,7 +118,7 @@ def test_output_extent_parameter_is_declared() -> None:
 @pytest.mark.parametrize("extent", ["overlap", "union"])
 def test_streamed_pair_follows_the_extent(extent: str) -> None:
     """Column blocks tile the same grid as a whole-scene pair of that extent."""
-    from parproj_ros.streaming import plan_blocks
+    from parproj_ros.core.streaming import plan_blocks
 
     pair = _pair(extent, 20.0)
     geom = pair.left.geometry(pair.normalization.left)

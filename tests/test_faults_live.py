@@ -43,18 +43,18 @@ from testkit.diagnostics import level, show
 from testkit.live import GraphNode as Graph
 from testkit.live import wait
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader, BagWriter, get_message_class
-from parproj_ros.live import (
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.pipeline import Outputs, PairResult
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader, BagWriter, get_message_class
+from parproj_ros.ros.live import (
     NodeProcess,
     Recorder,
     _qos,
     node_params_yaml,
     ros_environment,
 )
-from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import Outputs, PairResult
-from parproj_ros.recording import node_parameters, views_from_bag
+from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

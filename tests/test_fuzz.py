@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Image
 
-from parproj_ros import conversions as conv
+from parproj_ros.core.pipeline import Outputs, Pipeline, PipelineConfig
+from parproj_ros.core.trajectory import NavSample
 from parproj_ros.geometry import (
     AffineModel,
     GeometryError,
@@ -32,9 +33,8 @@ from parproj_ros.geometry import (
     nonlinear_to_affine,
     normalize_pair,
 )
-from parproj_ros.pipeline import Outputs, Pipeline, PipelineConfig
-from parproj_ros.scenarios import SCENARIOS
-from parproj_ros.trajectory import NavSample
+from parproj_ros.ros import conversions as conv
+from parproj_ros.sim.scenarios import SCENARIOS
 
 # Values up to 1e300 overflow to Inf inside numpy (and are then rejected): expected, not noise
 # worth a warning per example.

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from parproj_ros.gcp_file import GcpFileError, load_gcp_file, save_gcp_csv
-from parproj_ros.pipeline import GroundPoint
+from parproj_ros.core.pipeline import GroundPoint
+from parproj_ros.io.gcp_file import GcpFileError, load_gcp_file, save_gcp_csv
 
 HEADER = "id,X,Y,Z,check,scene_id,line,sample\n"
 

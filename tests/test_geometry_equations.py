@@ -17,7 +17,7 @@ import math
 import numpy as np
 import pytest
 
-from parproj_ros import paper
+from parproj_ros.eval import paper
 from parproj_ros.geometry import (
     AffineModel,
     ConstantMotion,

@@ -16,13 +16,14 @@ from parproj_ros.geometry import (
     PushbroomModel,
     rotation_from_angles,
 )
-from parproj_ros.imaging.simulate import (
+from parproj_ros.io.dem import read_hgt
+from parproj_ros.sim.simulate import (
     intersect_terrain,
     locate_on_terrain,
     render_reflectance,
     render_scene,
 )
-from parproj_ros.imaging.terrain import Terrain, procedural_terrain, read_hgt, srtm_terrain
+from parproj_ros.sim.terrain import Terrain, procedural_terrain, srtm_terrain
 
 SIZE = 512  # lines and detectors of the test scenes
 

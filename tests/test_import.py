@@ -1,4 +1,4 @@
-"""``parproj import`` (parproj_ros/scene_import.py) and the Ventoux evaluation (ventoux.py).
+"""``parproj import`` (parproj_ros/io/scene_import.py) and the Ventoux evaluation (ventoux.py).
 
 Synthetic pairs: two views of a flat textured plane through nearly affine RPCs, written as
 GeoTIFFs with the RPC in tag 50844 (crop RPC, no offset) or with ``.geom`` sidecars of the full
@@ -21,12 +21,18 @@ from testkit.rasters import affine_rpc as _affine_rpc
 from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
-from parproj_ros.bag import BagReader
-from parproj_ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
-from parproj_ros.importer import import_pair
-from parproj_ros.offline import process_bag
-from parproj_ros.results import METHODS
-from parproj_ros.scene_import import (
+from parproj_ros.apps.importer import import_pair
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.results import METHODS
+from parproj_ros.eval.reference_grids import (
+    EpipolarGrid,
+    evaluate_against_grids,
+    format_table,
+    read_grid,
+    robust_cut,
+)
+from parproj_ros.io.dem import grid_height
+from parproj_ros.io.scene_import import (
     PRINCIPAL_DISTANCE,
     STRIP_LINES,
     SceneImportError,
@@ -35,13 +41,8 @@ from parproj_ros.scene_import import (
     frame_from_id,
     frame_id_of,
 )
-from parproj_ros.ventoux import (
-    EpipolarGrid,
-    evaluate_against_grids,
-    format_table,
-    read_grid,
-    robust_cut,
-)
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.conversions import gcp_from_msg, image_to_array, stamp_to_ns
 
 GRIDS = DATA / "reference_grids"
 #: Full-scene size and crop windows of the synthetic pair: (line0, sample0, lines, samples).
@@ -237,7 +238,7 @@ def ventoux(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     assert all(p.is_file() for p in [*VENTOUX, GRIDS / "otb_left_grid.tif"])
     root = tmp_path_factory.mktemp("ventoux")
     # SRTM crop of tests/data/ventoux, heights + ~50 m geoid undulation (EGM96 at Ventoux)
-    dem = rpc.grid_height(
+    dem = grid_height(
         np.loadtxt(DATA / "srtm_N44E005_crop.txt"),
         lat_max=45 - 927 / 1200,
         lon_min=5 + 206 / 1200,
@@ -314,7 +315,7 @@ def test_cli_import_and_ventoux_eval(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    from parproj_ros import cli
+    from parproj_ros.apps import cli
 
     tag_dir = synthetic["dirs"][0]
     args = ["import", str(tag_dir / "a.tif"), str(tag_dir / "b.tif"), "-o", str(tmp_path / "b")]

@@ -16,10 +16,11 @@ import tifffile
 from rasterio.transform import from_origin
 from testkit.rasters import DATA, crop_rpcs, pixels, to_rasterio, write
 
-from parproj_ros import cli, rpc
-from parproj_ros.importer import import_pair
+from parproj_ros import rpc
+from parproj_ros.apps import cli
+from parproj_ros.apps.importer import import_pair
+from parproj_ros.io.scene_import import SceneImportError
 from parproj_ros.rpc import RPCFormatError, RPCModel
-from parproj_ros.scene_import import SceneImportError
 
 QUIET: dict[str, Any] = {"log": lambda _: None}
 
@@ -218,7 +219,7 @@ def test_bands(pair: tuple[Path, Path], tmp_path: Path) -> None:
 
 def test_pixel_types_and_nodata(tmp_path: Path) -> None:
     """uint8, 12-bit uint16, float32 kept; int16 -> float32; GDAL nodata -> 0 (pipeline's)."""
-    from parproj_ros.raster_io import read_band
+    from parproj_ros.io.raster import read_band
 
     base = pixels("left")
     cases = {

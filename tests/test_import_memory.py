@@ -29,15 +29,15 @@ from parproj_ros import rpc
 
 SCRIPT = """
 import resource, sys
-from parproj_ros.importer import import_pair
+from parproj_ros.apps.importer import import_pair
 import_pair(sys.argv[1], sys.argv[2], sys.argv[3], heights=(500.0, 1500.0), log=lambda _: None)
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 """
 
 SCRIPT_3 = """
 import resource, sys
-from parproj_ros import raster_io
-from parproj_ros.importer import import_scenes
+from parproj_ros.io import raster as raster_io
+from parproj_ros.apps.importer import import_scenes
 raster_io.GDAL_CACHE_MB = 2
 import_scenes(sys.argv[1:4], sys.argv[4], pairs="all", heights=(500.0, 1500.0), log=lambda _: None)
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)

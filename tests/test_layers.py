@@ -7,9 +7,10 @@ modules still cannot be read, tested or layered apart. The implicit import of a 
 ``__init__`` when one of its submodules is imported is not counted (``geometry/__init__.py``
 re-exports its submodules, which import one another by their own names).
 
-Layers, bottom up: ``geometry/`` (numpy, scipy, the standard library), ``imaging/``, the ROS-free
-core, then the ROS adapters and the applications (:data:`LAYERS`). Only the modules in
-:data:`ROS_MODULES` (and ``tools/``, not checked here) import rclpy, rosidl or message packages.
+Layers, bottom up (:data:`LAYERS`): ``geometry/`` (numpy, scipy, the standard library),
+``imaging/``, ``rpc/``, ``core/`` (the ROS-free core), ``io/``, the message types, ``sim/``, the
+node (``ros/``), ``eval/`` and ``apps/``. Only ``ros/`` and ``apps/`` (and ``tools/``, not checked
+here) import rclpy; the simulator's recorders (:data:`MESSAGE_MODULES`) build messages too.
 """
 
 from __future__ import annotations
@@ -24,67 +25,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "parproj_ros"
 
-#: The modules that import ROS (rclpy, rosidl, *_msgs, rcl_interfaces): the adapters between
-#: the pipeline and ROS, the `parproj` command (replay), and the writers of input bags.
-ROS_MODULES = {
-    "parproj_ros.conversions",  # messages <-> arrays: the one place message fields are touched
-    "parproj_ros.node",  # the rclpy node
-    "parproj_ros.live",  # node process, replay, recorder
-    "parproj_ros.recording",  # simulated acquisitions recorded to bags
-    "parproj_ros.bag",  # MCAP bags: message classes and (de)serialization
-    "parproj_ros.cli",  # `parproj replay` spins an rclpy node
-    "parproj_ros.importer",  # `parproj import` writes an input bag
-    "parproj_ros.synthetic",  # the benchmark's acquisition as messages
+#: Where rclpy may be imported: the ROS 2 side and the applications (and ``tools/``, not checked
+#: here).
+RCLPY_PACKAGES = ("parproj_ros.ros", "parproj_ros.apps")
+#: Besides those, the modules that build ROS messages without rclpy: the simulator's recorders.
+MESSAGE_MODULES = {
+    "parproj_ros.sim.recording",  # simulated acquisitions recorded to bags
+    "parproj_ros.sim.synthetic",  # the benchmark's acquisition as messages
 }
 
 #: The layers, bottom up (README "Architecture"): a module imports only modules of its own layer
-#: or of lower ones. Packages count with every module in them. A new module goes in one.
+#: or of lower ones. Packages count with every module in them (the longest entry wins). A new
+#: module goes in one.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("geometry", ("parproj_ros.geometry",)),
-    ("imaging", ("parproj_ros.imaging",)),
-    (
-        "core",
-        (
-            "parproj_ros.config",
-            "parproj_ros.results",
-            "parproj_ros.trajectory",
-            "parproj_ros.streaming",
-            "parproj_ros.tiepoints",
-            "parproj_ros.pipeline",
-            "parproj_ros.rpc",
-            "parproj_ros.preview",
-            "parproj_ros.scenarios",
-        ),
-    ),
-    (
-        "ros",
-        (
-            "parproj_ros.conversions",
-            "parproj_ros.node",
-            "parproj_ros.live",
-            "parproj_ros.recording",
-            "parproj_ros.bag",
-            "parproj_ros.gcp_file",
-            "parproj_ros.cli_io",
-        ),
-    ),
-    (
-        "apps",
-        (
-            "parproj_ros",  # the package's __init__ (its version)
-            "parproj_ros.cli",
-            "parproj_ros.demo",
-            "parproj_ros.offline",
-            "parproj_ros.evaluate",
-            "parproj_ros.paper",
-            "parproj_ros.long_scene",
-            "parproj_ros.ventoux",
-            "parproj_ros.scene_import",
-            "parproj_ros.importer",
-            "parproj_ros.raster_io",
-            "parproj_ros.synthetic",
-        ),
-    ),
+    ("geometry", ("parproj_ros.geometry",)),  # the papers' equations: numpy, scipy
+    ("imaging", ("parproj_ros.imaging",)),  # scenes from strips, resampling, matching
+    ("rpc", ("parproj_ros.rpc",)),  # RPC sensor models and their files
+    ("core", ("parproj_ros.core",)),  # parameters, results, the pipeline
+    ("io", ("parproj_ros.io",)),  # GCP files, DEM, rasters, safe files (no ROS)
+    ("messages", ("parproj_ros.ros.conversions", "parproj_ros.ros.bag")),  # ROS types, MCAP
+    ("sim", ("parproj_ros.sim",)),  # the simulator and its recordings
+    ("ros", ("parproj_ros.ros",)),  # the node, the live graph
+    ("eval", ("parproj_ros.eval",)),  # evaluation, paper, reference grids
+    ("apps", ("parproj_ros.apps", "parproj_ros")),  # commands; the package (its version)
 )
 #: What the ROS-free core (geometry, imaging, core) may import besides itself.
 CORE_THIRD_PARTY = {"numpy", "scipy", "cv2", "tifffile"}
@@ -121,8 +84,8 @@ def layer_of(module: str) -> int | None:
     return None if best is None else best[0]
 
 
-CORE_LAYER = 2
-#: The ROS-free core: every module of the geometry, imaging and core layers.
+CORE_LAYER = 3
+#: The ROS-free core: every module of the geometry, imaging, rpc and core layers.
 CORE = tuple(m for m in MODULES if layer_of(m) is not None and layer_of(m) <= CORE_LAYER)
 
 
@@ -194,10 +157,10 @@ def _where(imp: Import) -> str:
 
 def test_the_parser_sees_every_kind_of_import() -> None:
     """A sanity check of :func:`imports_of` on modules known to hold each kind."""
-    node = {(i.target, i.how) for i in ALL_IMPORTS["parproj_ros.node"]}
+    node = {(i.target, i.how) for i in ALL_IMPORTS["parproj_ros.ros.node"]}
     assert ("rclpy", "module") in node
-    assert ("parproj_ros.conversions", "module") in node  # `from . import conversions as conv`
-    assert ("parproj_ros.pipeline", "module") in node
+    assert ("parproj_ros.ros.conversions", "module") in node  # `from . import conversions as conv`
+    assert ("parproj_ros.core.pipeline", "module") in node
     assert ("rclpy.duration", "function") in node
     geometry = {i.target for i in ALL_IMPORTS["parproj_ros.geometry"]}
     assert "parproj_ros.geometry.epipolar" in geometry
@@ -258,18 +221,27 @@ def test_no_import_cycles() -> None:
     assert not problems, "\n".join(problems)
 
 
-def test_ros_imports_only_in_ros_modules() -> None:
-    """ROS packages are imported only in :data:`ROS_MODULES`; each of those does import them."""
+def _may_import_rclpy(module: str) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in RCLPY_PACKAGES)
+
+
+def test_rclpy_only_in_ros_and_apps() -> None:
+    """rclpy only in ros/ and apps/; message packages there and in :data:`MESSAGE_MODULES`."""
     outside = [
         f"{i.target} in {_where(i)}"
         for name, imps in ALL_IMPORTS.items()
-        if name not in ROS_MODULES
+        if not _may_import_rclpy(name)
         for i in imps
-        if _is_ros(i.target)
+        if _is_ros(i.target) and (i.target.split(".")[0] == "rclpy" or name not in MESSAGE_MODULES)
     ]
-    assert not outside, "ROS imports outside ROS_MODULES:\n" + "\n".join(outside)
-    stale = sorted(m for m in ROS_MODULES if not any(_is_ros(i.target) for i in ALL_IMPORTS[m]))
-    assert not stale, f"in ROS_MODULES but importing no ROS package (remove them): {stale}"
+    assert not outside, "ROS imports outside ros/, apps/ and MESSAGE_MODULES:\n" + "\n".join(
+        outside
+    )
+    stale = sorted(
+        m for m in MESSAGE_MODULES if not any(_is_ros(i.target) for i in ALL_IMPORTS[m])
+    )
+    assert not stale, f"in MESSAGE_MODULES but importing no ROS package (remove them): {stale}"
+    assert any(_is_ros(i.target) for i in ALL_IMPORTS["parproj_ros.ros.node"])
 
 
 def test_geometry_imports_only_numpy_scipy_stdlib() -> None:
@@ -295,7 +267,7 @@ def _in_core(target: str) -> bool:
 def test_every_module_has_a_layer() -> None:
     missing = sorted(m for m in MODULES if layer_of(m) is None)
     assert not missing, f"modules in no layer (add them to LAYERS, and README): {missing}"
-    assert "parproj_ros.pipeline" in CORE and "parproj_ros.geometry.rotation" in CORE
+    assert "parproj_ros.core.pipeline" in CORE and "parproj_ros.geometry.rotation" in CORE
 
 
 def test_imports_go_down_the_layers() -> None:
@@ -357,10 +329,10 @@ WITHOUT_ROS = textwrap.dedent(
 
     import numpy as np
 
-    from parproj_ros.pipeline import Pipeline, PipelineConfig
-    from parproj_ros.results import Level, Method
-    from parproj_ros.synthetic import acquisition, make_platform, texture_blocks
-    from parproj_ros.trajectory import NavSample
+    from parproj_ros.core.pipeline import Pipeline, PipelineConfig
+    from parproj_ros.core.results import Level, Method
+    from parproj_ros.sim.synthetic import acquisition, make_platform, texture_blocks
+    from parproj_ros.core.trajectory import NavSample
 
     lines, dets, strip = 512, 256, 64
     plat = make_platform(lines, dets)

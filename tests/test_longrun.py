@@ -17,10 +17,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader
-from parproj_ros.pipeline import Outputs, Pipeline
-from parproj_ros.recording import config_from_bag, truth_from_bag
+from parproj_ros.core.pipeline import Outputs, Pipeline
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.sim.recording import config_from_bag, truth_from_bag
 from tools.longrun.checks import (
     PairChecker,
     compare_pairs,

@@ -19,7 +19,7 @@ was processed, the summary kept saying OK and SIGINT hung. Here:
 
 Faults that no input produces (an exception in the pipeline, a stall, the worker thread ending)
 are injected by a launcher script of the test (``LAUNCHER``) that wraps two methods and then runs
-``parproj_ros.node.main``: production code has no test hook. The inputs are copies of
+``parproj_ros.ros.node.main``: production code has no test hook. The inputs are copies of
 bags/ikonos_agile (``test_faults_live.copy_of``: own scene ids, GCP ids and stamps), with the
 navigation from ``NAV_MARGIN_S`` before to after each scene; reliable inputs; tie points off.
 """
@@ -70,12 +70,12 @@ from test_faults_live import (
 )
 from test_faults_live import base_messages as faults_base_messages
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader
-from parproj_ros.live import NodeProcess, node_params_yaml, ros_environment
-from parproj_ros.node import StartupError, check_mounting, check_views
-from parproj_ros.pipeline import GroundPoint
-from parproj_ros.recording import node_parameters, views_from_bag
+from parproj_ros.core.pipeline import GroundPoint
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
+from parproj_ros.ros.node import StartupError, check_mounting, check_views
+from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
@@ -625,7 +625,14 @@ def bad_start(tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[int, 
             path.write_text("# padding\n" * (17 * 1024 * 1024 // 10))
         elif text:
             path.write_text(text)
-        cmd = [sys.executable, "-m", "parproj_ros.node", "--ros-args", "--params-file", str(path)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "parproj_ros.ros.node",
+            "--ros-args",
+            "--params-file",
+            str(path),
+        ]
         procs[case] = (
             subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT),
             path,
@@ -680,7 +687,7 @@ def node_in_process(monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
     import rclpy
     from rclpy.context import Context
 
-    from parproj_ros.node import ParprojNode
+    from parproj_ros.ros.node import ParprojNode
 
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     ctx = Context()
@@ -697,7 +704,7 @@ def node_in_process(monkeypatch: pytest.MonkeyPatch) -> Iterator[Any]:
 def test_reporting_cannot_fail(node_in_process: Any, capsys: pytest.CaptureFixture[str]) -> None:
     """Every severity in turn on one node (the old _report raised at the second); then
     publishing /diagnostics raising: the issues go to stderr and nothing is raised."""
-    from parproj_ros.pipeline import Issue
+    from parproj_ros.core.pipeline import Issue
 
     node = node_in_process
     for lv in ("warn", "error", "warn", "ok", "error", "ok", "warn"):

@@ -18,8 +18,13 @@ from testkit.rasters import affine_rpc as _affine_rpc
 from testkit.rasters import render_crop as _render
 
 from parproj_ros import rpc
-from parproj_ros.bag import BagReader
-from parproj_ros.conversions import (
+from parproj_ros.apps.importer import import_scenes, parse_pairs, scene_ids_of
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.pipeline import Outputs, Pipeline
+from parproj_ros.eval.evaluate import evaluate_bag
+from parproj_ros.io.scene_import import SceneImportError
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.conversions import (
     ConversionError,
     gcp_from_msg,
     image_to_array,
@@ -27,13 +32,8 @@ from parproj_ros.conversions import (
     pairs_to_msg,
     stamp_to_ns,
 )
-from parproj_ros.evaluate import evaluate_bag
-from parproj_ros.importer import import_scenes, parse_pairs, scene_ids_of
-from parproj_ros.live import run_through_node
-from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import Outputs, Pipeline
-from parproj_ros.recording import config_from_bag, node_parameters, views_from_bag
-from parproj_ros.scene_import import SceneImportError
+from parproj_ros.ros.live import run_through_node
+from parproj_ros.sim.recording import config_from_bag, node_parameters, views_from_bag
 
 #: Along-track look of each view (line shift per unit normalized height) and its crop.
 LOOKS = {"a": 0.1, "b": 0.08, "c": -0.1}
@@ -230,7 +230,7 @@ def test_pair_without_base(tifs: dict[str, Path], tmp_path: Path) -> None:
 
 
 def test_two_view_mode_ignores_selection() -> None:
-    from parproj_ros.scenarios import SCENARIOS
+    from parproj_ros.sim.scenarios import SCENARIOS
 
     pipe = Pipeline(SCENARIOS["airborne_foreaft"]().pipeline_config())
     out = pipe.set_pairs([("x", "y")])
@@ -252,7 +252,7 @@ def _with_selection(src_bag: Path, dst: Path, left: list[str], right: list[str])
     """A copy of ``src_bag`` whose PairSelection lists are ``left`` and ``right``."""
     from parproj_msgs.msg import PairSelection
 
-    from parproj_ros.bag import BagWriter
+    from parproj_ros.ros.bag import BagWriter
 
     src = BagReader(src_bag)
     with BagWriter(dst, compression="zstd") as bw:
@@ -329,7 +329,7 @@ def test_cli_import_process_evaluate_three_images(
     tifs: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """The user's path: parproj import A B C -> process -> evaluate, every pair evaluated."""
-    from parproj_ros import cli
+    from parproj_ros.apps import cli
 
     imgs = [str(tifs[n]) for n in "abc"]
     bag, out = str(tmp_path / "bag"), str(tmp_path / "out")
@@ -361,7 +361,7 @@ def test_crop_origin_band_and_rpc_of_the_third_image(
     import rasterio
     from testkit.rasters import to_rasterio
 
-    from parproj_ros import cli
+    from parproj_ros.apps import cli
 
     views = {}
     for name, look in LOOKS.items():

@@ -7,8 +7,15 @@ import json
 import numpy as np
 import pytest
 
-from parproj_ros import cli
-from parproj_ros.paper import PAPER, SIDES, point_layout, printed_match, reproduce, run_experiment
+from parproj_ros.apps import cli
+from parproj_ros.eval.paper import (
+    PAPER,
+    SIDES,
+    point_layout,
+    printed_match,
+    reproduce,
+    run_experiment,
+)
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The one parameter table (parproj_ros/config.py) and what is generated from it or must agree.
+"""The one parameter table (parproj_ros/core/config.py), what is generated from it or must agree.
 
 The README's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
 has a field per row that fills one, with the table's default; ``parproj process`` has an option
@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 import yaml
 
-from parproj_ros import cli, config
-from parproj_ros.config import PARAMS, VIEW_PARAMS, PipelineConfig, config_from_values
+from parproj_ros.apps import cli
+from parproj_ros.core import config
+from parproj_ros.core.config import PARAMS, VIEW_PARAMS, PipelineConfig, config_from_values
 
 ROOT = Path(__file__).resolve().parent.parent
 BAG = ROOT / "bags" / "ikonos_agile"
@@ -38,15 +39,15 @@ def test_readme_table_is_the_rendered_one() -> None:
     begin = readme.index(config.README_BEGIN) + len(config.README_BEGIN) + 1
     end = readme.index(config.README_END)
     assert readme[begin:end] == config.parameters_markdown(), (
-        "README's Parameters table differs from parproj_ros/config.py: "
-        "run `python -m parproj_ros.config --write .`"
+        "README's Parameters table differs from parproj_ros/core/config.py: "
+        "run `python -m parproj_ros.core.config --write .`"
     )
 
 
 def test_params_file_is_the_rendered_one() -> None:
     assert (ROOT / config.PARAMS_FILE).read_text() == config.parameters_yaml(), (
-        "config/parproj_node.yaml differs from parproj_ros/config.py: "
-        "run `python -m parproj_ros.config --write .`"
+        "config/parproj_node.yaml differs from parproj_ros/core/config.py: "
+        "run `python -m parproj_ros.core.config --write .`"
     )
 
 
@@ -198,8 +199,8 @@ def test_view_values_is_the_inverse_of_view_config() -> None:
 
 @pytest.mark.ros
 def test_node_parameters_of_a_bag_are_table_names() -> None:
-    from parproj_ros.bag import BagReader
-    from parproj_ros.recording import node_parameters, views_from_bag
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.sim.recording import node_parameters, views_from_bag
 
     params = node_parameters(views_from_bag(BagReader(BAG)))
     assert set(params) == {"views"} | {f"pan.{p.name}" for p in VIEW_PARAMS}
@@ -214,7 +215,7 @@ def test_pipeline_config_docstring_lists_the_table() -> None:
 
 @pytest.mark.ros
 def test_node_declares_the_table() -> None:
-    from parproj_ros import node
+    from parproj_ros.ros import node
 
     assert node.PARAMS is config.PARAMS and node.VIEW_PARAMS is config.VIEW_PARAMS
     d = node._descriptor(next(p for p in PARAMS if p.name == "z_avg"))
@@ -303,16 +304,16 @@ def test_process_keeps_the_old_option_names() -> None:
 def test_process_passes_every_option_to_the_pipeline(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from parproj_ros import offline
+    from parproj_ros.apps import process
 
     seen: dict[str, Any] = {}
 
     def fake(src: Path, dst: Path, *, overrides: dict[str, Any], **kw: Any) -> Any:
         seen.update(overrides)
         dst.mkdir(parents=True, exist_ok=True)
-        return offline.ProcessSummary()
+        return process.ProcessSummary()
 
-    monkeypatch.setattr(offline, "process_bag", fake)
+    monkeypatch.setattr(process, "process_bag", fake)
     rows = [p for p in PARAMS if p.offline]
     argv = ["process", str(BAG), "-o", str(tmp_path / "o"), "-q"]
     for p in rows:
@@ -426,7 +427,7 @@ def test_numbers_in_the_table_are_finite() -> None:
 
 def test_encoding_choices_are_the_supported_pixel_types() -> None:
     """``<view>.encoding`` offers exactly the encodings the pipeline writes (and "")."""
-    from parproj_ros.config import VIEW_PARAMS
+    from parproj_ros.core.config import VIEW_PARAMS
     from parproj_ros.imaging.encodings import DTYPE_ENCODINGS
 
     choices = next(p.choices for p in VIEW_PARAMS if p.name == "encoding")

@@ -2,7 +2,7 @@
 localhost), started with ``--params-file config/parproj_node.yaml``.
 
 It must start with no parameter ERROR (its 1 Hz summary OK), declare exactly the table's
-parameters (parproj_ros/config.py), with the table's defaults, descriptions (with units) and
+parameters (parproj_ros/core/config.py), with the table's defaults, descriptions (with units) and
 ranges, as its own parameter services report them, and stop cleanly.
 """
 
@@ -24,8 +24,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from parproj_ros import config
-from parproj_ros.live import NodeProcess, ros_environment, wait_until
+from parproj_ros.core import config
+from parproj_ros.ros.live import NodeProcess, ros_environment, wait_until
 
 pytestmark = pytest.mark.ros
 

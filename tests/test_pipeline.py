@@ -1,8 +1,8 @@
 """The Pipeline without DDS, on scenario geometry with cheap images made here.
 
-Strips and navigation are fed in time order as parproj_ros/recording.py records them; the images
-are random textures (or a smooth pattern for the resampling test): the geometry only needs strips
-of the right shape at the right times.
+Strips and navigation are fed in time order as parproj_ros/sim/recording.py records them; the
+images are random textures (or a smooth pattern for the resampling test): the geometry only needs
+strips of the right shape at the right times.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from testkit.scenes import feed, nav_events, render, strip_events
 
+from parproj_ros.core.pipeline import Outputs, PairResult, Pipeline, SceneResult
 from parproj_ros.geometry import ptp_inverse
-from parproj_ros.pipeline import Outputs, PairResult, Pipeline, SceneResult
-from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
+from parproj_ros.sim.scenarios import SCENARIOS, Scenario, ground_points
 
 # These tests are about whole-scene processing: keep the streaming mode (scene_lines > 0 with two
 # views, when the pipeline has it) out of the way.

@@ -35,18 +35,18 @@ from testkit import live
 from testkit.diagnostics import level, show
 from testkit.live import wait
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader
-from parproj_ros.live import (
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.pipeline import PipelineConfig
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.live import (
     NodeProcess,
     Recorder,
     node_params_yaml,
     replay,
     ros_environment,
 )
-from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import PipelineConfig
-from parproj_ros.recording import node_parameters, views_from_bag
+from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

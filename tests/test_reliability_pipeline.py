@@ -11,10 +11,10 @@ one kind of bad input into an acquisition of two stereo pairs and asserts
     message-level cases run ``offline.process_bag`` and read ``/diagnostics`` from its output),
 (c) the other pair (and whatever the bad input did not touch) exactly as in a clean run.
 
-Scenarios: the airborne fore/aft pair and the IKONOS-like agile pair of parproj_ros/scenarios.py,
-each flown twice (a second pair 100 s / 200 s later), with random textures (the geometry only
-needs strips of the right shape at the right times). Tie-point refinement (image matching on
-finished pairs, about 1-3 s a pair) is switched off for speed when the pipeline has it.
+Scenarios: the airborne fore/aft pair and the IKONOS-like agile pair of sim/scenarios.py, each
+flown twice (a second pair 100 s / 200 s later), with random textures (the geometry only needs
+strips of the right shape at the right times). Tie-point refinement (image matching on finished
+pairs, about 1-3 s a pair) is switched off for speed when the pipeline has it.
 """
 
 from __future__ import annotations
@@ -34,10 +34,8 @@ from testkit.diagnostics import level, show
 from testkit.scenes import Event, feed, nav_events, nav_samples
 from testkit.scenes import render as render_as
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader, BagWriter
-from parproj_ros.offline import ProcessSummary, process_bag
-from parproj_ros.pipeline import (
+from parproj_ros.apps.process import ProcessSummary, process_bag
+from parproj_ros.core.pipeline import (
     GroundPoint,
     Outputs,
     PairResult,
@@ -45,7 +43,9 @@ from parproj_ros.pipeline import (
     PipelineConfig,
     SceneResult,
 )
-from parproj_ros.scenarios import SCENARIOS, Scenario, ground_points
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader, BagWriter
+from parproj_ros.sim.scenarios import SCENARIOS, Scenario, ground_points
 
 pytestmark = pytest.mark.ros  # message classes, diagnostics, bags
 

@@ -16,6 +16,8 @@ from hypothesis import strategies as st
 from testkit.rasters import to_rasterio as _gdal_rpc
 
 from parproj_ros import rpc
+from parproj_ros.geometry.geodesy import WGS84_A, WGS84_F
+from parproj_ros.io.dem import grid_height, srtm_height
 from parproj_ros.rpc import RPCModel
 
 DATA = Path(__file__).parent / "data" / "ventoux"
@@ -48,7 +50,7 @@ def right() -> RPCModel:
 @pytest.fixture(scope="module")
 def dem() -> rpc.HeightFunction:
     """The SRTM crop (geoid heights used as they are: sigma0 does not depend on a 50 m shift)."""
-    return rpc.grid_height(
+    return grid_height(
         np.loadtxt(DEM_CROP), lat_max=45 - 927 / 1200, lon_min=5 + 206 / 1200, step_deg=1 / 1200
     )
 
@@ -335,10 +337,10 @@ HEIGHT = st.floats(-1.0e4, 1.0e6, allow_nan=False)
 
 def test_ecef_known_values() -> None:
     x, y, z = rpc.ecef_from_geodetic(0.0, 0.0, 0.0)
-    assert (x, y, z) == (rpc.WGS84_A, 0.0, 0.0)
+    assert (x, y, z) == (WGS84_A, 0.0, 0.0)
     x, y, z = rpc.ecef_from_geodetic(90.0, 90.0, 100.0)
     assert abs(x) < 1e-9 and abs(y) < 1e-9
-    assert z == pytest.approx(rpc.WGS84_A * (1 - rpc.WGS84_F) + 100.0, abs=1e-9)
+    assert z == pytest.approx(WGS84_A * (1 - WGS84_F) + 100.0, abs=1e-9)
 
 
 @settings(max_examples=300, deadline=None)
@@ -398,7 +400,7 @@ def test_srtm_height_reader(tmp_path: Path) -> None:
     tile = (500 + 0.5 * cols - 0.25 * rows).astype(np.int16)
     tile[0, 0] = -32768  # a void: filled from its neighbour
     tile.astype(">i2").tofile(tmp_path / "N44E005.hgt")
-    height = rpc.srtm_height(tmp_path / "N44E005.hgt")
+    height = srtm_height(tmp_path / "N44E005.hgt")
     lon = np.array([5.3, 5.5, 5.99, 6.5])
     lat = np.array([44.2, 44.5, 44.01, 44.5])
     h = height(lon, lat)
@@ -407,7 +409,7 @@ def test_srtm_height_reader(tmp_path: Path) -> None:
     assert np.all(np.abs(h[:3] - (500 + 0.5 * col - 0.25 * row)) <= 1.0)
     assert np.all(np.abs(h[:3] - expected) <= 1.0)
     assert np.isnan(h[3])  # outside the tile
-    shifted = rpc.srtm_height(tmp_path / "N44E005.hgt", geoid_undulation=49.5)
+    shifted = srtm_height(tmp_path / "N44E005.hgt", geoid_undulation=49.5)
     assert np.allclose(shifted(lon[:3], lat[:3]), h[:3] + 49.5)
     assert height(np.array(5.0), np.array(45.0)) in (499.0, 500.0)  # void: from a neighbour
 

@@ -22,6 +22,8 @@ import numpy as np
 import pytest
 
 from parproj_ros import rpc
+from parproj_ros.core.pipeline import GroundPoint, Pipeline, PipelineConfig, ViewConfig
+from parproj_ros.eval.long_scene import check_errors, rpc_strip, segment_strip
 from parproj_ros.geometry import GeometryError, LineCamera
 from parproj_ros.geometry.segmentation import (
     PairSegmentation,
@@ -29,8 +31,6 @@ from parproj_ros.geometry.segmentation import (
     fit_segment,
     segment_pair,
 )
-from parproj_ros.long_scene import check_errors, rpc_strip, segment_strip
-from parproj_ros.pipeline import GroundPoint, Pipeline, PipelineConfig, ViewConfig
 
 DATA = Path(__file__).resolve().parent / "data" / "ventoux"
 C, PIX = 12.905, 13e-6  # Pleiades principal distance and detector pitch, m
@@ -199,7 +199,7 @@ def test_segment_parameters_message(piped: dict) -> None:
     """ParallelProjection of a segment: where it was cut from, its first line, the bound."""
     from parproj_msgs.msg import ParallelProjection
 
-    from parproj_ros.conversions import scene_to_msg
+    from parproj_ros.ros.conversions import scene_to_msg
 
     (seg,) = [s for s in piped["scenes"] if s.scene.scene_id == "L.seg1"]
     msg = scene_to_msg(seg, ParallelProjection(), frame_id="ltp")
@@ -213,7 +213,7 @@ def test_segments_command(capsys: pytest.CaptureFixture[str]) -> None:
     """``parproj segments`` on the Ventoux RPCs: the table the README quotes."""
     import json
 
-    from parproj_ros.cli import main
+    from parproj_ros.apps.cli import main
 
     code = main(
         ["segments", str(DATA / "left_image.geom"), str(DATA / "right_image.geom"), "--json"]
@@ -229,7 +229,7 @@ def test_evaluate_maps_truth_points_into_segments() -> None:
     """`parproj evaluate` finds a truth point of the whole scene in the segment that holds it."""
     from types import SimpleNamespace
 
-    from parproj_ros.evaluate import _observation
+    from parproj_ros.eval.evaluate import _observation
 
     p = GroundPoint("t", np.zeros(3), True, {"L": (5100.0, 12.0)})
     whole = SimpleNamespace(scene_id="L", segment_of="", segment_first_line=0, lines=9000)
@@ -249,9 +249,9 @@ def test_long_geotiff_pair_import_process_evaluate(ventoux: dict, tmp_path: Path
     from `parproj import` (grid rows grow with the image length), segments cut by `process`
     under 0.5 px, truth points (random, in no fit) through the published transforms.
     """
-    from parproj_ros.evaluate import evaluate_bag
-    from parproj_ros.importer import import_pair
-    from parproj_ros.offline import process_bag
+    from parproj_ros.apps.importer import import_pair
+    from parproj_ros.apps.process import process_bag
+    from parproj_ros.eval.evaluate import evaluate_bag
 
     strip = ventoux["strip"]
     for name, model, n in (("L", strip.left, strip.lines[0]), ("R", strip.right, strip.lines[1])):

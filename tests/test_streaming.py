@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from parproj_ros.bag import BagReader
-from parproj_ros.conversions import assemble_blocks, image_to_array, stamp_to_ns
-from parproj_ros.offline import process_bag
-from parproj_ros.pipeline import Pipeline
-from parproj_ros.recording import config_from_bag
+from parproj_ros.apps.process import process_bag
+from parproj_ros.core.pipeline import Pipeline
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.conversions import assemble_blocks, image_to_array, stamp_to_ns
+from parproj_ros.sim.recording import config_from_bag
 
 pytestmark = pytest.mark.ros  # reads and processes bags
 
@@ -79,7 +79,7 @@ def test_memory_released_while_streaming() -> None:
     reader = BagReader(BAG)
     pipe = Pipeline(config_from_bag(reader, scene_lines=LINES))
     strips = {"left/image_strip": "left", "right/image_strip": "right"}
-    from parproj_ros import conversions as conv
+    from parproj_ros.ros import conversions as conv
 
     held = []
     blocks = 0
@@ -120,9 +120,9 @@ def _feed_synthetic(delay_s: Callable[[Any], float], *, flush: bool) -> tuple[in
     256 detectors) through the pipeline, each event delivered ``delay_s(event)`` s after it is
     due (navigation first among events due together); with ``flush``, the pipeline is flushed
     at the end. Returns pairs streamed, pairs processed whole, and the issues."""
-    from parproj_ros import conversions as conv
-    from parproj_ros.pipeline import PipelineConfig
-    from parproj_ros.synthetic import StripMessages, acquisition, make_platform, nav_message
+    from parproj_ros.core.pipeline import PipelineConfig
+    from parproj_ros.ros import conversions as conv
+    from parproj_ros.sim.synthetic import StripMessages, acquisition, make_platform, nav_message
 
     # 2048 lines: the platform's fore/aft angle follows the scene length (base/height 0.0025);
     # 256 detectors keep the test fast.
@@ -168,7 +168,7 @@ def _feed(nav_delay_s: float, drop_nav: tuple[float, float] | None = None) -> di
     """The fore/aft bag through the pipeline, navigation delivered ``nav_delay_s`` late (its
     stamps unchanged: strips overtake it, as across DDS topics); ``drop_nav``: a span of
     navigation (s from the bag start) never delivered."""
-    from parproj_ros import conversions as conv
+    from parproj_ros.ros import conversions as conv
 
     reader = BagReader(BAG)
     pipe = Pipeline(config_from_bag(reader, scene_lines=LINES, tie_points=False))

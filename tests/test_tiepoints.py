@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader
-from parproj_ros.evaluate import normalized_px
-from parproj_ros.pipeline import GroundPoint, Outputs, Pipeline
-from parproj_ros.recording import config_from_bag, truth_from_bag
+from parproj_ros.core.pipeline import GroundPoint, Outputs, Pipeline
+from parproj_ros.eval.evaluate import normalized_px
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.sim.recording import config_from_bag, truth_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # reads bags/ikonos_agile
 

@@ -7,9 +7,9 @@ import re
 import numpy as np
 import pytest
 
+from parproj_ros.core.trajectory import NavigationError, NavSample, TrajectoryBuffer, make_sample
 from parproj_ros.geometry import quaternion_to_rotation, rotation_from_angles
 from parproj_ros.geometry.rotation import rotation_to_quaternion
-from parproj_ros.trajectory import NavigationError, NavSample, TrajectoryBuffer, make_sample
 
 T0 = 1_700_000_000 * 1_000_000_000
 P0 = np.array([-12_345.6, 2_500.25, 680_000.0])

@@ -1,6 +1,6 @@
 """What the benchmark and the long run share: the ROS domain, memory and CPU of processes, JSON.
 
-The node process, the recorder and the waits are :mod:`parproj_ros.live` (the demo and the live
+The node process, the recorder and the waits are :mod:`parproj_ros.ros.live` (the demo and the live
 tests use them too); this module holds what only the tools need.
 """
 
@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from parproj_ros.live import ros_environment
+from parproj_ros.ros.live import ros_environment
 
 #: The repository (tools/ sits at its top).
 ROOT = Path(__file__).resolve().parent.parent
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent
 def join_ros_domain(
     domain_id: int | None = None, log_dir: Path | None = None, *, check_fields: bool = True
 ) -> dict[str, str]:
-    """The node's environment (:func:`parproj_ros.live.ros_environment`); this process joins it.
+    """The node's environment (:func:`parproj_ros.ros.live.ros_environment`); we join it.
 
     ``check_fields`` sets the node's ROS_PYTHON_CHECK_FIELDS (the tests' 1, or 0 as deployed).
     The discovery range, domain and log folder are also set in ``os.environ``, so that the rclpy

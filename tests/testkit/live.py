@@ -10,7 +10,7 @@ import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 
-from parproj_ros.live import wait_until
+from parproj_ros.ros.live import wait_until
 
 
 def wait(cond: Callable[[], bool], timeout: float, alive: Callable[[], bool] = lambda: True):

@@ -7,9 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from parproj_ros.pipeline import Outputs, Pipeline
-from parproj_ros.scenarios import Scenario
-from parproj_ros.trajectory import NavSample
+from parproj_ros.core.pipeline import Outputs, Pipeline
+from parproj_ros.core.trajectory import NavSample
+from parproj_ros.sim.scenarios import Scenario
 
 #: (time ns, kind, item): kind 0 is a NavSample, kind 1 the arguments of Pipeline.add_strip.
 Event = tuple[int, int, Any]

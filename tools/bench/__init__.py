@@ -32,5 +32,5 @@ at this size.
 runs the quick and the full benchmark and rewrites ``bench/BENCHMARKS.md``. Modules: ``config``
 (sizes), ``micro`` (parts 1 and 4), ``dds`` (part 2), ``offline`` (part 3), ``report`` (summary,
 targets, tables), ``run`` (the whole run and its command line). The synthetic platform and
-acquisition are :mod:`parproj_ros.synthetic` (the streaming tests use them too).
+acquisition are :mod:`parproj_ros.sim.synthetic` (the streaming tests use them too).
 """

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from parproj_ros.synthetic import (
+from parproj_ros.sim.synthetic import (
     LINE_RATE_HZ,
     VIEWS,
     StripMessages,
@@ -89,7 +89,7 @@ def _slope(y: list[float]) -> float | None:
 def latency_stats(v: list[float]) -> dict[str, Any]:
     """Median, max, min and the values (rounded) of latencies, seconds.
 
-    Not :func:`parproj_ros.evaluate.error_stats`: that one describes signed errors (mean |e|,
+    Not :func:`parproj_ros.eval.evaluate.error_stats`: that one describes signed errors (mean |e|,
     RMS, percentiles); latencies are positive and few, and the report lists each pair's.
     """
     if not v:
@@ -127,8 +127,8 @@ def bench_live(
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
-    from parproj_ros.live import NodeProcess, node_params_yaml
-    from parproj_ros.recording import node_parameters
+    from parproj_ros.ros.live import NodeProcess, node_params_yaml
+    from parproj_ros.sim.recording import node_parameters
 
     workdir.mkdir(parents=True, exist_ok=True)
     plat = make_platform(cfg.lines, cfg.detectors)
@@ -443,7 +443,7 @@ def sink_main() -> None:
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
 
-    from parproj_ros.conversions import image_to_array
+    from parproj_ros.ros.conversions import image_to_array
 
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("parproj_bench_sink")

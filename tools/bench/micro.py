@@ -23,7 +23,7 @@ from parproj_ros.imaging.resample import (
     native_pixel,
     resample,
 )
-from parproj_ros.synthetic import (
+from parproj_ros.sim.synthetic import (
     PRINCIPAL_DISTANCE_M,
     make_platform,
     texture_blocks,

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from parproj_ros.synthetic import (
+from parproj_ros.sim.synthetic import (
     T0_NS,
     VIEWS,
     Platform,
@@ -29,8 +29,8 @@ def write_input_bag(
     """The acquisition of ``pairs`` pairs as a bag (what ``parproj process`` reads); messages."""
     from rclpy.serialization import serialize_message
 
-    from parproj_ros import conversions as conv
-    from parproj_ros.bag import BagWriter
+    from parproj_ros.ros import conversions as conv
+    from parproj_ros.ros.bag import BagWriter
 
     events = acquisition(plat, pairs, strip_lines, nav_hz)
     strips = StripMessages(plat, strip_lines)
@@ -118,9 +118,9 @@ def bench_offline(
     Returns the real-time factor (sensor time / wall time of ``process_bag``), per-pair latency
     from reading a pair's last strip to its outputs written (s), and the profile breakdown.
     """
-    from parproj_ros.offline import process_bag
-    from parproj_ros.pipeline import PipelineConfig
-    from parproj_ros.results import Outputs
+    from parproj_ros.apps.process import process_bag
+    from parproj_ros.core.pipeline import PipelineConfig
+    from parproj_ros.core.results import Outputs
 
     plat = make_platform(cfg.lines, cfg.detectors)
     pairs = cfg.offline_pairs

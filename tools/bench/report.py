@@ -156,7 +156,7 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
         yield (
             f"Written by `{command}` (`python -m tools.bench`; `python -m tools.bench --quick` "
             "for the one-minute version) from the run below. Definitions: `tools/bench/`; the "
-            "synthetic scene: `parproj_ros/synthetic.py`."
+            "synthetic scene: `parproj_ros/sim/synthetic.py`."
         )
         yield ""
     yield f"{h}Run"

@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from parproj_ros import conversions as conv
-from parproj_ros.bag import BagReader, get_message_class
-from parproj_ros.live import NodeProcess, _qos, node_params_yaml
-from parproj_ros.live import wait_until as _wait_until
-from parproj_ros.recording import node_parameters, truth_from_bag, views_from_bag
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader, get_message_class
+from parproj_ros.ros.live import NodeProcess, _qos, node_params_yaml
+from parproj_ros.ros.live import wait_until as _wait_until
+from parproj_ros.sim.recording import node_parameters, truth_from_bag, views_from_bag
 from tools.harness import (
     ROOT,
     RssMonitor,

@@ -1,0 +1,1 @@
+"""The applications: the ``parproj`` command, ``process``, ``import``, the demo."""

@@ -1,0 +1,139 @@
+"""``parproj process``: the pipeline over a bag without DDS, outputs written to a bag.
+
+Outputs are logged at the log time of the input message that produced them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..core.pipeline import Issue, Outputs, Pipeline, PipelineConfig
+from ..ros import conversions as conv
+from ..ros.bag import BagReader, BagWriter
+from ..sim.recording import FRAME_ID, config_from_bag
+
+
+@dataclass
+class ProcessSummary:
+    """What ``process_bag`` did.
+
+    Attributes:
+        scenes: scenes with parameters.
+        pairs: normalized pairs written.
+        issues: every problem reported (also written on /diagnostics).
+        messages_in: input messages read.
+        recovery: the input reader's recovery report (cut-off bags).
+        skipped_topics: topics of unknown types, with counts.
+    """
+
+    scenes: int = 0
+    pairs: int = 0
+    issues: list[Issue] = field(default_factory=list)
+    messages_in: int = 0
+    recovery: Any = None
+    skipped_topics: dict[str, int] = field(default_factory=dict)
+
+
+def _bag_issues(reader: BagReader, name: str) -> Outputs:
+    """What reading the input bag lost or skipped, as issues for /diagnostics."""
+    out = Outputs()
+    rec = reader.recovery
+    if rec is not None and not rec.complete:
+        lost = rec.messages_lost
+        out.issues.append(
+            Issue(
+                "warn",
+                name,
+                (
+                    f"input bag cut off ({rec.error}): "
+                    + (f"{lost} messages lost, " if lost is not None else "")
+                    + f"{rec.messages_read} complete messages read and processed"
+                ),
+            )
+        )
+    for topic, n in sorted(reader.skipped.items()):
+        out.issues.append(
+            Issue(
+                "warn",
+                topic,
+                (f"{n} messages of type {reader.topics().get(topic, '?')} unknown here: skipped"),
+            )
+        )
+    for topic, n in sorted(reader.decode_errors.items()):
+        out.issues.append(Issue("warn", topic, f"{n} messages could not be decoded: skipped"))
+    return out
+
+
+def process_bag(
+    src: Path,
+    dst: Path,
+    *,
+    config: PipelineConfig | None = None,
+    frame_id: str = FRAME_ID,
+    progress: bool = True,
+    overrides: dict[str, Any] | None = None,
+    on_outputs: Callable[[Outputs], None] | None = None,
+) -> ProcessSummary:
+    """Run the pipeline over the bag ``src`` and write its outputs to the bag ``dst``."""
+    from tqdm import tqdm
+
+    reader = BagReader(src)
+    cfg = config or config_from_bag(reader, **(overrides or {}))
+    pipe = Pipeline(cfg)
+    summary = ProcessSummary()
+    strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}
+    with BagWriter(dst, compression="zstd", overwrite=True) as bw:
+        for topic, msgtype in conv.OUTPUT_TOPICS.items():
+            bw.add_topic(topic, msgtype, "reliable")
+
+        def emit(out: Outputs, stamp_ns: int) -> None:
+            for topic, msg, _ in conv.outputs_to_messages(
+                out, frame_id=frame_id, stamp_ns=stamp_ns
+            ):
+                bw.write(topic, msg, stamp_ns)  # log time: the input that produced it
+            summary.scenes += len(out.scenes)
+            summary.pairs += len(out.pairs)
+            summary.issues += out.issues
+            if on_outputs:
+                on_outputs(out)
+
+        last = 0
+        bar = tqdm(
+            total=reader.message_count,
+            desc=f"process {Path(src).name}",
+            unit="msg",
+            disable=not progress,
+            leave=False,
+        )
+        for item in reader.messages():
+            summary.messages_in += 1
+            bar.update(1)
+            last = item.log_time_ns
+            out = Outputs()
+            try:
+                if item.topic == "navigation":
+                    out = pipe.add_navigation(conv.odometry_to_sample(item.msg))
+                elif item.topic in strip_topics:
+                    arr = conv.image_to_array(item.msg)
+                    out = pipe.add_strip(
+                        strip_topics[item.topic],
+                        conv.stamp_to_ns(item.msg.header.stamp),
+                        item.msg.header.frame_id,
+                        arr,
+                    )
+                elif item.topic == "gcp":
+                    out = pipe.add_gcp(conv.gcp_from_msg(item.msg))
+                elif item.topic == "pairs":
+                    out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
+            except conv.ConversionError as err:
+                out.issues.append(Issue("warn", item.topic, f"{err}: message dropped"))
+            emit(out, item.log_time_ns)
+        bar.close()
+        emit(_bag_issues(reader, Path(src).name), last)
+        emit(pipe.flush(), last)
+    summary.recovery = reader.recovery
+    summary.skipped_topics = dict(reader.skipped)
+    return summary

@@ -1,0 +1,305 @@
+"""What the pipeline returns: issues, scene and pair results, and the closed sets they name.
+
+The types that :mod:`.pipeline`, :mod:`.streaming`, :mod:`.tiepoints` and the adapters share
+live here, below all of them, so that none of those modules needs another's. Nothing here imports
+ROS: :mod:`parproj_ros.ros.conversions` turns these results into messages.
+
+Closed sets are :class:`enum.StrEnum` members, so they are still the same strings in messages,
+logs and JSON (``Level.WARN == "warn"``, ``f"{Method.NAVIGATION}" == "navigation"``); the
+dataclasses below accept the plain strings too and store the member (an unknown value raises
+``ValueError``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import (
+    AffineModel,
+    LineCamera,
+    NavigationParameters,
+    Normalization,
+    ParallelProjection,
+    PushbroomModel,
+    SceneFrame,
+)
+from ..imaging.assembly import Scene, SceneEnd
+from ..imaging.resample import OutputGrid, SceneGeometry
+
+__all__ = [
+    "METHODS",
+    "BlockResult",
+    "GroundPoint",
+    "Issue",
+    "Level",
+    "Method",
+    "Outputs",
+    "PairGeometry",
+    "PairResult",
+    "SceneEnd",
+    "SceneResult",
+    "YParallaxSource",
+]
+
+FloatArray = NDArray[np.float64]
+
+
+class Level(StrEnum):
+    """Severity of an :class:`Issue` (a diagnostic_msgs/DiagnosticStatus level)."""
+
+    OK = "ok"
+    WARN = "warn"
+    ERROR = "error"
+
+
+class Method(StrEnum):
+    """How a scene's parameters were obtained (parproj_msgs/ParallelProjection ``method``).
+
+    The order is that of the message's METHOD_* constants: the message carries the index.
+    """
+
+    NAVIGATION = "navigation"
+    NAVIGATION_VIRTUAL_GCP = "navigation_virtual_gcp"
+    GCP_AFFINE = "gcp_affine"
+    GCP_KNOWN_ROLL = "gcp_known_roll"
+    GCP_ROLL_ESTIMATED = "gcp_roll_estimated"
+    TIE_POINTS = "tie_points"
+
+
+#: Method names in message order (``METHODS.index(method)`` is the message's ``method``).
+METHODS: tuple[str, ...] = tuple(m.value for m in Method)
+
+
+class YParallaxSource(StrEnum):
+    """Where a pair's y-parallax samples come from (parproj_msgs/StereoPair)."""
+
+    GCP = "gcp"
+    VIRTUAL = "virtual"
+    TIE_POINTS = "tie_points"
+    NONE = "none"
+
+
+@dataclass(frozen=True)
+class Issue:
+    """A problem met, for the log and for diagnostics.
+
+    Attributes:
+        level: ok, warn or error (a plain string is accepted and stored as the member).
+        where: the scene, view or input concerned.
+        message: what was wrong and what was done about it.
+    """
+
+    level: Level
+    where: str
+    message: str
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "level", Level(self.level))
+
+
+@dataclass(frozen=True)
+class GroundPoint:
+    """A ground control (or check) point.
+
+    Attributes:
+        id: name.
+        xyz: object coordinates, metres, (3,).
+        check: True for a check point (not used in the estimation).
+        observations: scene_id -> (line, sample) pixels.
+    """
+
+    id: str
+    xyz: FloatArray
+    check: bool
+    observations: dict[str, tuple[float, float]]
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """Parameters of one scene.
+
+    Attributes:
+        scene: the assembled scene.
+        params: non-linear parallel projection parameters.
+        affine: A1..A8.
+        psi: roll used for PTP, radians.
+        frame: image <-> scene metres.
+        method: how the parameters were obtained (a plain string is accepted).
+        note: how and why the method was used.
+        model: rigorous model from navigation (None when navigation did not cover the scene).
+        camera: the view's camera (principal distance, pixel size, ...).
+        sigma0_px: a-posteriori sigma0 of a GCP fit (or the virtual-point fit), pixels.
+        residual_rms_px: RMS of per-point residual lengths, pixels.
+        residual_max_px: largest residual length, pixels.
+        gcp_count: GCP used.
+        check_count: check points evaluated.
+        check_rms_px: RMS check-point error, pixels (NaN without check points).
+        covariance: 9x9 covariance of (A1..A8, psi) (zeros when not estimated).
+        crab_angle: radians (NaN without navigation).
+        segment_of: for a segment of a long scene, the scene it was cut from ("" otherwise).
+        segment_first_line: the segment's line 0 is this line of ``segment_of``.
+        model_error_bound_px: the bound the segmentation worked to, pixels (0: not cut).
+    """
+
+    scene: Scene
+    params: ParallelProjection
+    affine: AffineModel
+    psi: float
+    frame: SceneFrame
+    method: Method
+    note: str
+    model: PushbroomModel | None
+    camera: LineCamera
+    sigma0_px: float = 0.0
+    residual_rms_px: float = 0.0
+    residual_max_px: float = 0.0
+    gcp_count: int = 0
+    check_count: int = 0
+    check_rms_px: float = float("nan")
+    covariance: FloatArray = field(default_factory=lambda: np.zeros((9, 9)))
+    crab_angle: float = float("nan")
+    segment_of: str = ""
+    segment_first_line: int = 0
+    model_error_bound_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "method", Method(self.method))
+
+    @classmethod
+    def from_navigation(
+        cls,
+        scene: Scene,
+        nav: NavigationParameters,
+        model: PushbroomModel,
+        camera: LineCamera,
+        *,
+        note_suffix: str = "",
+    ) -> SceneResult:
+        """The result of a scene whose parameters come from navigation (Eqs 9-13 or the fit).
+
+        sigma0 is NaN for Eqs 9-13 (nothing was fitted) and the virtual-point fit's RMS
+        otherwise; ``note_suffix`` is appended to the method's note.
+        """
+        method = Method(nav.method)
+        return cls(
+            scene,
+            nav.params,
+            nav.affine,
+            nav.psi,
+            nav.frame,
+            method,
+            nav.note + note_suffix,
+            model,
+            camera,
+            sigma0_px=(float("nan") if method == Method.NAVIGATION else nav.fit_rms_px),
+            residual_rms_px=nav.fit_rms_px,
+            crab_angle=nav.crab_angle,
+        )
+
+    def geometry(self, to_normalized: FloatArray) -> SceneGeometry:
+        """Resampling geometry of this scene for a given normalization affine."""
+        return SceneGeometry(self.frame, to_normalized, self.psi, self.camera.principal_distance)
+
+
+@dataclass(frozen=True)
+class PairGeometry:
+    """Normalization and output grids of a pair, before any pixel is resampled."""
+
+    pair_id: str
+    normalization: Normalization
+    left_geom: SceneGeometry
+    right_geom: SceneGeometry
+    left_grid: OutputGrid
+    right_grid: OutputGrid
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """A normalized stereo pair.
+
+    Attributes:
+        pair_id: "<left scene id>+<right scene id>".
+        stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
+        left: left scene parameters.
+        right: right scene parameters.
+        normalization: paper 2 Eq 8 result (2x3 affines, kappa_n, s_n, parallax relation).
+        left_grid: output grid of the left image.
+        right_grid: output grid of the right image (same rows, shifted columns).
+        left_image: normalized left image (None when streamed block by block).
+        right_image: normalized right image (None when streamed).
+        height_per_disparity_px: a in Z = a (col_left - col_right) + b, metres per pixel.
+        height_offset_m: b, metres.
+        y_parallax_px: signed y-parallax samples used for the statistics, pixels.
+        y_parallax_source: where they come from (a plain string is accepted).
+    """
+
+    pair_id: str
+    stamp_ns: int
+    left: SceneResult
+    right: SceneResult
+    normalization: Normalization
+    left_grid: OutputGrid
+    right_grid: OutputGrid
+    left_image: NDArray[np.generic] | None
+    right_image: NDArray[np.generic] | None
+    height_per_disparity_px: float
+    height_offset_m: float
+    y_parallax_px: FloatArray
+    y_parallax_source: YParallaxSource
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "y_parallax_source", YParallaxSource(self.y_parallax_source))
+
+    @property
+    def y_parallax_stats(self) -> tuple[float, float, float]:
+        """(mean |y|, rms, max |y|) in pixels (NaN when there are no samples)."""
+        y = self.y_parallax_px
+        if y.size == 0:
+            return float("nan"), float("nan"), float("nan")
+        return float(np.abs(y).mean()), float(np.sqrt(np.mean(y**2))), float(np.abs(y).max())
+
+
+@dataclass(frozen=True)
+class BlockResult:
+    """A block of columns of one normalized image (streaming, see streaming.py).
+
+    Attributes:
+        pair_id: the pair.
+        side: "left" or "right".
+        index: block number from 0.
+        col0: first column in the full normalized image.
+        image: (full height, block columns) pixels.
+        grid: the full image's output grid.
+        stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
+        last: whether this is the side's last block.
+    """
+
+    pair_id: str
+    side: str
+    index: int
+    col0: int
+    image: NDArray[np.generic]
+    grid: OutputGrid
+    stamp_ns: int
+    last: bool
+
+
+@dataclass
+class Outputs:
+    """What one call of the pipeline produced."""
+
+    scenes: list[SceneResult] = field(default_factory=list)
+    pairs: list[PairResult] = field(default_factory=list)
+    issues: list[Issue] = field(default_factory=list)
+    blocks: list[BlockResult] = field(default_factory=list)
+
+    def extend(self, other: Outputs) -> None:
+        """Append another call's outputs."""
+        self.scenes += other.scenes
+        self.pairs += other.pairs
+        self.issues += other.issues
+        self.blocks += other.blocks

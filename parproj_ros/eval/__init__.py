@@ -1,0 +1,1 @@
+"""Evaluation: normalized pairs against truth, paper reproduction, reference-grid comparison."""

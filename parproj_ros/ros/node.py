@@ -1,0 +1,866 @@
+"""parproj_node: the rclpy adapter around :class:`parproj_ros.core.pipeline.Pipeline`.
+
+It declares the parameters from the one table (:mod:`parproj_ros.core.config`, which also builds
+the pipeline's settings from their values), converts messages to arrays (conversions.py), queues
+them to one worker thread that runs the pipeline (so a long resampling never blocks message
+reception), and publishes what the pipeline returns. Topic names are relative, to be remapped.
+See README for the topic and parameter tables.
+"""
+
+from __future__ import annotations
+
+import array
+import math
+import queue
+import re
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from nav_msgs.msg import Odometry
+from parproj_msgs.msg import (
+    GroundControlPoints,
+    NormalizedBlock,
+    ParallelProjection,
+    StereoPair,
+)
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    NameValidationException,
+    ParameterException,
+)
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from sensor_msgs.msg import Image
+
+from ..core.config import PARAMS, VIEW_PARAMS, Param, config_from_values
+from ..core.pipeline import Issue, Outputs, Pipeline
+from ..io.gcp_file import load_gcp_file
+from . import conversions as conv
+
+
+class InputKind(StrEnum):
+    """What an item of the worker's queue holds (callbacks and timers queue, the worker runs)."""
+
+    NAV = "nav"  # a NavSample
+    STRIP = "strip"  # (view, stamp_ns, frame_id, array)
+    GCP = "gcp"  # a list of GroundPoint
+    PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
+    CLOSE = "close"  # the scene timeout: close the idle scenes
+    FLUSH = "flush"  # the flush at stop (a _FlushRequest)
+
+
+#: Exit codes of parproj_node (README, "Exit codes").
+EXIT_OK, EXIT_NOT_FLUSHED, EXIT_BAD_START = 0, 1, 2
+
+
+class StartupError(Exception):
+    """The node cannot start.
+
+    A parameter without a safe default, the parameters file, a QoS override: ``main`` prints it
+    as one line and exits with :data:`EXIT_BAD_START`.
+    """
+
+
+def _descriptor(p: Param) -> ParameterDescriptor:
+    """The descriptor of ``p``: description with the unit, read-only, range, choices."""
+    # Strict parameters take any type, so that the node's own check (check_views,
+    # check_mounting) gives the message, and [1, 2, 3] (integers) is a valid mounting.
+    d = ParameterDescriptor(
+        description=p.ros_description, read_only=p.read_only, dynamic_typing=p.strict
+    )
+    if p.choices:
+        d.additional_constraints = f"one of {p.range_text}"
+    if p.low is not None and p.high is not None:
+        if p.type == "integer":
+            d.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high), step=0)]
+        else:
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(p.low), to_value=float(p.high), step=0.0)
+            ]
+    return d
+
+
+#: A view name: a ROS name token (it prefixes topic and parameter names), not hidden ("_...").
+VIEW_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+def _shown(value: Any) -> str:
+    return repr(list(value) if isinstance(value, array.array | tuple) else value)
+
+
+def check_views(value: Any) -> list[str]:
+    """The ``views`` parameter as 1 or 2 distinct view names.
+
+    Raises:
+        StartupError: not a list of names, not 1 or 2 of them, a name that is not a ROS name
+            token (a letter, then letters, digits, underscores), or a name given twice.
+    """
+    if value is None:
+        raise StartupError("parameter views: no view names given (an empty list?)")
+    if not isinstance(value, list | tuple) or not all(isinstance(n, str) for n in value):
+        raise StartupError(
+            f"parameter views: {_shown(value)} is not a list of view names "
+            "(e.g. [left, right], or [pan] for one camera)"
+        )
+    names = list(value)
+    if not 1 <= len(names) <= 2:
+        raise StartupError(
+            f"parameter views: {names!r} has {len(names)} names; 1 (single-camera mode) or "
+            "2 (fore/aft cameras) are needed"
+        )
+    for n in names:
+        if not VIEW_NAME.fullmatch(n):
+            raise StartupError(
+                f"parameter views: {n!r} is not a valid view name (a letter, then letters, "
+                "digits or underscores: it prefixes topic and parameter names)"
+            )
+    if len(set(names)) != len(names):
+        raise StartupError(f"parameter views: {names!r} names the same view twice")
+    return names
+
+
+def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
+    """A ``<view>.mounting_rpy_deg`` parameter as (roll, pitch, yaw) in degrees.
+
+    Raises:
+        StartupError: not exactly 3 numbers, or one not finite or beyond +-360 degrees.
+    """
+    ok = isinstance(value, list | tuple | array.array) and len(value) == 3
+    if not ok or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
+        raise StartupError(
+            f"parameter {name}: {_shown(value)} is not 3 numbers [roll, pitch, yaw] in degrees"
+        )
+    rpy = (float(value[0]), float(value[1]), float(value[2]))
+    if not all(math.isfinite(a) and abs(a) <= 360.0 for a in rpy):
+        raise StartupError(
+            f"parameter {name}: {list(rpy)!r}: each angle must be finite and within +-360 deg"
+        )
+    return rpy
+
+
+class ParprojNode(Node):
+    """ROS 2 node: strips + navigation (+ GCP) -> ParallelProjection, StereoPair, images."""
+
+    def _declare(self, name: str, p: Param) -> Any:
+        """Declare one parameter; a bad value is replaced by the default and reported.
+
+        Out of range or not among the choices: the node keeps running with the default, logs an
+        error, and its 1 Hz summary stays at ERROR naming the parameter. A parameter with no
+        safe default (``p.strict``: ``views``, ``<view>.mounting_rpy_deg``) is checked by its
+        caller instead; rclpy refusing it raises :class:`StartupError`.
+        """
+        desc = _descriptor(p)
+        try:
+            value = self.declare_parameter(name, p.default, desc).value
+        except (InvalidParameterValueException, InvalidParameterTypeException) as err:
+            if p.strict:
+                raise StartupError(f"parameter {name}: {err}") from err
+            self._startup_issues.append(
+                Issue("error", f"parameter {name}", f"{err}; the default {p.default!r} is used")
+            )
+            return self.declare_parameter(name, p.default, desc, ignore_override=True).value
+        if p.choices and value not in p.choices:
+            self._startup_issues.append(
+                Issue(
+                    "error",
+                    f"parameter {name}",
+                    f"{value!r} is not one of {list(p.choices)}; "
+                    f"the default {p.default!r} is used",
+                )
+            )
+            return p.default
+        return value
+
+    def __init__(self, **kwargs: Any) -> None:
+        """Declare and check the parameters, create the endpoints, start the worker.
+
+        Raises:
+            StartupError: a parameter without a safe default is invalid (``views``,
+                ``<view>.mounting_rpy_deg``) or a QoS override cannot be applied; ``main``
+                turns it into a one-line error and exit code 2.
+        """
+        super().__init__("parproj_node", **kwargs)
+        self._startup_issues: list[Issue] = []
+        vals = {p.name: self._declare(p.name, p) for p in PARAMS}
+        vals["views"] = check_views(vals["views"])
+        for view in vals["views"]:
+            vals |= {f"{view}.{p.name}": self._declare(f"{view}.{p.name}", p) for p in VIEW_PARAMS}
+            key = f"{view}.mounting_rpy_deg"
+            vals[key] = check_mounting(key, vals[key])
+        self.frame_id = str(vals["frame_id"])
+        config = config_from_values(vals)
+        self.pipeline = Pipeline(config)
+        self.worker_stall_s = float(vals["worker_stall_s"])
+        self.error_hold_s = float(vals["error_hold_s"])
+        self.stop_timeout_s = float(vals["stop_timeout_s"])
+        self.counts = {
+            "strips": 0,
+            "strips_rejected": 0,
+            "nav": 0,
+            "nav_rejected": 0,
+            "scenes": 0,
+            "pairs": 0,
+            "warnings": 0,  # WARN statuses reported (the summary excluded)
+            "errors": 0,  # ERROR statuses reported (the summary excluded)
+            "internal_errors": 0,  # exceptions caught in the worker or a callback
+        }
+        self._counts_lock = threading.Lock()
+        self._last_error: tuple[float, str] | None = None  # (monotonic, "where: message")
+        self._busy: tuple[str, float] | None = None  # the worker's input and since when
+        self._closed = False  # set at shutdown: nothing more is published
+        self._queue: queue.Queue[tuple[InputKind, Any] | None] = queue.Queue()
+        self._queue_peak = 0  # longest input queue since the last 1 Hz summary, items
+        # Inputs: sensor-data QoS (REP 2003: best effort, volatile) with a deep queue, since a
+        # strip lost is a gap in a scene; reliability can be overridden per topic
+        # (qos_overrides.<topic>.subscription.reliability) for lossless replay.
+        strip_qos = QoSProfile(
+            depth=200,
+            reliability=qos_profile_sensor_data.reliability,
+            history=HistoryPolicy.KEEP_LAST,
+        )
+        nav_qos = QoSProfile(
+            depth=500,
+            reliability=qos_profile_sensor_data.reliability,
+            history=HistoryPolicy.KEEP_LAST,
+        )
+        overrides = QoSOverridingOptions.with_default_policies()
+        inputs: list[tuple[str, Any, QoSProfile]] = [("navigation", self._on_nav, nav_qos)]
+        for vc in config.views:
+            inputs.append(
+                (
+                    f"{vc.name}/image_strip",
+                    lambda msg, view=vc.name: self._on_strip(view, msg),
+                    strip_qos,
+                )
+            )
+        for topic, callback, qos in inputs:
+            cls = Odometry if topic == "navigation" else Image
+            try:
+                self.create_subscription(
+                    cls, topic, callback, qos, qos_overriding_options=overrides
+                )
+            except Exception as err:  # rclpy: RuntimeError or a parameter exception
+                raise StartupError(
+                    f"QoS override of {topic}: {type(err).__name__}: {err}"
+                ) from err
+        # GCP: reliable and transient-local, so a GCP set published before the node started
+        # (a ground station's latched set) still arrives.
+        gcp_qos = QoSProfile(
+            depth=10,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        )
+        self.create_subscription(GroundControlPoints, "gcp", self._on_gcp, gcp_qos)
+        self._subscribe_pairs(gcp_qos)
+        # Outputs: reliable, so that every scene's parameters and every pair reach recorders.
+        out_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        # The topics are conv.OUTPUT_TOPICS (the offline process writes the same), /diagnostics
+        # apart (below).
+        classes = {
+            "parproj_msgs/msg/ParallelProjection": ParallelProjection,
+            "parproj_msgs/msg/StereoPair": StereoPair,
+            "sensor_msgs/msg/Image": Image,
+            "parproj_msgs/msg/NormalizedBlock": NormalizedBlock,
+        }
+        types = {t: classes[m] for t, m in conv.OUTPUT_TOPICS.items() if t != "/diagnostics"}
+        self.pubs = {t: self.create_publisher(cls, t, out_qos) for t, cls in types.items()}
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_timer(1.0, self._summary)
+        self.scene_timeout = float(vals["scene_timeout"])
+        self._last_strip = time.monotonic()
+        self.create_timer(0.25, self._check_idle)
+        if vals["gcp_file"]:
+            path = str(vals["gcp_file"])
+            self._log("info", f"gcp_file {path}: loading")
+            try:
+                self._queue.put((InputKind.GCP, load_gcp_file(path)))
+            except Exception as err:  # whatever the loader raises: a clear error, not a crash
+                why = f"{type(err).__name__}: {err}"
+                self._startup_issues.append(
+                    Issue(
+                        "error",
+                        "gcp_file",
+                        f"{why if path in str(err) else f'{path}: {why}'}; continuing without it",
+                    )
+                )
+        self._startup_issues += self._unknown_parameters()
+        self._report(self._startup_issues)
+        self._worker = threading.Thread(target=self._work, name="parproj_pipeline", daemon=True)
+        self._worker.start()
+
+    def _unknown_parameters(self) -> list[Issue]:
+        """An ERROR per parameter given (``--params-file``, ``-p``) that the node does not have.
+
+        A misspelt name, or a view not in ``views``: its value would be ignored silently.
+
+        ``qos_overrides.*`` are left to rclpy (those of topics the node does not have are
+        ignored).
+        """
+        given = self._parameter_overrides  # rclpy: every override for this node
+        return [
+            Issue(
+                "error",
+                f"parameter {name}",
+                f"{_shown(given[name].value)} given, but parproj_node has no such parameter "
+                "(misspelt, or a view not in views?): ignored",
+            )
+            for name in sorted(given)
+            if not name.startswith("qos_overrides.") and not self.has_parameter(name)
+        ]
+
+    # ---- callbacks: convert and queue ----------------------------------------------------
+    def _on_nav(self, msg: Odometry) -> None:
+        try:
+            sample = conv.odometry_to_sample(msg)
+        except conv.ConversionError as err:
+            self._count("nav_rejected")
+            self._report([Issue("warn", "navigation", f"{err}: sample dropped")])
+            return
+        except Exception as err:
+            self.internal_error("a navigation message (callback)", err)
+            return
+        self._enqueue((InputKind.NAV, sample))
+        self._count("nav")
+
+    def _on_strip(self, view: str, msg: Image) -> None:
+        try:
+            arr = conv.image_to_array(msg)
+            item = (view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
+        except conv.ConversionError as err:
+            self._count("strips_rejected")
+            self._report(
+                [Issue("warn", f"{view}/{msg.header.frame_id}", f"strip rejected: {err}: dropped")]
+            )
+            return
+        except Exception as err:
+            self.internal_error(f"a strip of {view} (callback)", err)
+            return
+        self._count("strips")
+        self._last_strip = time.monotonic()
+        self._enqueue((InputKind.STRIP, item))
+
+    def _on_gcp(self, msg: GroundControlPoints) -> None:
+        try:
+            points = conv.gcp_from_msg(msg)
+        except Exception as err:
+            self.internal_error("a GCP message (callback)", err)
+            return
+        self._enqueue((InputKind.GCP, points))
+
+    def _subscribe_pairs(self, qos: QoSProfile) -> None:
+        """The ``pairs`` topic (parproj_msgs/PairSelection; latched like ``gcp``)."""
+        from parproj_msgs.msg import PairSelection
+
+        self.create_subscription(PairSelection, "pairs", self._on_pairs, qos)
+
+    def _on_pairs(self, msg: Any) -> None:
+        try:
+            self._enqueue((InputKind.PAIRS, conv.pairs_from_msg(msg)))
+        except conv.ConversionError as err:
+            self._report([Issue("error", "pairs", f"{err}: pair selection dropped")])
+        except Exception as err:
+            self.internal_error("a pair selection (callback)", err)
+
+    def _enqueue(self, item: tuple[InputKind, Any]) -> None:
+        """Queue an input for the worker and keep the queue's peak length for the summary."""
+        self._queue.put(item)
+        self._queue_peak = max(self._queue_peak, self._queue.qsize())
+
+    def _count(self, key: str, n: int = 1) -> None:
+        """Add to a summary counter (callbacks and the worker count from two threads)."""
+        with self._counts_lock:
+            self.counts[key] += n
+
+    # ---- worker: run the pipeline, publish ------------------------------------------------
+    def _work(self) -> None:
+        """The worker loop: one input at a time; no exception ends it (see :meth:`_handle`)."""
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                self._handle(*item)
+            except BaseException as err:  # _handle catches Exception; this is the last guard
+                self.internal_error(f"an input ({item[0] if item else item})", err)
+            finally:
+                self._busy = None
+                self._queue.task_done()
+
+    def _handle(self, kind: InputKind, payload: Any) -> None:
+        """Run one input through the pipeline and publish the outputs.
+
+        Any exception is caught, counted (``internal_errors``) and reported as an ERROR naming
+        the input and the exception; the input is dropped and the worker goes on.
+        """
+        try:
+            what = _describe(kind, payload)
+        except Exception:
+            what = f"an input of kind {kind!r}"
+        self._busy = (what, time.monotonic())
+        flush_req = payload if kind == InputKind.FLUSH else None
+        try:
+            if kind == InputKind.NAV:
+                out = self.pipeline.add_navigation(payload)
+            elif kind == InputKind.STRIP:
+                out = self.pipeline.add_strip(*payload)
+            elif kind == InputKind.GCP:
+                out = self.pipeline.add_gcp(payload)
+            elif kind == InputKind.PAIRS:
+                out = self.pipeline.set_pairs(payload)
+            elif kind == InputKind.CLOSE:
+                out = self.pipeline.close_idle_scenes()
+            else:
+                out = Outputs(issues=self._open_at_stop())
+                out.extend(self.pipeline.flush())
+            self._publish(out)
+            if flush_req is not None:
+                flush_req.ok = True
+        except Exception as err:
+            self.internal_error(what, err)
+        finally:
+            if flush_req is not None:
+                flush_req.done.set()
+
+    def internal_error(self, what: str, err: BaseException) -> None:
+        """Count an exception caught in the node and report it. Never raises.
+
+        An ERROR on ``/diagnostics`` (status ``parproj_node: internal error``) naming the input,
+        the exception and where it was raised; ``internal_errors`` in the summary.
+        """
+        try:
+            self._count("internal_errors")
+            tb = traceback.extract_tb(err.__traceback__)
+            at = f" at {Path(tb[-1].filename).name}:{tb[-1].lineno} in {tb[-1].name}" if tb else ""
+            self._report(
+                [
+                    Issue(
+                        "error",
+                        "internal error",
+                        f"{type(err).__name__}: {err}{at}, while processing {what}: that input "
+                        f"is dropped and the node carries on "
+                        f"({self.counts['internal_errors']} internal errors so far)",
+                    )
+                ]
+            )
+        except BaseException as again:
+            _stderr(f"parproj_node: internal error {err!r} on {what}; reporting it: {again!r}")
+
+    def _open_at_stop(self) -> list[Issue]:
+        """A WARN per scene still open when the node stops: the flush publishes it as it is."""
+        issues = []
+        for view, asm in self.pipeline.assemblers.items():
+            opened = asm.open_scene()
+            if opened is not None:
+                issues.append(
+                    Issue(
+                        "warn",
+                        f"{view}/{opened.scene_id}",
+                        f"node stopping with this scene open ({opened.lines} lines received): it "
+                        "is closed and processed as it is; lines still to come are not in it",
+                    )
+                )
+        return issues
+
+    def _check_idle(self) -> None:
+        idle = time.monotonic() - self._last_strip
+        if self.scene_timeout > 0 and idle > self.scene_timeout and self.pipeline.has_open_scene:
+            self._last_strip = time.monotonic()
+            self._queue.put((InputKind.CLOSE, None))
+
+    def worker_problem(self) -> str | None:
+        """Why the worker is not doing its job (dead, or stalled on one input), or None."""
+        if not self._worker.is_alive():
+            return (
+                "the worker thread is not running: inputs are no longer processed "
+                f"({self._queue.qsize()} queued)"
+            )
+        busy = self._busy
+        if busy is not None:
+            held = time.monotonic() - busy[1]
+            if held > self.worker_stall_s:
+                return (
+                    f"the worker has been processing {busy[0]} for {held:.0f} s "
+                    f"(more than worker_stall_s, {self.worker_stall_s:g} s); "
+                    f"{self._queue.qsize()} inputs queued behind it"
+                )
+        return None
+
+    def flush(self, timeout_s: float | None = None, abort: Callable[[], bool] = bool) -> bool:
+        """Close the open scenes (end of a pass) and wait until the worker has published them.
+
+        Waits at most ``timeout_s`` (default ``stop_timeout_s``), or until ``abort()`` turns
+        true (a second signal); with no worker running it does not wait at all. Returns whether
+        the flush was done; if not, says why in an ERROR.
+        """
+        timeout_s = self.stop_timeout_s if timeout_s is None else timeout_s
+        if not self._worker.is_alive():
+            self._report(
+                [Issue("error", "stop", "the worker thread is not running: open scenes lost")]
+            )
+            return False
+        req = _FlushRequest()
+        self._queue.put((InputKind.FLUSH, req))
+        deadline = time.monotonic() + timeout_s
+        why = ""
+        while not req.done.wait(0.05):
+            if not self._worker.is_alive():
+                why = "the worker thread stopped"
+            elif abort():
+                why = "a second signal"
+            elif time.monotonic() > deadline:
+                busy = self._busy
+                why = f"stop_timeout_s ({timeout_s:g} s) passed" + (
+                    f" with the worker on {busy[0]} for {time.monotonic() - busy[1]:.0f} s"
+                    if busy
+                    else ""
+                )
+            if why:
+                self._report(
+                    [
+                        Issue(
+                            "error",
+                            "stop",
+                            f"not flushed: {why}; {max(0, self._queue.qsize() - 1)} inputs "
+                            "still queued and the open scenes are lost",
+                        )
+                    ]
+                )
+                return False
+        return req.ok
+
+    def _publish(self, out: Outputs) -> None:
+        if self._closed:
+            return
+        now = self.get_clock().now().nanoseconds
+        for topic, msg, _ in conv.outputs_to_messages(out, frame_id=self.frame_id, stamp_ns=now):
+            if topic in self.pubs:
+                self.pubs[topic].publish(msg)
+        for res in out.scenes:
+            self._count("scenes")
+            self._log(
+                "info",
+                f"scene {res.scene.view}/{res.scene.scene_id}: "
+                f"{res.scene.lines} lines, {res.method}",
+            )
+        for pair in out.pairs:
+            self._count("pairs")
+            mean, rms, mx = pair.y_parallax_stats
+            self._log(
+                "info",
+                f"pair {pair.pair_id}: {pair.left_grid.width}x{pair.left_grid.height} px, "
+                f"y-parallax ({pair.y_parallax_source}) mean {mean:.3f} rms {rms:.3f} "
+                f"max {mx:.3f} px",
+            )
+        self._report(out.issues)
+
+    def _log(self, level: str, text: str) -> None:
+        """Log ``text`` at ``level`` ("error", "warn", anything else: info).
+
+        One call site per severity, on purpose: rclpy fixes the severity of a logging call site
+        (function, file, line, bytecode offset) at its first call and raises ``ValueError:
+        Logger severity cannot be changed between calls`` when the same site later logs at
+        another one (``log = logger.error if ... else logger.warning; log(...)`` did).
+        """
+        logger = self.get_logger()
+        if level == "error":
+            logger.error(text)
+        elif level == "warn":
+            logger.warning(text)
+        else:
+            logger.info(text)
+
+    def _report(self, issues: Sequence[Issue]) -> None:
+        """Log the issues, count them, and publish them on ``/diagnostics``. Never raises.
+
+        Called from the worker and from callbacks; if logging or publishing fails, the issues
+        (and why) are printed to stderr instead, so that reporting cannot end either.
+        """
+        if not issues or self._closed:
+            return
+        try:
+            for iss in issues:
+                if iss.level == "error":
+                    self._count("errors")
+                    self._last_error = (time.monotonic(), f"{iss.where}: {iss.message}")
+                elif iss.level == "warn":
+                    self._count("warnings")
+                self._log(iss.level, f"{iss.where}: {iss.message}")
+            self.pub_diag.publish(
+                conv.issues_to_diagnostics(
+                    list(issues),
+                    stamp_ns=self.get_clock().now().nanoseconds,
+                    hardware_id=self.frame_id,
+                )
+            )
+        except Exception as err:
+            _stderr(f"parproj_node: reporting failed ({type(err).__name__}: {err}):")
+            for iss in issues:
+                _stderr(f"parproj_node: [{iss.level}] {iss.where}: {iss.message}")
+
+    def summary_status(self) -> tuple[int, str]:
+        """Level and message of the 1 Hz summary.
+
+        ERROR while any of these holds, OK otherwise: a parameter was refused at start (or the
+        gcp_file could not be loaded), for the node's life; the worker thread is not running,
+        or has been on one input longer than ``worker_stall_s``; an ERROR status was reported
+        less than ``error_hold_s`` ago. WARN statuses do not change the level (they are counted
+        in ``warnings``).
+        """
+        problems = []
+        worker = self.worker_problem()
+        if worker:
+            problems.append(worker)
+        last = self._last_error
+        if last is not None and time.monotonic() - last[0] < self.error_hold_s:
+            problems.append(
+                f"{self.counts['errors']} errors so far, the latest "
+                f"{time.monotonic() - last[0]:.0f} s ago: {last[1]}"
+            )
+        if self._startup_issues:
+            problems.append(
+                "at start: " + "; ".join(f"{i.where}: {i.message}" for i in self._startup_issues)
+            )
+        if problems:
+            return DiagnosticStatus.ERROR[0], "running; " + "; ".join(problems)
+        return DiagnosticStatus.OK[0], "running"
+
+    def _summary(self) -> None:
+        if self._closed:
+            return
+        level, message = self.summary_status()
+        busy = self._busy
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status.append(
+            DiagnosticStatus(
+                level=bytes([level]),
+                name="parproj_node: summary",
+                message=message,
+                values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
+                + [
+                    KeyValue(key=k, value=str(v))
+                    for k, v in (
+                        ("queue", self._queue.qsize()),
+                        ("queue_max", max(self._queue_peak, self._queue.qsize())),
+                        ("nav_samples", len(self.pipeline.nav)),
+                        ("gcp_points", len(self.pipeline.gcp)),
+                        ("worker", "dead" if not self._worker.is_alive() else "alive"),
+                        ("busy_s", f"{time.monotonic() - busy[1]:.1f}" if busy else "0"),
+                        ("busy_with", busy[0] if busy else ""),
+                    )
+                ],
+            )
+        )
+        self._queue_peak = 0
+        self.pub_diag.publish(arr)
+
+    def wait_delivered(self, timeout_s: float) -> bool:
+        """Wait until every subscriber has acknowledged what was published (``timeout_s`` in all).
+
+        So that the outputs of the flush at shutdown are not lost when the process exits; says
+        which topic was not acknowledged.
+        """
+        from rclpy.duration import Duration
+
+        deadline = time.monotonic() + timeout_s
+        done = True
+        for pub in [*self.pubs.values(), self.pub_diag]:
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                done = False
+                self._log(
+                    "warn",
+                    f"{pub.topic_name}: not acknowledged by every subscriber within "
+                    f"{timeout_s} s of stopping",
+                )
+        return done
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the worker thread (after the queue drains, ``timeout_s`` at most).
+
+        Nothing is published after it.
+        """
+        self._queue.put(None)
+        if self._worker.is_alive():
+            self._worker.join(timeout=timeout_s)
+        self._closed = True
+
+
+@dataclass
+class _FlushRequest:
+    """The flush at stop, queued to the worker: set ``done`` when handled, ``ok`` if it worked."""
+
+    done: threading.Event = field(default_factory=threading.Event)
+    ok: bool = False
+
+
+def _describe(kind: InputKind, payload: Any) -> str:
+    """The input a worker item stands for, in words (for errors and the watchdog)."""
+    if kind == InputKind.STRIP:
+        return f"a strip of {payload[0]}/{payload[2]}"
+    if kind == InputKind.NAV:
+        return "a navigation sample"
+    if kind == InputKind.GCP:
+        return f"a GCP set ({len(payload)} points)"
+    if kind == InputKind.PAIRS:
+        return "a pair selection"
+    if kind == InputKind.CLOSE:
+        return "the scene timeout"
+    return "the flush at stop"
+
+
+def _stderr(text: str) -> None:
+    """Print to stderr when logging itself failed; never raises."""
+    try:
+        print(text, file=sys.stderr, flush=True)
+    except Exception:
+        pass
+
+
+def _one_line(text: str) -> str:
+    """``text`` on one line (rcl messages end with ``, at /project/src/...`` locations)."""
+    text = re.sub(r",? at /\S+:\d+", "", text)
+    return " ".join(text.split())
+
+
+def _params_files(argv: Sequence[str]) -> list[str]:
+    """The ``--params-file`` arguments in ``argv``."""
+    return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
+
+
+#: Largest parameters file the node reads, bytes (a real one is a few kB).
+MAX_PARAMS_FILE_BYTES = 16 * 1024 * 1024
+
+
+def _check_params_files(argv: Sequence[str]) -> None:
+    """Each ``--params-file`` a regular file of at most :data:`MAX_PARAMS_FILE_BYTES`.
+
+    Checked before rcl opens them: rcl would wait forever on a FIFO and read any size.
+
+    Raises:
+        StartupError: a parameters file that is missing, not a regular file, or too large.
+    """
+    import os
+    import stat
+
+    for f in _params_files(argv):
+        try:
+            st = os.stat(f)
+        except OSError as err:
+            raise StartupError(f"parameters file {f}: {err.strerror or err}") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise StartupError(
+                f"parameters file {f}: not a regular file (a folder, FIFO, socket or device): "
+                "not read"
+            )
+        if st.st_size > MAX_PARAMS_FILE_BYTES:
+            raise StartupError(
+                f"parameters file {f}: {st.st_size} bytes, more than the "
+                f"{MAX_PARAMS_FILE_BYTES} bytes a parameters file may have"
+            )
+
+
+def _init_rclpy(argv: list[str]) -> None:
+    """``rclpy.init`` with rcl's own console output held back, shown again if init works.
+
+    On a bad parameters file rcl prints "Failed to parse global arguments" before it raises;
+    the node's one-line error says it all.
+
+    Raises:
+        StartupError: the ROS arguments or a parameters file cannot be parsed (or are not a
+            regular file of a sensible size: :func:`_check_params_files`).
+    """
+    import os
+    import tempfile
+
+    _check_params_files(argv)
+    with tempfile.TemporaryFile() as held:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        os.dup2(held.fileno(), 2)
+        try:
+            rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
+        except Exception as err:
+            files = _params_files(argv)
+            where = f"parameters file {', '.join(files)}" if files else "ROS arguments"
+            raise StartupError(f"cannot parse the {where}: {_one_line(str(err))}") from err
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        held.seek(0)
+        text = held.read().decode(errors="replace")
+    if text:
+        _stderr(text.rstrip("\n"))
+
+
+def main(args: list[str] | None = None) -> int:
+    """Entry point of ``parproj_node``: spin until SIGINT/SIGTERM, then flush and exit.
+
+    Exit codes: 0 after a clean stop; 1 when the open scenes could not be flushed at the stop
+    (the worker was dead, or did not finish within ``stop_timeout_s``, or a second signal came);
+    2 when the node could not start: the ROS arguments or a parameters file do not parse, or a
+    parameter without a safe default is invalid (one line on stderr, no traceback).
+    """
+    import signal
+
+    argv = list(sys.argv if args is None else args)
+    try:
+        _init_rclpy(argv)
+        node = ParprojNode()
+    except (StartupError, ParameterException, NameValidationException) as err:
+        _stderr(f"parproj_node: cannot start: {_one_line(str(err))}")
+        rclpy.try_shutdown()
+        return EXIT_BAD_START
+    except KeyboardInterrupt:
+        _stderr("parproj_node: interrupted while starting")
+        rclpy.try_shutdown()
+        return 130
+    signals: list[int] = []
+
+    def on_signal(signum: int, frame: Any) -> None:
+        signals.append(signum)
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    executor = rclpy.executors.SingleThreadedExecutor()
+    executor.add_node(node)
+    code = EXIT_OK
+    try:
+        while not signals and rclpy.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception as err:  # a callback or timer raised: report, keep spinning
+                node.internal_error("a callback", err)
+        node._log("info", f"stopping: flushing open scenes ({node.stop_timeout_s:g} s at most)")
+        if not node.flush(abort=lambda: len(signals) > 1):
+            code = EXIT_NOT_FLUSHED
+        node.wait_delivered(5.0)
+    finally:
+        # A worker that did not flush is stuck or gone: do not wait for it.
+        node.stop(5.0 if code == EXIT_OK else 0.5)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The simulator: terrain, pushbroom rendering, scenarios, and their recording into bags."""

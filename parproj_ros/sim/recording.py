@@ -1,0 +1,316 @@
+"""Recording simulated scenarios into bags, and reading back what the node needs from a bag.
+
+Topics of a recorded bag (all relative names, as the node subscribes to them):
+
+| topic | type | content |
+|---|---|---|
+| navigation | nav_msgs/msg/Odometry | platform position, attitude, body-frame velocity |
+| <view>/image_strip | sensor_msgs/msg/Image | strips of scan lines; frame_id = scene id |
+| <view>/scanner_info | parproj_msgs/msg/ScannerInfo | the camera, once (transient local) |
+| gcp | parproj_msgs/msg/GroundControlPoints | GCP and check points, once (transient local) |
+| truth/points | parproj_msgs/msg/GroundControlPoints | exact points for the evaluation |
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.config import view_values
+from ..core.pipeline import GroundPoint, PipelineConfig, ViewConfig
+from ..core.trajectory import NavSample
+from ..geometry import GeometryError, LineCamera, quaternion_to_rotation
+from ..ros.bag import BagError, BagReader, BagWriter
+from ..ros.conversions import (
+    OUTPUT_TOPICS,
+    array_to_image,
+    gcp_from_msg,
+    gcp_to_msg,
+    sample_to_odometry,
+    scanner_info_msg,
+)
+from .scenarios import Scenario, ground_points
+
+FRAME_ID = "map"
+
+#: Topics of an input bag and their types (``*`` stands for a view name).
+INPUT_TOPICS = {
+    "navigation": "nav_msgs/msg/Odometry",
+    "*/image_strip": "sensor_msgs/msg/Image",
+    "*/scanner_info": "parproj_msgs/msg/ScannerInfo",
+    "gcp": "parproj_msgs/msg/GroundControlPoints",
+    "truth/points": "parproj_msgs/msg/GroundControlPoints",
+}
+
+
+def _expected_type(topic: str, expected: dict[str, str]) -> str | None:
+    name = topic.lstrip("/")
+    for pattern, msgtype in expected.items():
+        if pattern.startswith("*/"):
+            if name.endswith(pattern[1:]) and name.count("/") == pattern.count("/"):
+                return msgtype
+        elif name == pattern.lstrip("/"):
+            return msgtype
+    return None
+
+
+def check_topic_types(reader: BagReader, expected: dict[str, str]) -> None:
+    """Every topic of ``reader`` named in ``expected`` has the type given there.
+
+    Raises:
+        BagError: naming the bag, the topic, its type and the expected one.
+    """
+    encodings = reader.message_encodings()
+    for topic, msgtype in reader.topics().items():
+        want = _expected_type(topic, expected)
+        if want is not None and encodings.get(topic, "cdr") != "cdr":
+            raise BagError(
+                f"topic {topic} has message encoding {encodings[topic]!r}: only ROS 2 CDR "
+                "('cdr') is read",
+                reader.path,
+            )
+        if want is not None and msgtype != want:
+            raise BagError(
+                f"topic {topic} has type {msgtype or '(no schema)'}, expected {want}", reader.path
+            )
+
+
+def check_input_bag(path: Path) -> tuple[ViewConfig, ...]:
+    """An input bag the pipeline can run on (the checks of ``parproj process`` and the demo).
+
+    Returns its cameras.
+
+    Raises:
+        BagError: not a bag, topics of the wrong type, no camera or more than two, a camera
+            without strips.
+        FileNotFoundError: no such bag.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, INPUT_TOPICS)
+    views = views_from_bag(reader)
+    if not views:
+        rec = reader.recovery
+        cut = "" if rec.complete else f" (the file is damaged or cut off: {rec.error})"
+        raise BagError(
+            "no <view>/scanner_info topic: not an input bag (made by parproj simulate or "
+            f"parproj import){cut}",
+            path,
+        )
+    if len(views) > 2:
+        raise BagError(f"{len(views)} cameras ({[v.name for v in views]}); 1 or 2 needed", path)
+    topics = reader.topics()
+    lacking = [v.name for v in views if f"{v.name}/image_strip" not in topics]
+    if lacking:
+        raise BagError(f"no image strips for camera {lacking[0]} ({lacking[0]}/image_strip)", path)
+    return views
+
+
+def check_output_bag(path: Path) -> None:
+    """A bag of outputs (``parproj process``, the node): a stereo_pair topic of the right type.
+
+    Raises:
+        BagError: not a bag, no stereo_pair topic, topics of the wrong type.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, {**OUTPUT_TOPICS, "truth/points": INPUT_TOPICS["truth/points"]})
+    if "stereo_pair" not in {t.lstrip("/") for t in reader.topics()}:
+        raise BagError(
+            "no stereo_pair topic: not an output of parproj process or of the node", path
+        )
+
+
+def check_truth_bag(path: Path) -> None:
+    """A bag with truth points (``truth/points``, GroundControlPoints).
+
+    Raises:
+        BagError: not a bag, no truth/points topic, or of the wrong type.
+    """
+    reader = BagReader(path)
+    check_topic_types(reader, {"truth/points": INPUT_TOPICS["truth/points"]})
+    if "truth/points" not in reader.topics():
+        raise BagError("no truth/points topic: no truth to evaluate against", path)
+
+
+def _progress(total: int, desc: str, enabled: bool) -> Any:
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not enabled, unit="line", leave=False)
+
+
+def record_scenario(
+    scn: Scenario,
+    path: Path,
+    *,
+    progress: bool = True,
+    noise_px: float | None = None,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Render ``scn`` and write its bag folder at ``path``; return a summary for bags/README.
+
+    ``noise_px`` (default: the scenario's) is the standard deviation of the Gaussian noise added
+    to the GCP and check-point image measurements; truth points stay exact.
+    """
+    from nav_msgs.msg import Odometry
+    from parproj_msgs.msg import GroundControlPoints
+    from sensor_msgs.msg import Image
+
+    from .simulate import locate_on_terrain, render_scene
+    from .terrain import procedural_terrain
+
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    rng = np.random.default_rng(scn.seed)
+
+    def locate(model: Any, line: Any, sample: Any) -> Any:
+        return locate_on_terrain(model, terrain, line, sample)
+
+    gcp: list[GroundPoint] = []
+    truth: list[GroundPoint] = []
+    for k, pair in enumerate(scn.pairs()):
+        gcp += ground_points(scn, pair, scn.gcp, locate, rng, prefix=f"p{k}_gcp")
+        gcp += ground_points(scn, pair, scn.check, locate, rng, prefix=f"p{k}_chk", check=True)
+        truth += ground_points(scn, pair, scn.truth, locate, rng, prefix=f"p{k}_t", check=True)
+    noise_px = scn.gcp_noise_px if noise_px is None else noise_px
+    if noise_px > 0:
+        for p in gcp:
+            for sid, (line, sample) in list(p.observations.items()):
+                p.observations[sid] = (
+                    line + rng.normal(0, noise_px),
+                    sample + rng.normal(0, noise_px),
+                )
+    first = min(sc.start_s for sc in scn.scenes) - 1.0
+    last = max(sc.start_s + sc.lines * _cam(scn, sc.view).line_period for sc in scn.scenes) + 1.0
+    dtype = np.dtype(scn.dtype)
+    with BagWriter(path, compression="zstd") as bw:
+        bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
+        for v in scn.views:
+            bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
+            bw.add_topic(
+                f"{v.name}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local"
+            )
+        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        t_first = scn.time_ns(first)
+        for v in scn.views:
+            bw.write(f"{v.name}/scanner_info", scanner_info_msg(v, stamp_ns=t_first), t_first)
+        bw.write(
+            "gcp",
+            gcp_to_msg(gcp, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
+            t_first,
+        )
+        bw.write(
+            "truth/points",
+            gcp_to_msg(truth, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
+            t_first,
+        )
+        # Navigation and strips, interleaved in time order.
+        nav_t = np.arange(first, last, 1.0 / scn.nav_rate_hz)
+        events: list[tuple[int, int, Any]] = []
+        vel = np.array(scn.velocity)
+        for t in nav_t:
+            pos = np.array(scn.position0) + t * vel
+            s = NavSample(scn.time_ns(float(t)), pos, scn.body_rotation(float(t)), vel)
+            events.append(
+                (
+                    s.t_ns,
+                    0,
+                    (
+                        "navigation",
+                        sample_to_odometry(
+                            s, Odometry(), frame_id=FRAME_ID, child_frame_id="base_link"
+                        ),
+                    ),
+                )
+            )
+        total = sum(sc.lines for sc in scn.scenes)
+        with _progress(total, f"render {scn.name}", progress) as bar:
+            for i, sc in enumerate(scn.scenes):
+                model = scn.model(i)
+                img = render_scene(model, terrain, 0, sc.lines, dtype=dtype)
+                bar.update(sc.lines)
+                lp = model.camera.line_period
+                for r0 in range(0, sc.lines, scn.strip_lines):
+                    stamp = scn.time_ns(sc.start_s + r0 * lp)
+                    msg = array_to_image(
+                        img[r0 : r0 + scn.strip_lines],
+                        Image(),
+                        frame_id=scn.scene_id(i),
+                        stamp_ns=stamp,
+                    )
+                    events.append((stamp, 1, (f"{sc.view}/image_strip", msg)))
+        events.sort(key=lambda e: (e[0], e[1]))
+        for stamp, _, (topic, msg) in events:
+            bw.write(topic, msg, stamp)
+    size = sum(f.stat().st_size for f in Path(path).iterdir())
+    log(
+        f"wrote {path} ({size / 1e6:.2f} MB): {len(scn.scenes)} scenes, {len(gcp)} GCP/check, "
+        f"{len(truth)} truth points"
+    )
+    return {"name": scn.name, "size_mb": size / 1e6, "gcp": len(gcp), "truth": len(truth)}
+
+
+def _cam(scn: Scenario, view: str) -> LineCamera:
+    return next(v for v in scn.views if v.name == view).camera
+
+
+def views_from_bag(reader: BagReader) -> tuple[ViewConfig, ...]:
+    """The cameras (ScannerInfo messages) recorded in a bag, in topic order.
+
+    Raises:
+        BagError: a ``*/scanner_info`` topic is not a ScannerInfo, or describes no camera.
+    """
+    topics = [t for t in reader.topics() if t.endswith("/scanner_info")]
+    if not topics:
+        return ()  # (an empty topic list would read every topic)
+    check_topic_types(reader, {"*/scanner_info": INPUT_TOPICS["*/scanner_info"]})
+    views = []
+    for item in reader.messages(topics=topics):
+        m = item.msg
+        q = m.mounting
+        try:
+            cam = LineCamera(
+                m.principal_distance,
+                m.pixel_size,
+                int(m.detectors),
+                m.line_period,
+                m.principal_point,
+            )
+        except (GeometryError, ValueError, OverflowError) as err:
+            raise BagError(f"{item.topic}: not a usable camera: {err}", reader.path) from None
+        views.append(
+            ViewConfig(
+                item.topic.rsplit("/", 1)[0], cam, quaternion_to_rotation([q.x, q.y, q.z, q.w])
+            )
+        )
+    order = {name: i for i, name in enumerate(("left", "right"))}
+    views.sort(key=lambda v: order.get(v.name, 99))
+    return tuple(dict((v.name, v) for v in views).values())
+
+
+def truth_from_bag(reader: BagReader) -> list[GroundPoint]:
+    """Truth points recorded on truth/points."""
+    out: list[GroundPoint] = []
+    for item in reader.messages(topics=["truth/points"]):
+        try:
+            out += gcp_from_msg(item.msg)
+        except ValueError as err:  # ConversionError, or a GroundPoint refused
+            raise BagError(f"truth/points: malformed message: {err}", reader.path) from err
+    return out
+
+
+def node_parameters(views: tuple[ViewConfig, ...], **extra: Any) -> dict[str, Any]:
+    """parproj_node parameters for these cameras (for --params-file or -p)."""
+    params: dict[str, Any] = {"views": [v.name for v in views]}
+    for v in views:
+        params.update({f"{v.name}.{name}": x for name, x in view_values(v).items()})
+    params.update(extra)
+    return params
+
+
+def config_from_bag(reader: BagReader, **overrides: Any) -> PipelineConfig:
+    """Pipeline settings for a bag: its cameras plus ``overrides`` (PipelineConfig fields)."""
+    return PipelineConfig(views=views_from_bag(reader), **overrides)
