@@ -1,1 +1,1 @@
-"""Image side of the simulator: terrain (height field + texture) and pushbroom scene rendering."""
+"""Scene assembly, resampling into the normalized geometry, tie-point matching, previews."""

@@ -1,1 +1,1 @@
-"""Files in and out: MCAP bags, GCP files, DEM tiles, rasters with RPC, safe file handling."""
+"""Files in: GCP files, DEM tiles, rasters with RPC; safe reading and writing of files (no ROS)."""

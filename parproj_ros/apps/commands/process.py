@@ -1,0 +1,89 @@
+"""``parproj process``: the pipeline over a bag without DDS; one option per offline parameter."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from ...core.config import PARAMS
+from ...io.files import (
+    check_output,
+    input_path,
+    integer,
+    number,
+    staged_output,
+)
+
+#: The parameters of parproj_node that ``parproj process`` has options for.
+OFFLINE_PARAMS = tuple(p for p in PARAMS if p.offline)
+
+
+#: Option value names of ``parproj process`` by unit.
+METAVARS = {"m": "M", "px": "PX", "s": "S", "lines": "N", "points": "N"}
+
+
+def _add_parameter_options(p: argparse.ArgumentParser) -> None:
+    """One option per parameter of parproj_node that makes sense offline (config.PARAMS).
+
+    The same name with dashes (``--z-avg``), default and range (numbers are checked: finite, in
+    range, else exit 2), and the description; booleans have ``--no-<name>`` as well.
+    """
+    for prm in OFFLINE_PARAMS:
+        unit = f" [{prm.unit}]" if prm.unit else ""
+        rng = f"; {prm.option_range_text}" if prm.option_range_text else ""
+        shown = "on" if prm.default is True else "off" if prm.default is False else prm.default
+        text = f"{prm.description}{unit}{rng}; default {shown}".replace("%", "%%")
+        names = [prm.option, *prm.aliases]
+        kw: dict[str, Any] = {"dest": prm.name, "default": prm.default, "help": text}
+        if prm.type == "bool":
+            p.add_argument(*names, action=argparse.BooleanOptionalAction, **kw)
+            continue
+        if prm.choices:
+            kw["choices"] = list(prm.choices)
+        elif prm.type == "integer":
+            lo, hi = (None if b is None else int(b) for b in (prm.low, prm.high))
+            kw["type"] = integer(lo, hi)
+        elif prm.type == "double":
+            kw["type"] = number(prm.low, prm.high, lo_open=prm.low_open)
+        if not prm.choices:
+            kw["metavar"] = METAVARS.get(prm.unit, "N" if prm.type == "integer" else "X")
+        p.add_argument(*names, **kw)
+
+
+def run(args: argparse.Namespace) -> int:
+    """``parproj process``: the pipeline over a bag without DDS."""
+    from ...sim.recording import check_input_bag
+    from ..process import process_bag
+
+    args.inputs = [args.bag]
+    bag = input_path(args.bag, "bag")
+    out = check_output(args.output, inputs=[bag], force=args.force)
+    args.outputs = [out]
+    check_input_bag(bag)
+    overrides = {p.field: getattr(args, p.name) for p in OFFLINE_PARAMS if p.field}
+    if args.no_gcp:
+        overrides["min_gcp"] = 10**9
+    with staged_output(out, force=args.force) as work:
+        summary = process_bag(bag, work, overrides=overrides, progress=not args.quiet)
+    for iss in summary.issues:
+        print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
+    rec = summary.recovery
+    lost = "" if rec is None or rec.complete else f"; input cut off: {rec.error}"
+    print(
+        f"{summary.messages_in} messages in, {summary.scenes} scenes, {summary.pairs} pairs "
+        f"-> {out}{lost}"
+    )
+    return 0 if summary.pairs > 0 else 1
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``parproj process`` to the sub-command parsers ``sub``."""
+    p = sub.add_parser("process", help="run the pipeline over a bag offline, write outputs")
+    p.add_argument("bag")
+    p.add_argument("-o", "--output", required=True, help="output bag folder")
+    p.add_argument("--force", action="store_true", help="replace an existing output bag")
+    p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
+    _add_parameter_options(p)
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
