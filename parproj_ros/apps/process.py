@@ -10,7 +10,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ..core.pipeline import Issue, Outputs, Pipeline, PipelineConfig
+from ..core.config import PipelineConfig
+from ..core.pipeline import Pipeline
+from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
 from ..sim.recording import FRAME_ID, config_from_bag
@@ -45,7 +47,7 @@ def _bag_issues(reader: BagReader, name: str) -> Outputs:
         lost = rec.messages_lost
         out.issues.append(
             Issue(
-                "warn",
+                Level.WARN,
                 name,
                 (
                     f"input bag cut off ({rec.error}): "
@@ -57,13 +59,13 @@ def _bag_issues(reader: BagReader, name: str) -> Outputs:
     for topic, n in sorted(reader.skipped.items()):
         out.issues.append(
             Issue(
-                "warn",
+                Level.WARN,
                 topic,
                 (f"{n} messages of type {reader.topics().get(topic, '?')} unknown here: skipped"),
             )
         )
     for topic, n in sorted(reader.decode_errors.items()):
-        out.issues.append(Issue("warn", topic, f"{n} messages could not be decoded: skipped"))
+        out.issues.append(Issue(Level.WARN, topic, f"{n} messages could not be decoded: skipped"))
     return out
 
 
@@ -129,7 +131,7 @@ def process_bag(
                 elif item.topic == "pairs":
                     out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
             except conv.ConversionError as err:
-                out.issues.append(Issue("warn", item.topic, f"{err}: message dropped"))
+                out.issues.append(Issue(Level.WARN, item.topic, f"{err}: message dropped"))
             emit(out, item.log_time_ns)
         bar.close()
         emit(_bag_issues(reader, Path(src).name), last)

@@ -453,7 +453,7 @@ class VirtualPoints:
 
     def ground_points(self, frame: LocalTangentPlane) -> list[Any]:
         """As pipeline GroundPoints (object coordinates in ``frame``, metres)."""
-        from ..core.pipeline import GroundPoint
+        from ..core.results import GroundPoint
 
         if not self.ids:
             return []

@@ -586,7 +586,7 @@ class BagWriter:
         """Write the chunk in progress and flush the file (a later cut loses nothing before)."""
         with self._lock:
             self._check_open()
-            self._writer.flush()
+            self._writer.flush()  # type: ignore[no-untyped-call]
 
     def message_counts(self) -> dict[str, int]:
         """Messages written so far per topic."""
@@ -612,7 +612,7 @@ class BagWriter:
                 self._writer.add_metadata(
                     "rosbag2", {"serialized_metadata": "\n".join(_yaml_lines(meta, 0))}
                 )
-                self._writer.finish()
+                self._writer.finish()  # type: ignore[no-untyped-call]
             finally:
                 self._file.close()
             text = "\n".join(_yaml_lines({"rosbag2_bagfile_information": meta}, 0)) + "\n"
@@ -1290,7 +1290,7 @@ class BagReader:
                 self.skipped[topic] = self.skipped.get(topic, 0) + 1
                 continue
             try:
-                msg = deserialize_message(data, cls)
+                msg: Any = deserialize_message(data, cls)
             except Exception:  # rclpy raises assorted exception types for bad CDR
                 self.decode_errors[topic] = self.decode_errors.get(topic, 0) + 1
                 continue

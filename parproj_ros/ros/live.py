@@ -14,6 +14,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +39,13 @@ def ros_environment(domain_id: int | None = None, log_dir: Path | None = None) -
     env["ROS_PYTHON_CHECK_FIELDS"] = "1"
     env["PYTHONUNBUFFERED"] = "1"
     return env
+
+
+def _all_acked(pub: Any) -> bool:
+    """Whether every subscriber acknowledged ``pub``'s messages (waits up to 0.2 s)."""
+    from rclpy.duration import Duration
+
+    return bool(pub.wait_for_all_acked(Duration(seconds=0.2)))
 
 
 def wait_until(
@@ -148,13 +156,10 @@ def replay(
         sent += 1
         bar.update(1)
     bar.close()
-    from rclpy.duration import Duration
 
     for topic, pub in pubs.items():
         # in slices, so that a signal is handled within 0.2 s
-        acked = wait_until(
-            lambda p=pub: p.wait_for_all_acked(Duration(seconds=0.2)), 10.0, poll_s=0
-        )
+        acked = wait_until(partial(_all_acked, pub), 10.0, poll_s=0)
         if not acked:
             log(f"replay: {topic}: not every message was acknowledged within 10 s")
     return {

@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.config import view_values
-from ..core.pipeline import GroundPoint, PipelineConfig, ViewConfig
+from ..core.config import PipelineConfig, ViewConfig, view_values
+from ..core.results import GroundPoint
 from ..core.trajectory import NavSample
 from ..geometry import GeometryError, LineCamera, quaternion_to_rotation
 from ..ros.bag import BagError, BagReader, BagWriter

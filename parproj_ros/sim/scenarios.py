@@ -8,12 +8,14 @@ images are rendered through the rigorous pushbroom model (geometry/pushbroom.py)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core.pipeline import GroundPoint, PipelineConfig, ViewConfig
+from ..core.config import PipelineConfig, ViewConfig
+from ..core.results import GroundPoint
 from ..geometry import ConstantMotion, LineCamera, PushbroomModel, rotation_from_angles
 
 FloatArray = NDArray[np.float64]
@@ -252,7 +254,7 @@ def ground_points(
     scn: Scenario,
     pair: tuple[int, int],
     n: int,
-    locate,
+    locate: Callable[[PushbroomModel, FloatArray, FloatArray], FloatArray],
     rng: np.random.Generator,
     *,
     prefix: str,
