@@ -29,7 +29,7 @@ and converted on reading (every model held by :class:`RPCModel` is in this conve
 Evidence for DIMAP v2: the DIMAP XML and the OSSIM .geom of the same Pleiades scene (Mont
 Ventoux, tests/data/ventoux) carry identical coefficients, but LINE_OFF / SAMP_OFF of the XML are
 21110.5 / 19208.5 and those of the .geom 21109.5 / 19207.5; projections through the two differ by
-exactly (1, 1) px (tests/test_rpc.py). GDAL's Pleiades reader makes the same correction (centre
+exactly (1, 1) px (tests/rpc/test_rpc.py). GDAL's Pleiades reader makes the same correction (centre
 of the upper-left pixel is (1, 1) in DIMAP v2, FIRST_COL of the validity domain since DIMAP v3),
 and the RPC00B offsets refer to pixel centres (GDAL issue 3946).
 

@@ -13,7 +13,8 @@ from rasterio.rpc import RPC
 from parproj_ros import rpc
 from parproj_ros.rpc import RPCModel
 
-DATA = Path(__file__).parent.parent / "data" / "ventoux"
+from .paths import DATA
+
 NAMES = ("left", "right")
 #: Crop origins (line, sample) of the Ventoux crops in their full scenes (data README).
 ORIGINS = ((5000.0, 5000.0), (5162.0, 4915.0))

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 from testkit.scenes import feed, nav_events, render, strip_events
 
 from parproj_ros.apps.process import process_bag
@@ -19,8 +20,6 @@ from parproj_ros.geometry.navigation import virtual_points
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.sim.recording import truth_from_bag
 from parproj_ros.sim.scenarios import SCENARIOS
-
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 
 
 def _pair(extent: str, shift_m: float) -> PairResult:

@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from testkit.paths import ROOT
 
 from parproj_ros.apps import cli
 from parproj_ros.core import config
 from parproj_ros.core.config import PARAMS, VIEW_PARAMS, PipelineConfig, config_from_values
 
-ROOT = Path(__file__).resolve().parent.parent
 BAG = ROOT / "bags" / "ikonos_agile"
 
 

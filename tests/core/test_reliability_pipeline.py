@@ -31,6 +31,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Image
 from testkit.diagnostics import level, show
+from testkit.paths import BAGS
 from testkit.scenes import Event, feed, nav_events, nav_samples
 from testkit.scenes import render as render_as
 
@@ -49,7 +50,6 @@ from parproj_ros.sim.scenarios import SCENARIOS, Scenario, ground_points
 
 pytestmark = pytest.mark.ros  # message classes, diagnostics, bags
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
 
 #: Words that say what was done with bad input.

@@ -11,7 +11,6 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
@@ -30,12 +29,12 @@ from parproj_msgs.msg import (
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
+from testkit.paths import MSG_DIR
 
 pytestmark = pytest.mark.ros  # the built parproj_msgs interfaces
 
 M = TypeVar("M")
 
-MSG_DIR = Path(__file__).resolve().parents[1] / "msg_defs" / "msg"
 ALL_TYPES = (
     ScannerInfo,
     ImageObservation,

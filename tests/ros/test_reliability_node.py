@@ -34,6 +34,7 @@ from sensor_msgs.msg import Image
 from testkit import live
 from testkit.diagnostics import level, show
 from testkit.live import wait
+from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import PipelineConfig
@@ -50,7 +51,6 @@ from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 BAG = BAGS / "ikonos_agile"
 FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
 INPUTS = ["/navigation", "/pan/image_strip"]

@@ -10,6 +10,7 @@ import pytest
 from nav_msgs.msg import Odometry
 from parproj_msgs.msg import GroundControlPoints, ParallelProjection
 from sensor_msgs.msg import Image
+from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core.results import METHODS, GroundPoint, SceneResult
@@ -21,7 +22,6 @@ from parproj_ros.ros.bag import BagReader
 
 pytestmark = pytest.mark.ros  # message classes and bags
 
-BAGS = Path(__file__).resolve().parents[1] / "bags"
 STAMP = 1_700_000_123 * 1_000_000_000 + 456_789
 
 

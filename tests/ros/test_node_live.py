@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.eval.evaluate import evaluate_bag
@@ -21,7 +22,6 @@ from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 ALL_BAGS = ["ikonos_agile", "airborne_foreaft", "crab_foreaft", "ventoux"]
 
 

@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import Pipeline
@@ -17,7 +18,7 @@ from parproj_ros.sim.recording import config_from_bag
 
 pytestmark = pytest.mark.ros  # reads and processes bags
 
-BAG = Path(__file__).resolve().parent.parent / "bags" / "airborne_foreaft"
+BAG = BAGS / "airborne_foreaft"
 LINES = 768
 
 

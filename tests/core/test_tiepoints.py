@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 
 from parproj_ros.core.pipeline import GroundPoint, Outputs, Pipeline
 from parproj_ros.eval.evaluate import normalized_px
@@ -15,7 +14,7 @@ from parproj_ros.sim.recording import config_from_bag, truth_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # reads bags/ikonos_agile
 
-BAG = Path(__file__).resolve().parent.parent / "bags" / "ikonos_agile"
+BAG = BAGS / "ikonos_agile"
 BIAS = 2.5  # pixels added to every sample of the right scene's GCP observations
 
 

@@ -1,7 +1,7 @@
 """``parproj import``: bad inputs each get a clear error naming the file (RELIABILITY.md).
 
 Inputs are made in tmp_path from the Ventoux pair (tests/data/ventoux), through GDAL
-(rasterio) as the importer reads them; the helpers are those of tests/test_conventions.py.
+(rasterio) as the importer reads them; the helpers are those of tests/eval/test_conventions.py.
 """
 
 from __future__ import annotations

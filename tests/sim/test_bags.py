@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.conversions import image_to_array, stamp_to_ns
@@ -15,8 +14,6 @@ from parproj_ros.sim.simulate import render_scene
 from parproj_ros.sim.terrain import procedural_terrain
 
 pytestmark = pytest.mark.ros  # reads the bags (rclpy deserializes)
-
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))

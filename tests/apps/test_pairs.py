@@ -1,6 +1,6 @@
 """More than two acquisitions: `parproj import A B C`, the `pairs` topic, selected pairs.
 
-Three synthetic views of a flat textured ground (nearly affine RPCs, tests/test_import.py's
+Three synthetic views of a flat textured ground (nearly affine RPCs, tests/apps/test_import.py's
 helpers) looking at different along-track angles: B/H 0.08 (A:B), 0.8 (A:C) and 0.72 (B:C).
 """
 

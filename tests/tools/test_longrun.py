@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from testkit.paths import BAGS
 
 from parproj_ros.core.pipeline import Outputs, Pipeline
 from parproj_ros.ros import conversions as conv
@@ -32,7 +33,6 @@ from tools.longrun.checks import (
 )
 from tools.longrun.run import run_longrun
 
-BAGS = Path(__file__).resolve().parent.parent / "bags"
 IKONOS = BAGS / "ikonos_agile"
 AIRBORNE = BAGS / "airborne_foreaft"
 

@@ -12,7 +12,6 @@ import os
 import threading
 import time
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -23,13 +22,13 @@ from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from testkit.paths import ROOT
 
 from parproj_ros.core import config
 from parproj_ros.ros.live import NodeProcess, ros_environment, wait_until
 
 pytestmark = pytest.mark.ros
 
-ROOT = Path(__file__).resolve().parent.parent
 #: Parameters every rclpy node has (not in the table).
 ROS_OWN = {"use_sim_time", "start_type_description_service"}
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from testkit.paths import DATA
 from testkit.rasters import to_rasterio as _gdal_rpc
 
 from parproj_ros import rpc
@@ -20,7 +21,6 @@ from parproj_ros.geometry.geodesy import WGS84_A, WGS84_F
 from parproj_ros.io.dem import grid_height, srtm_height
 from parproj_ros.rpc import RPCModel
 
-DATA = Path(__file__).parent / "data" / "ventoux"
 LEFT_GEOM = DATA / "left_image.geom"
 RIGHT_GEOM = DATA / "right_image.geom"
 DIMAP = DATA / "RPC_PHR1B_P_201308051042194_SEN_690908101-001.XML"

@@ -33,6 +33,7 @@ from mcap.writer import Writer as McapWriter
 from nav_msgs.msg import Odometry
 from parproj_msgs.msg import StereoPair
 from sensor_msgs.msg import Image
+from testkit.paths import DATA, ROOT
 
 from parproj_ros.apps import cli
 from parproj_ros.io.files import MARKER
@@ -41,10 +42,9 @@ from parproj_ros.ros.bag import BagError, BagReader, BagWriter
 
 pytestmark = pytest.mark.ros  # message classes, bags written and read
 
-ROOT = Path(__file__).resolve().parent.parent
 BAG = ROOT / "bags" / "ventoux"  # 19 messages, one pair: processed in about a second
 BIG_BAG = ROOT / "bags" / "ikonos_agile"  # several seconds to process
-DATA = Path(__file__).parent / "data" / "ventoux"
+
 PARPROJ = [sys.executable, "-m", "parproj_ros.apps.cli"]
 FAST = ["-q", "--no-tie-points"]
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from testkit.paths import DATA
 
 from parproj_ros import rpc
 from parproj_ros.core.pipeline import GroundPoint, Pipeline, PipelineConfig, ViewConfig
@@ -32,7 +33,6 @@ from parproj_ros.geometry.segmentation import (
     segment_pair,
 )
 
-DATA = Path(__file__).resolve().parent / "data" / "ventoux"
 C, PIX = 12.905, 13e-6  # Pleiades principal distance and detector pitch, m
 WIDTH = 400  # samples of the strip cut from the full scenes
 HEIGHTS = (900.0, 1100.0)  # a DEM +- 100 m stand-in, metres above the ellipsoid

@@ -42,6 +42,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from testkit.diagnostics import level, show
 from testkit.live import GraphNode as Graph
 from testkit.live import wait
+from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import Outputs, PairResult
@@ -58,7 +59,7 @@ from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
-BAG = Path(__file__).resolve().parent.parent / "bags" / "ikonos_agile"
+BAG = BAGS / "ikonos_agile"
 #: Pipeline settings of the node and of the offline reference: scenes end on their length (as
 #: in the bag, 768 lines), tie points off.
 CONFIG = {"tie_points": False, "scene_lines": 768}
