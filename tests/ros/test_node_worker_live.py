@@ -89,7 +89,8 @@ STOP_BOUND_S = 10.0  # a clean SIGINT, queue empty: the node ends well within th
 #: thread (its queue hands it the end marker), as if it had died.
 LAUNCHER = """
 import sys, time
-from parproj_ros import node, pipeline
+from parproj_ros.core import pipeline
+from parproj_ros.ros import node
 
 _add_gcp = pipeline.Pipeline.add_gcp
 
