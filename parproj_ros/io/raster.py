@@ -9,13 +9,13 @@ marks as no-data (nodata value, alpha, internal mask, NaN) become 0, the pipelin
 RPC: GDAL's ``RPC`` metadata domain, which GDAL fills from every source it knows: the GeoTIFF
 RPCCoefficientTag (50844), ``.RPB`` and ``_RPC.TXT`` sidecars, NITF RPC00B TREs, DIMAP products,
 JPEG 2000 metadata boxes, PAM ``.aux.xml``. The strings are parsed strictly
-(:func:`rpc_from_metadata`: a value like ``1,5`` is an error naming file, key and value). The
-pixel convention of GDAL's RPC metadata is RPC00B's: (0, 0) = centre of the first pixel, this
-project's (GDAL's own pixel space is corner-based: its RPC transformer adds 0.5; tests/rpc/test_rpc.py
-checks our projection and localization against it). An explicit ``.RPB`` / ``_RPC.TXT`` file is
-read by GDAL too (:func:`read_rpc_file`, as the sidecar of a placeholder raster); OSSIM ``.geom``
-keyword lists and loose DIMAP ``RPC_*.XML`` files (GDAL finds DIMAP RPCs only inside a product's
-folder structure) keep this project's readers (parproj_ros/rpc/).
+(:func:`rpc_from_metadata`: a value like ``1,5`` is an error naming file, key and value). The pixel
+convention of GDAL's RPC metadata is RPC00B's: (0, 0) = centre of the first pixel, this project's
+(GDAL's own pixel space is corner-based: its RPC transformer adds 0.5; tests/rpc/test_rpc.py checks
+our projection and localization against it). An explicit ``.RPB`` / ``_RPC.TXT`` file is read by
+GDAL too (:func:`read_rpc_file`, as the sidecar of a placeholder raster); OSSIM ``.geom`` keyword
+lists and loose DIMAP ``RPC_*.XML`` files (GDAL finds DIMAP RPCs only inside a product's folder
+structure) keep this project's readers (parproj_ros/rpc/).
 
 Crop origin (where pixel (0, 0) of the image lies in the RPC's grid): GDAL's geotransform when it
 is a pure translation with unit, non-flipped pixels and no CRS: what GDAL makes of a GeoTIFF
