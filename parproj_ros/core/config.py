@@ -6,13 +6,14 @@ gives the type, default, unit, range or choices, description, and what the value
 :class:`PipelineConfig` field, a view's camera, or the node itself). Everything else follows
 from the table:
 
-- parproj_node declares its parameters from it (descriptors with the ranges, descriptions with the
-units) and builds its :class:`PipelineConfig` with :func:`config_from_values`; - ``parproj
-process`` has one option per row marked ``offline`` (the name with dashes, the same range and
-default); - the README's Parameters table is :func:`parameters_markdown` and
-``config/parproj_node.yaml`` (every parameter at its default, for ``--params-file``) is
-:func:`parameters_yaml`; tests/core/test_params.py fails when either file differs. ``python -m
-parproj_ros.core.config --write .`` (from the repository) rewrites both.
+- parproj_node declares its parameters from it (descriptors with the ranges, descriptions with
+  the units) and builds its :class:`PipelineConfig` with :func:`config_from_values`;
+- ``parproj process`` has one option per row marked ``offline`` (the name with dashes, the same
+  range and default);
+- the README's Parameters table is :func:`parameters_markdown` and ``config/parproj_node.yaml``
+  (every parameter at its default, for ``--params-file``) is :func:`parameters_yaml`;
+  tests/core/test_params.py fails when either file differs. ``python -m
+  parproj_ros.core.config --write .`` (from the repository) rewrites both.
 
 Nothing here imports ROS.
 """
