@@ -343,6 +343,8 @@ PYPI = {
     "mcap": "mcap",
     "zstandard": "zstandard",
     "lz4": "lz4",
+    "distributed": "distributed",
+    "psutil": "psutil",
 }
 #: import name -> rosdep key (package.xml); None: none exists (installed with pip)
 ROSDEP = {
@@ -357,6 +359,8 @@ ROSDEP = {
     "zstandard": "python3-zstandard",
     "lz4": "python3-lz4",
     "mcap": None,
+    "distributed": None,
+    "psutil": "python3-psutil",
 }
 #: ROS packages imported (package.xml exec_depend under the same name)
 ROS = {"rclpy", "rcl_interfaces", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "parproj_msgs"}

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from . import (
+    batch,
     demo,
     evaluate,
     import_images,
@@ -25,4 +26,5 @@ COMMANDS = (
     import_images,
     ventoux_eval,
     segments,
+    batch,
 )

@@ -23,7 +23,7 @@ OFFLINE_PARAMS = tuple(p for p in PARAMS if p.offline)
 METAVARS = {"m": "M", "px": "PX", "s": "S", "lines": "N", "points": "N"}
 
 
-def _add_parameter_options(p: argparse.ArgumentParser) -> None:
+def add_parameter_options(p: argparse.ArgumentParser) -> None:
     """One option per parameter of parproj_node that makes sense offline (config.PARAMS).
 
     The same name with dashes (``--z-avg``), default and range (numbers are checked: finite, in
@@ -51,6 +51,14 @@ def _add_parameter_options(p: argparse.ArgumentParser) -> None:
         p.add_argument(*names, **kw)
 
 
+def overrides_from(args: argparse.Namespace) -> dict[str, Any]:
+    """PipelineConfig fields from the parameter options (and ``--no-gcp``)."""
+    overrides = {p.field: getattr(args, p.name) for p in OFFLINE_PARAMS if p.field}
+    if args.no_gcp:
+        overrides["min_gcp"] = 10**9
+    return overrides
+
+
 def run(args: argparse.Namespace) -> int:
     """``parproj process``: the pipeline over a bag without DDS."""
     from ...sim.recording import check_input_bag
@@ -61,9 +69,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.output, inputs=[bag], force=args.force)
     args.outputs = [out]
     check_input_bag(bag)
-    overrides = {p.field: getattr(args, p.name) for p in OFFLINE_PARAMS if p.field}
-    if args.no_gcp:
-        overrides["min_gcp"] = 10**9
+    overrides = overrides_from(args)
     with staged_output(out, force=args.force) as work:
         summary = process_bag(bag, work, overrides=overrides, progress=not args.quiet)
     for iss in summary.issues:
@@ -84,6 +90,6 @@ def add_parser(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, help="output bag folder")
     p.add_argument("--force", action="store_true", help="replace an existing output bag")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
-    _add_parameter_options(p)
+    add_parameter_options(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
