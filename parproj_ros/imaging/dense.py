@@ -71,8 +71,10 @@ class SgbmParams:
             ``cv2.STEREO_SGBM_MODE_SGBM`` or ``cv2.STEREO_SGBM_MODE_HH`` (8 paths, much more
             memory).
         lr_tolerance_px: largest |d_left - d_right| of the left-right check, pixels.
-        min_std_dn: smallest local standard deviation of the 8-bit left image over a
-            (2 block_size + 1)^2 window, DN; below it a pixel is "low texture".
+        min_texture_dn: smallest local standard deviation of the horizontal gradient
+            (central difference) of the 8-bit left image over a (2 block_size + 1)^2 window,
+            DN per pixel; below it a pixel is "low texture" (uniform, saturated, or a smooth
+            ramp, which has variance but nothing to match along the epipolar line).
         stretch_percentiles: (low, high) percentiles of each image mapped to 0 and 255.
         max_disparities: widest accepted search range, pixels (memory and time bound).
         min_valid_share: below this share of valid pixels (of the left pixels with data) the
@@ -87,7 +89,7 @@ class SgbmParams:
     speckle_range: int = 2
     mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY
     lr_tolerance_px: float = 1.0
-    min_std_dn: float = 2.0
+    min_texture_dn: float = 1.0
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)
     max_disparities: int = 1024
     min_valid_share: float = 0.2
@@ -191,8 +193,9 @@ def _matcher(params: SgbmParams, dmin: int, ndisp: int) -> cv2.StereoSGBM:
     )
 
 
-def _local_std(image: UInt8Array, size: int) -> Float32Array:
-    f = image.astype(np.float32)
+def _texture(image: UInt8Array, size: int) -> Float32Array:
+    """Local standard deviation of the horizontal gradient over size x size, DN per pixel."""
+    f = cv2.Sobel(image.astype(np.float32), cv2.CV_32F, 1, 0, ksize=1) * np.float32(0.5)
     m = cv2.boxFilter(f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
     m2 = cv2.boxFilter(f * f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
     return cast("Float32Array", np.sqrt(np.maximum(m2 - m * m, 0.0)))
@@ -290,7 +293,7 @@ def _match_tile(
     )
     code[~lr_ok] = _LR
     code[raw_l == invalid] = _NO_MATCH
-    low = _local_std(lwin, 2 * params.block_size + 1) < params.min_std_dn
+    low = _texture(lwin, 2 * params.block_size + 1) < params.min_texture_dn
     code[low] = _LOW_TEXTURE
     code[lbad] = _NODATA
     out = np.where(code == _VALID, dl + np.float32(prep.shift), np.float32(np.nan))
