@@ -153,11 +153,15 @@ class DsmGrid:
 
     @classmethod
     def covering(cls, xmin: float, xmax: float, ymin: float, ymax: float, cell: float) -> DsmGrid:
-        """The grid of cell side ``cell`` (m) whose cells cover [xmin, xmax] x [ymin, ymax]."""
+        """The grid of cell side ``cell`` (m), centres on multiples of it, holding the box.
+
+        Every point of [xmin, xmax] x [ymin, ymax] (metres) falls in one of its cells.
+        """
         if not (cell > 0 and math.isfinite(cell)):
             raise ValueError(f"cell must be a finite size > 0 m, got {cell}")
-        x0 = math.floor(xmin / cell) * cell
-        y0 = math.ceil(ymax / cell) * cell
+        # Cell centres on multiples of ``cell``; the cells holding the extreme points.
+        x0 = math.floor(xmin / cell + 0.5) * cell
+        y0 = math.floor(ymax / cell + 0.5) * cell
         w = math.floor((xmax - x0) / cell + 0.5) + 1
         h = math.floor((y0 - ymin) / cell + 0.5) + 1
         return cls(x0, y0, cell, w, h)
@@ -245,16 +249,14 @@ def make_dsm(
         if not valid.any():
             grid = DsmGrid(0.0, 0.0, size, 1, 1)
         else:
-            # The ground of the valid pixels lies within the corners of their bounding box at
-            # the extreme heights (the mapping is affine).
+            # The ground of the valid pixels lies within the ground of the corners of their
+            # bounding box at the extreme heights (the mapping is affine).
             rows = np.flatnonzero(valid.any(axis=1))
             cols = np.flatnonzero(valid.any(axis=0))
             z = heights_from_disparity([np.nanmin(disparity), np.nanmax(disparity)], a, b).astype(
                 float
             )
-            cc, rr, zz = np.meshgrid(
-                [cols[0] - 0.5, cols[-1] + 0.5], [rows[0] - 0.5, rows[-1] + 0.5], z
-            )
+            cc, rr, zz = np.meshgrid([cols[0], cols[-1]], [rows[0], rows[-1]], z)
             x, y = mapping.pixel_to_ground(cc, rr, zz)
             grid = DsmGrid.covering(x.min(), x.max(), y.min(), y.max(), size)
     n_cells = grid.width * grid.height
