@@ -72,6 +72,10 @@ def sim() -> Sim:
     (pair,) = out.pairs
     left = GroundMapping(pair.left_grid, pair.normalization.left, pair.left.affine)
     right = GroundMapping(pair.right_grid, pair.normalization.right, pair.right.affine)
+    for side, ref in (("left", left), ("right", right)):
+        got = GroundMapping.of_pair(pair, side)  # type: ignore[arg-type]
+        assert got.grid == ref.grid and got.affine == ref.affine
+        assert np.array_equal(got.to_normalized, ref.to_normalized)
     return Sim(scn, terrain, scenes, pair, left, right)
 
 

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal, cast
+from typing import Any, Literal, Protocol, cast
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..geometry.epipolar import invert_affine_2x3
+from ..geometry.epipolar import Normalization, invert_affine_2x3
 from ..geometry.parallel import AffineModel
 from .resample import OutputGrid, SceneGeometry
 
@@ -34,6 +34,7 @@ __all__ = [
     "Dsm",
     "DsmGrid",
     "GroundMapping",
+    "PairLike",
     "dsm_errors",
     "heights_from_disparity",
     "make_dsm",
@@ -62,6 +63,35 @@ def heights_from_disparity(
     )
 
 
+class _SceneLike(Protocol):
+    @property
+    def affine(self) -> AffineModel: ...
+
+
+class PairLike(Protocol):
+    """What :meth:`GroundMapping.of_pair` reads of a pair (a ``results.PairResult``)."""
+
+    @property
+    def left(self) -> _SceneLike:
+        """The left scene (its A1..A8 ``affine``)."""
+
+    @property
+    def right(self) -> _SceneLike:
+        """The right scene."""
+
+    @property
+    def normalization(self) -> Normalization:
+        """Paper 2 Eq 8 (the 2x3 affines ``left`` and ``right``)."""
+
+    @property
+    def left_grid(self) -> OutputGrid:
+        """The left normalized image's grid."""
+
+    @property
+    def right_grid(self) -> OutputGrid:
+        """The right normalized image's grid."""
+
+
 @dataclass(frozen=True)
 class GroundMapping:
     """Pixel of one normalized image <-> object X, Y at a known height Z (exact, affine in Z).
@@ -76,6 +106,15 @@ class GroundMapping:
     grid: OutputGrid
     to_normalized: FloatArray
     affine: AffineModel
+
+    @classmethod
+    def of_pair(cls, pair: PairLike, side: Literal["left", "right"] = "left") -> GroundMapping:
+        """The mapping of one image of a pair: its grid, normalization affine and A1..A8."""
+        if side == "left":
+            return cls(pair.left_grid, pair.normalization.left, pair.left.affine)
+        if side == "right":
+            return cls(pair.right_grid, pair.normalization.right, pair.right.affine)
+        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
 
     @property
     def _pixel_to_ground(self) -> tuple[FloatArray, FloatArray]:
