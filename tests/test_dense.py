@@ -232,6 +232,19 @@ def test_no_data_only(pair: tuple[np.ndarray, ...]) -> None:
     assert res.status == DenseStatus.NO_OVERLAP and res.counts["nodata"] == left.size
 
 
+def test_data_that_do_not_overlap_within_the_range(pair: tuple[np.ndarray, ...]) -> None:
+    left, right, _ = pair
+    lcut, rcut = left.copy(), right.copy()
+    lcut[:, 100:] = 0  # left data in columns 0..99
+    rcut[:, :140] = 0  # right data in columns 140.. : disparities <= -41 would be needed
+    res = match_pair(lcut, rcut, d_range=(0, 24))
+    assert res.status == DenseStatus.NO_OVERLAP, res.message
+    assert np.all(np.isnan(res.disparity))
+    rcut[:, 60:140] = right[:, 60:140]  # now partners exist for left columns 60..99
+    res = match_pair(lcut, rcut, d_range=(0, 24))
+    assert res.status != DenseStatus.NO_OVERLAP and res.counts["valid"] > 0
+
+
 def test_unrelated_images_do_not_match(pair: tuple[np.ndarray, ...]) -> None:
     left, _, _ = pair
     other = np.clip(texture(H, W, seed=99), 1, 2047).astype(np.uint16)

@@ -50,7 +50,8 @@ class DenseStatus(StrEnum):
     #: The valid share is below ``min_valid_share`` for another reason (no unique or no
     #: left-right consistent match).
     NO_MATCH = "no_match"
-    #: The left or the right image has no data at all (nothing to match).
+    #: The left or the right image has no data, or no row has data in both within the
+    #: disparity range (nothing to match).
     NO_OVERLAP = "no_overlap"
     #: The disparity range is as wide as the image or wider than ``max_disparities``.
     RANGE_TOO_WIDE = "range_too_wide"
@@ -355,8 +356,10 @@ def match_pair(
     rng = (dmin, dmin + ndisp - 1)
     shift = dmin + ndisp // 2
     # Data masks and stretch limits, one row band at a time (no full-size temporary).
+    # Per row, the first and last column with data of each image (-1, -1: none).
     n_data = n_right = 0
     samples: tuple[list[NDArray[Any]], list[NDArray[Any]]] = ([], [])
+    extent = np.full((2, 2, h), -1, dtype=np.int64)
     step = max(1, math.ceil(math.sqrt(h * w / 1_000_000)))
     for r0, r1 in _spans(h, tile_rows):
         for side, (img, mask) in enumerate(((left, left_mask), (right, right_mask))):
@@ -365,9 +368,15 @@ def match_pair(
                 n_data += int(ok.sum())
             else:
                 n_right += int(ok.sum())
+            has = ok.any(axis=1)
+            extent[side, 0, r0:r1] = np.where(has, np.argmax(ok, axis=1), -1)
+            extent[side, 1, r0:r1] = np.where(has, w - 1 - np.argmax(ok[:, ::-1], axis=1), -1)
             first = (-r0) % step
             sub = img[r0 + first : r1 : step, ::step][ok[first::step, ::step]]
             samples[side].append(sub.astype(np.float64))
+    # A left column c can meet right columns c - dmax .. c - dmin.
+    both = (extent[0, 0] >= 0) & (extent[1, 0] >= 0)
+    meet = both & (extent[0, 0] <= extent[1, 1] + rng[1]) & (extent[0, 1] >= extent[1, 0] + dmin)
 
     def failed(status: DenseStatus, message: str, reason: str) -> DisparityResult:
         counts = dict.fromkeys(_REASONS, 0)
@@ -378,6 +387,12 @@ def match_pair(
 
     if n_data == 0 or n_right == 0:
         return failed(DenseStatus.NO_OVERLAP, "the left or the right image has no data", "nodata")
+    if not meet.any():
+        return failed(
+            DenseStatus.NO_OVERLAP,
+            f"no left pixel with data has a partner with data within disparities {rng}",
+            "lr_failure",
+        )
     if ndisp >= w or ndisp > p.max_disparities:
         return failed(
             DenseStatus.RANGE_TOO_WIDE,
