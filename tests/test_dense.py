@@ -18,6 +18,7 @@ from parproj_ros.imaging.dense import (
     SgbmParams,
     disparity_range,
     match_pair,
+    refine_range,
     to_uint8,
 )
 
@@ -187,6 +188,21 @@ def test_low_texture_regions_are_masked(pair: tuple[np.ndarray, ...]) -> None:
     assert np.all(np.isnan(res.disparity[80:160, 140:200]))
     assert res.counts["low_texture"] > 50 * 80
     assert res.status == DenseStatus.OK
+
+
+def test_refine_range_from_a_reduced_pair() -> None:
+    """A +-150 px range (too wide for a 640 px image at 1:1) narrowed at 1:4 around the truth."""
+    left, right, truth = make_pair(480, 640, base=40.0, seed=5)
+    assert match_pair(left, right, d_range=(-400, 400)).status == DenseStatus.RANGE_TOO_WIDE
+    rng = refine_range(left, right, d_range=(-150, 150), scale=4)
+    assert rng is not None
+    assert rng[0] <= truth.min() and rng[1] >= truth.max()
+    assert rng[1] - rng[0] <= (truth.max() - truth.min()) + 2 * (8 + 4) + 8, rng
+    res = match_pair(left, right, d_range=rng)
+    ok = interior(left.shape) & np.isfinite(res.disparity)
+    assert np.median(np.abs(res.disparity[ok] - truth[ok])) < 0.2
+    flat = np.full((480, 640), 700, dtype=np.uint16)
+    assert refine_range(flat, flat, d_range=(-150, 150)) is None
 
 
 # ---- bad cases: a status, never an exception ----------------------------------------------------

@@ -31,6 +31,7 @@ __all__ = [
     "SgbmParams",
     "disparity_range",
     "match_pair",
+    "refine_range",
     "to_uint8",
 ]
 
@@ -450,3 +451,65 @@ def match_pair(
             f"(< {100 * p.min_valid_share:.0f} %); most failures: {worst}"
         )
     return DisparityResult(disp, status, rng, share, named, msg)
+
+
+def refine_range(
+    left: NDArray[Any],
+    right: NDArray[Any],
+    *,
+    d_range: tuple[int, int],
+    scale: int = 4,
+    nodata: float | None = 0.0,
+    percentiles: tuple[float, float] = (0.5, 99.5),
+    margin_px: float = 8.0,
+    params: SgbmParams | None = None,
+) -> tuple[int, int] | None:
+    """A narrower disparity range from matching a ``scale`` times reduced pair over ``d_range``.
+
+    For a pair whose height range (GCP, ``z_avg`` +- ``height_range``) gives a search range too
+    wide to match at full resolution: both images are reduced by area averaging (a reduced
+    pixel with any no-data input pixel has no data), matched over ``d_range / scale``, and the
+    ``percentiles`` of the valid reduced disparities, times ``scale`` and widened by
+    ``margin_px`` plus one reduced pixel, are returned (intersected with ``d_range``).
+
+    Args:
+        left: left normalized image.
+        right: right normalized image (same shape).
+        d_range: the wide range, pixels (either order).
+        scale: reduction factor (>= 2).
+        nodata: the images' no-data value (None: none).
+        percentiles: of the reduced disparities kept, percent.
+        margin_px: added on both sides, full-resolution pixels.
+        params: matcher settings of the reduced matching.
+
+    Returns:
+        (dmin, dmax), full-resolution pixels, or None when the reduced pair does not match
+        (its :class:`DenseStatus` is not OK): search the whole ``d_range`` or give up.
+    """
+    if scale < 2:
+        raise ValueError(f"scale must be >= 2, got {scale}")
+    lo, hi = sorted(int(v) for v in d_range)
+    h, w = left.shape
+    size = (max(1, w // scale), max(1, h // scale))
+    small: list[NDArray[Any]] = []
+    for img in (left, right):
+        f = img.astype(np.float32)
+        red = cv2.resize(f, size, interpolation=cv2.INTER_AREA)
+        if nodata is not None:
+            bad = (~_valid_mask(img, nodata, None)).astype(np.float32)
+            red[cv2.resize(bad, size, interpolation=cv2.INTER_AREA) > 0] = np.nan
+        small.append(red)
+    res = match_pair(
+        small[0],
+        small[1],
+        d_range=(math.floor(lo / scale), math.ceil(hi / scale)),
+        nodata=None,
+        params=params,
+    )
+    if res.status != DenseStatus.OK:
+        return None
+    d = res.disparity[np.isfinite(res.disparity)]
+    p0, p1 = (float(v) for v in np.percentile(d, percentiles))
+    pad = margin_px + scale
+    out = (max(lo, math.floor(p0 * scale - pad)), min(hi, math.ceil(p1 * scale + pad)))
+    return out if out[0] <= out[1] else None
