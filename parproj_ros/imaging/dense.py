@@ -172,9 +172,11 @@ def _valid_mask(image: NDArray[Any], nodata: float | None, mask: BoolArray | Non
 
 
 def to_uint8(image: NDArray[Any], low: float, high: float) -> UInt8Array:
-    """Linear stretch of ``image`` mapping [low, high] DN to [0, 255] (clipped), uint8."""
+    """Linear stretch of ``image`` mapping [low, high] DN to [0, 255] (clipped), uint8; NaN: 0."""
     scale = 255.0 / (high - low) if high > low else 0.0
     out = (image.astype(np.float32) - np.float32(low)) * np.float32(scale)
+    if image.dtype.kind == "f":
+        out = np.nan_to_num(out, nan=0.0, posinf=255.0, neginf=0.0)
     return cast("UInt8Array", np.clip(np.rint(out), 0, 255).astype(np.uint8))
 
 
