@@ -17,7 +17,7 @@ import pytest
 from testkit.scenes import feed, nav_events, strip_events
 
 from parproj_ros.geometry import AffineModel
-from parproj_ros.imaging.dense import DenseStatus, disparity_range, match_pair
+from parproj_ros.imaging.dense import DenseStatus, disparity_range, match_pair, refine_range
 from parproj_ros.imaging.heights import (
     DsmGrid,
     GroundMapping,
@@ -270,3 +270,43 @@ def test_orthoimages_of_both_views_agree(sim: Sim, matched: dict[str, Any]) -> N
     ro2 = orthoimage(p.right_image, off, sim.right).astype(float)
     both = (lo2 > 0) & (ro2 > 0)
     assert np.corrcoef(lo2[both], ro2[both])[0, 1] < 0.5
+
+
+@pytest.mark.slow
+def test_full_size_pair_as_the_pipeline_would_call_it() -> None:
+    """The recorded ikonos_agile geometry at full size (768 px scenes), its own height range.
+
+    The pipeline's height range (z_avg +- height_range, 300 m) is 522 px of disparity:
+    ``refine_range`` narrows it at 1:4 before matching at full resolution.
+    """
+    scn = dataclasses.replace(SCENARIOS["ikonos_agile"](), gcp=0, check=0)
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    scenes = [
+        render_scene(scn.model(i), terrain, 0, sc.lines, dtype=np.uint16, workers=2)
+        for i, sc in enumerate(scn.scenes)
+    ]
+    pipe = Pipeline(scn.pipeline_config(tie_points=False, streaming=False))
+    (p,) = feed(pipe, nav_events(scn) + strip_events(scn, scenes)).pairs
+    assert p.left_image is not None and p.right_image is not None
+    a, b = p.height_per_disparity_px, p.height_offset_m
+    c = pipe.config
+    wide = disparity_range(a, b, (c.z_avg - c.height_range, c.z_avg + c.height_range))
+    rng = refine_range(p.left_image, p.right_image, d_range=wide)
+    assert rng is not None and rng[1] - rng[0] < 0.5 * (wide[1] - wide[0]), (wide, rng)
+    res = match_pair(p.left_image, p.right_image, d_range=rng)
+    assert res.status == DenseStatus.OK, res.message
+    left, right = GroundMapping.of_pair(p), GroundMapping.of_pair(p, "right")
+    dsm = make_dsm(res.disparity, a, b, left, fill="nearest", max_fill_cells=1.0)
+    x, y = dsm.grid.centres()
+    truth = terrain.height(x, y)
+    both = seen_by(left, p.left_image, x, y, truth) & seen_by(right, p.right_image, x, y, truth)
+    cl, _ = left.ground_to_pixel(x[both], y[both], truth[both])
+    cr, _ = right.ground_to_pixel(x[both], y[both], truth[both])
+    assert rng[0] <= (cl - cr).min() and (cl - cr).max() <= rng[1]  # the truth was searched
+    err = dsm_errors(dsm.heights, truth, both)
+    raw = dsm_errors(np.where(dsm.filled, np.nan, dsm.heights), truth, both)
+    print(f"|a| = {abs(a):.3f} m/px, range {wide} -> {rng}, raw {raw}, filled 1 cell {err}")
+    assert err["nmad"] <= abs(a) and raw["nmad"] <= abs(a), (raw, err)
+    assert err["completeness"] >= 0.95 and raw["completeness"] >= 0.90, (raw, err)
