@@ -155,6 +155,26 @@ def test_inverted_sign_is_matched(pair: tuple[np.ndarray, ...]) -> None:
     assert np.median(np.abs(-d[ok] - truth[ok])) < 0.2
 
 
+def test_left_right_check_rejects_what_the_right_image_does_not_show(
+    pair: tuple[np.ndarray, ...],
+) -> None:
+    left, right, truth = pair
+    right = right.copy()
+    right[80:160, 120:200] = np.clip(texture(80, 80, seed=7), 1, 2047).astype(np.uint16)
+    patch = (slice(90, 150), slice(145, 205))  # left pixels whose partners were replaced
+    valid = {}
+    for mode in ("flip", "none"):
+        res = match_pair(left, right, d_range=(0, 24), params=SgbmParams(lr_check=mode))
+        assert res.status == DenseStatus.OK
+        valid[mode] = np.isfinite(res.disparity[patch]).mean()
+        ok = interior(left.shape) & np.isfinite(res.disparity)
+        ok[80:160, 110:215] = False
+        assert np.median(np.abs(res.disparity[ok] - truth[ok])) < 0.2
+    assert valid["flip"] < 0.2 and valid["flip"] < 0.75 * valid["none"], valid
+    with pytest.raises(ValueError, match="lr_check"):
+        SgbmParams(lr_check="internal")  # type: ignore[arg-type]
+
+
 def test_no_data_is_nan_and_counted(pair: tuple[np.ndarray, ...]) -> None:
     left, right, truth = pair
     left = left.copy()

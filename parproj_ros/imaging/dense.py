@@ -19,7 +19,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -72,6 +72,11 @@ class SgbmParams:
         mode: ``cv2.STEREO_SGBM_MODE_SGBM_3WAY`` (default, faster, less memory),
             ``cv2.STEREO_SGBM_MODE_SGBM`` or ``cv2.STEREO_SGBM_MODE_HH`` (8 paths, much more
             memory).
+        lr_check: "flip" (default): a second, right-to-left SGBM pass on both images mirrored
+            and swapped, and the left and right disparities compared; "none": no check (half
+            the time; only partners without data are rejected). OpenCV's own check
+            (``disp12MaxDiff``) is not offered: it removed nothing here that the uniqueness
+            test had not removed already.
         lr_tolerance_px: largest |d_left - d_right| of the left-right check, pixels.
         min_texture_dn: smallest local standard deviation of the horizontal gradient
             (central difference) of the 8-bit left image over a (2 block_size + 1)^2 window,
@@ -90,6 +95,7 @@ class SgbmParams:
     speckle_window: int = 100
     speckle_range: int = 2
     mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY
+    lr_check: Literal["flip", "none"] = "flip"
     lr_tolerance_px: float = 1.0
     min_texture_dn: float = 1.0
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)
@@ -97,6 +103,8 @@ class SgbmParams:
     min_valid_share: float = 0.2
 
     def __post_init__(self) -> None:
+        if self.lr_check not in ("flip", "none"):
+            raise ValueError(f"lr_check must be 'flip' or 'none', got {self.lr_check!r}")
         if self.block_size < 1 or self.block_size % 2 == 0:
             raise ValueError(f"block_size must be odd and >= 1, got {self.block_size}")
         lo, hi = self.stretch_percentiles
@@ -266,12 +274,7 @@ def _match_tile(
     rwin, rok = prep.window(1, rows, (ext[0] - prep.shift, ext[1] - prep.shift))
     invalid = (prep.dmin - 1) * 16
     raw_l = matcher.compute(lwin, rwin)
-    raw_r = matcher.compute(
-        np.ascontiguousarray(rwin[:, ::-1]), np.ascontiguousarray(lwin[:, ::-1])
-    )
-    raw_r = raw_r[:, ::-1]  # disparity of each right pixel u: its left partner is u + d
     dl = raw_l.astype(np.float32) / 16.0
-    dr = raw_r.astype(np.float32) / 16.0
     width = lwin.shape[1]
     half = params.block_size // 2
     # No data, or a block that reaches into no data.
@@ -282,19 +285,22 @@ def _match_tile(
         lbad = cv2.dilate(lbad.astype(np.uint8), kernel).astype(bool)
         rbad = cv2.dilate(rbad.astype(np.uint8), kernel).astype(bool)
     code = np.full(lwin.shape, _VALID, dtype=np.uint8)
-    # Left-right check: the right pixel nearest to x - d must point back within tolerance.
+    # The partner (the right pixel nearest to x - d) must have data and, with the "flip"
+    # check, point back within tolerance.
     xs = np.arange(width, dtype=np.float32)[None, :]
     u = np.rint(xs - dl).astype(np.int64)
     inside = (u >= 0) & (u < width)
     uc = np.clip(u, 0, width - 1)
     rr = np.arange(lwin.shape[0])[:, None]
-    back = dr[rr, uc]
-    lr_ok = (
-        inside
-        & (raw_r[rr, uc] != invalid)
-        & (np.abs(back - dl) <= params.lr_tolerance_px)
-        & ~rbad[rr, uc]
-    )
+    lr_ok = inside & ~rbad[rr, uc]
+    if params.lr_check == "flip":
+        raw_r = matcher.compute(
+            np.ascontiguousarray(rwin[:, ::-1]), np.ascontiguousarray(lwin[:, ::-1])
+        )[:, ::-1]  # disparity of each right pixel u: its left partner is u + d
+        back = raw_r[rr, uc]
+        lr_ok &= (back != invalid) & (
+            np.abs(back.astype(np.float32) / 16.0 - dl) <= params.lr_tolerance_px
+        )
     code[~lr_ok] = _LR
     code[raw_l == invalid] = _NO_MATCH
     low = _texture(lwin, 2 * params.block_size + 1) < params.min_texture_dn
