@@ -2,7 +2,7 @@
 
 Convention (the pipeline's and OpenCV's): the disparity of a left pixel is
 ``d = col_left - col_right`` in normalized pixels, and the pair's own linear relation gives its
-height, ``Z = a d + b`` (:attr:`parproj_ros.results.PairResult.height_per_disparity_px` ``a``,
+height, ``Z = a d + b`` (:attr:`parproj_ros.core.results.PairResult.height_per_disparity_px` ``a``,
 metres per pixel, and ``height_offset_m`` ``b``, metres). ``a`` may be negative (an x-parallax
 of inverted sign): the searched range is then simply the other way round.
 

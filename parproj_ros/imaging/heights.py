@@ -69,7 +69,7 @@ class _SceneLike(Protocol):
 
 
 class PairLike(Protocol):
-    """What :meth:`GroundMapping.of_pair` reads of a pair (a ``results.PairResult``)."""
+    """What :meth:`GroundMapping.of_pair` reads of a pair (a ``core.results.PairResult``)."""
 
     @property
     def left(self) -> _SceneLike:

@@ -1,6 +1,6 @@
 """Heights, DSM and ortho-image of a normalized pair (imaging/heights.py), ROS-free.
 
-The end-to-end tests build a simulated pair as tests/test_pipeline.py does: the ikonos_agile
+The end-to-end tests build a simulated pair as tests/core/test_pipeline.py does: the ikonos_agile
 geometry (scaled down to 384 x 384 px scenes) rendered through the rigorous pushbroom model
 over the scenario's procedural terrain, fed to a Pipeline without DDS; the terrain gives the
 true height of every DSM cell. Tolerances come from the pair's geometry: one pixel of
@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from testkit.scenes import feed, nav_events, strip_events
 
+from parproj_ros.core.pipeline import PairResult, Pipeline
 from parproj_ros.geometry import AffineModel
 from parproj_ros.imaging.dense import DenseStatus, disparity_range, match_pair, refine_range
 from parproj_ros.imaging.heights import (
@@ -27,10 +28,9 @@ from parproj_ros.imaging.heights import (
     orthoimage,
 )
 from parproj_ros.imaging.resample import OutputGrid
-from parproj_ros.imaging.simulate import render_scene
-from parproj_ros.imaging.terrain import Terrain, procedural_terrain
-from parproj_ros.pipeline import PairResult, Pipeline
-from parproj_ros.scenarios import SCENARIOS, Scenario
+from parproj_ros.sim.scenarios import SCENARIOS, Scenario
+from parproj_ros.sim.simulate import render_scene
+from parproj_ros.sim.terrain import Terrain, procedural_terrain
 
 SIZE = 384  # lines and detectors of each scene (the scenario has 768)
 MARGIN_PX = 8  # cells whose ground is this close to an image edge are not evaluated
