@@ -1,0 +1,523 @@
+"""Dense matching of a normalized (epipolar) stereo pair with OpenCV's semi-global matcher.
+
+Convention (the pipeline's and OpenCV's): the disparity of a left pixel is
+``d = col_left - col_right`` in normalized pixels, and the pair's own linear relation gives its
+height, ``Z = a d + b`` (:attr:`parproj_ros.core.results.PairResult.height_per_disparity_px` ``a``,
+metres per pixel, and ``height_offset_m`` ``b``, metres). ``a`` may be negative (an x-parallax
+of inverted sign): the searched range is then simply the other way round.
+
+:func:`match_pair` cuts the pair into tiles (row bands x column tiles) with overlaps, so that a
+large pair (14k x 14k) is matched with bounded working memory; each tile is matched left to
+right and, for the left-right consistency check, right to left (both images flipped
+horizontally and swapped, which keeps OpenCV's convention and the disparity's sign). The
+result is a float32 disparity map in the left normalized image's pixel grid, NaN where invalid
+(no data, low texture, no unique match, left-right inconsistency).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any, Literal, cast
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = [
+    "DenseStatus",
+    "DisparityResult",
+    "SgbmParams",
+    "disparity_range",
+    "match_pair",
+    "refine_range",
+    "to_uint8",
+]
+
+FloatArray = NDArray[np.float64]
+Float32Array = NDArray[np.float32]
+BoolArray = NDArray[np.bool_]
+UInt8Array = NDArray[np.uint8]
+
+
+class DenseStatus(StrEnum):
+    """Outcome of :func:`match_pair` (a string in logs and messages)."""
+
+    OK = "ok"
+    #: The valid share is below ``min_valid_share`` and low texture is the main reason
+    #: (uniform, smooth or saturated images).
+    TEXTURELESS = "textureless"
+    #: The valid share is below ``min_valid_share`` for another reason (no unique or no
+    #: left-right consistent match).
+    NO_MATCH = "no_match"
+    #: The left or the right image has no data, or no row has data in both within the
+    #: disparity range (nothing to match).
+    NO_OVERLAP = "no_overlap"
+    #: The disparity range is as wide as the image or wider than ``max_disparities``.
+    RANGE_TOO_WIDE = "range_too_wide"
+
+
+@dataclass(frozen=True)
+class SgbmParams:
+    """Settings of the semi-global matcher and of the validity checks.
+
+    Attributes:
+        block_size: matched block side, pixels (odd, >= 1).
+        p1: SGM penalty of a 1-step disparity change (None: 8 * block_size^2).
+        p2: SGM penalty of larger changes (None: 32 * block_size^2).
+        uniqueness_ratio: OpenCV's uniquenessRatio, percent.
+        speckle_window: largest speckle region removed, pixels (0: off).
+        speckle_range: largest disparity change within a speckle region, pixels.
+        mode: ``cv2.STEREO_SGBM_MODE_SGBM_3WAY`` (default, faster, less memory),
+            ``cv2.STEREO_SGBM_MODE_SGBM`` or ``cv2.STEREO_SGBM_MODE_HH`` (8 paths, much more
+            memory).
+        lr_check: "flip" (default): a second, right-to-left SGBM pass on both images mirrored
+            and swapped, and the left and right disparities compared; "none": no check (half
+            the time; only partners without data are rejected). OpenCV's own check
+            (``disp12MaxDiff``) is not offered: it removed nothing here that the uniqueness
+            test had not removed already.
+        lr_tolerance_px: largest |d_left - d_right| of the left-right check, pixels.
+        min_texture_dn: smallest local standard deviation of the horizontal gradient
+            (central difference) of the 8-bit left image over a (2 block_size + 1)^2 window,
+            DN per pixel; below it a pixel is "low texture" (uniform, saturated, or a smooth
+            ramp, which has variance but nothing to match along the epipolar line).
+        stretch_percentiles: (low, high) percentiles of each image mapped to 0 and 255.
+        max_disparities: widest accepted search range, pixels (memory and time bound).
+        min_valid_share: below this share of valid pixels (of the left pixels with data) the
+            status is not OK.
+    """
+
+    block_size: int = 5
+    p1: int | None = None
+    p2: int | None = None
+    uniqueness_ratio: int = 10
+    speckle_window: int = 100
+    speckle_range: int = 2
+    mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY
+    lr_check: Literal["flip", "none"] = "flip"
+    lr_tolerance_px: float = 1.0
+    min_texture_dn: float = 1.0
+    stretch_percentiles: tuple[float, float] = (0.5, 99.5)
+    max_disparities: int = 1024
+    min_valid_share: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.lr_check not in ("flip", "none"):
+            raise ValueError(f"lr_check must be 'flip' or 'none', got {self.lr_check!r}")
+        if self.block_size < 1 or self.block_size % 2 == 0:
+            raise ValueError(f"block_size must be odd and >= 1, got {self.block_size}")
+        lo, hi = self.stretch_percentiles
+        if not 0.0 <= lo < hi <= 100.0:
+            raise ValueError(f"stretch_percentiles must be 0 <= low < high <= 100, got {lo, hi}")
+
+
+@dataclass(frozen=True)
+class DisparityResult:
+    """A dense disparity map of a normalized pair.
+
+    Attributes:
+        disparity: float32 (rows, cols) in the left normalized image's grid,
+            ``col_left - col_right`` in pixels (1/16 px steps), NaN where invalid.
+        status: overall outcome.
+        d_range: (dmin, dmax) searched, pixels (inclusive).
+        valid_share: valid pixels / left pixels with data (0 when there are none).
+        counts: pixels per outcome: ``valid``, ``nodata`` (left no-data, or within half a
+            block of it), ``low_texture``, ``no_match`` (SGBM found no unique match),
+            ``lr_failure`` (left-right check failed or the partner has no data).
+        message: what happened, in words.
+    """
+
+    disparity: Float32Array
+    status: DenseStatus
+    d_range: tuple[int, int]
+    valid_share: float
+    counts: dict[str, int] = field(default_factory=dict)
+    message: str = ""
+
+
+def disparity_range(
+    height_per_disparity_px: float,
+    height_offset_m: float,
+    z_range_m: tuple[float, float],
+    margin_px: float = 8.0,
+) -> tuple[int, int]:
+    """Disparities (dmin, dmax), pixels, of heights in ``z_range_m`` plus a margin.
+
+    ``d = (Z - b) / a`` for ``Z = a d + b``; with ``a < 0`` (inverted x-parallax) the lower
+    height gives the higher disparity, so both ends are computed and sorted.
+
+    Args:
+        height_per_disparity_px: a, metres per pixel (non-zero, finite; either sign).
+        height_offset_m: b, metres.
+        z_range_m: (zmin, zmax) of the ground, metres (either order).
+        margin_px: added on both sides, pixels (>= 0).
+
+    Returns:
+        (floor(dmin - margin), ceil(dmax + margin)), integer pixels, dmin <= dmax.
+
+    Raises:
+        ValueError: a is zero or not finite (no stereo base), or an input is not finite.
+    """
+    a, b = float(height_per_disparity_px), float(height_offset_m)
+    if not (math.isfinite(a) and a != 0.0):
+        raise ValueError(f"height per disparity must be finite and non-zero, got {a} m/px")
+    z0, z1 = (float(z) for z in z_range_m)
+    if not all(math.isfinite(v) for v in (b, z0, z1, margin_px)) or margin_px < 0:
+        raise ValueError("height offset, height range and margin must be finite (margin >= 0)")
+    d0, d1 = sorted(((z0 - b) / a, (z1 - b) / a))
+    return math.floor(d0 - margin_px), math.ceil(d1 + margin_px)
+
+
+def _valid_mask(image: NDArray[Any], nodata: float | None, mask: BoolArray | None) -> BoolArray:
+    """True where ``image`` has data (not ``nodata``, and ``mask`` True when given)."""
+    ok = np.ones(image.shape, dtype=bool) if nodata is None else image != nodata
+    if image.dtype.kind == "f":
+        ok &= np.isfinite(image)
+    if mask is not None:
+        ok &= mask.astype(bool)
+    return ok
+
+
+def to_uint8(image: NDArray[Any], low: float, high: float) -> UInt8Array:
+    """Linear stretch of ``image`` mapping [low, high] DN to [0, 255] (clipped), uint8; NaN: 0."""
+    scale = 255.0 / (high - low) if high > low else 0.0
+    out = (image.astype(np.float32) - np.float32(low)) * np.float32(scale)
+    if image.dtype.kind == "f":
+        out = np.nan_to_num(out, nan=0.0, posinf=255.0, neginf=0.0)
+    return cast("UInt8Array", np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+def _matcher(params: SgbmParams, dmin: int, ndisp: int) -> cv2.StereoSGBM:
+    bs = params.block_size
+    return cv2.StereoSGBM.create(
+        minDisparity=dmin,
+        numDisparities=ndisp,
+        blockSize=bs,
+        P1=params.p1 if params.p1 is not None else 8 * bs * bs,
+        P2=params.p2 if params.p2 is not None else 32 * bs * bs,
+        disp12MaxDiff=-1,
+        preFilterCap=63,
+        uniquenessRatio=params.uniqueness_ratio,
+        speckleWindowSize=params.speckle_window,
+        speckleRange=params.speckle_range,
+        mode=params.mode,
+    )
+
+
+def _texture(image: UInt8Array, size: int) -> Float32Array:
+    """Local standard deviation of the horizontal gradient over size x size, DN per pixel."""
+    f = cv2.Sobel(image.astype(np.float32), cv2.CV_32F, 1, 0, ksize=1) * np.float32(0.5)
+    m = cv2.boxFilter(f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
+    m2 = cv2.boxFilter(f * f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
+    return cast("Float32Array", np.sqrt(np.maximum(m2 - m * m, 0.0)))
+
+
+# Outcome codes of a pixel (their order is the order of precedence).
+_VALID, _NODATA, _LOW_TEXTURE, _NO_MATCH, _LR = 0, 1, 2, 3, 4
+_REASONS = ("valid", "nodata", "low_texture", "no_match", "lr_failure")
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """Both original images, their masks and stretch limits, and the matcher's geometry.
+
+    The right image is read ``shift`` columns to the left (``right'[x] = right[x - shift]``) so
+    that the searched disparities ``d - shift``, from ``dmin`` (shifted) over ``ndisp`` values,
+    are centred on 0 and ``pad`` columns on each side of a tile hold every partner.
+    """
+
+    left: NDArray[Any]
+    right: NDArray[Any]
+    left_mask: BoolArray | None
+    right_mask: BoolArray | None
+    nodata: float | None
+    limits: tuple[tuple[float, float], tuple[float, float]]
+    dmin: int
+    ndisp: int
+    pad: int
+    shift: int
+
+    def window(
+        self, side: int, rows: tuple[int, int], cols: tuple[int, int]
+    ) -> tuple[UInt8Array, BoolArray]:
+        """uint8 pixels and data mask of one image over rows x cols (outside: no data)."""
+        img, mask = (self.left, self.left_mask) if side == 0 else (self.right, self.right_mask)
+        r0, r1 = rows
+        c0, c1 = cols
+        a, b = max(0, c0), min(img.shape[1], c1)
+        pix = np.zeros((r1 - r0, c1 - c0), dtype=np.uint8)
+        ok = np.zeros((r1 - r0, c1 - c0), dtype=bool)
+        if b > a:
+            part = img[r0:r1, a:b]
+            m = _valid_mask(part, self.nodata, None if mask is None else mask[r0:r1, a:b])
+            pix[:, a - c0 : b - c0] = np.where(m, to_uint8(part, *self.limits[side]), 0)
+            ok[:, a - c0 : b - c0] = m
+        return pix, ok
+
+
+def _match_tile(
+    prep: _Prepared,
+    matcher: cv2.StereoSGBM,
+    params: SgbmParams,
+    rows: tuple[int, int],
+    cols: tuple[int, int],
+) -> tuple[Float32Array, NDArray[np.uint8]]:
+    """Disparity and outcome codes of left columns cols[0]:cols[1], rows rows[0]:rows[1].
+
+    Both images are cut to the same extended column window (the tile plus ``pad`` on each
+    side, no data outside the image), so that every searched partner is inside it.
+    """
+    a, b = cols
+    ext = (a - prep.pad, b + prep.pad)
+    lwin, lok = prep.window(0, rows, ext)
+    rwin, rok = prep.window(1, rows, (ext[0] - prep.shift, ext[1] - prep.shift))
+    invalid = (prep.dmin - 1) * 16
+    raw_l = matcher.compute(lwin, rwin)
+    dl = raw_l.astype(np.float32) / 16.0
+    width = lwin.shape[1]
+    half = params.block_size // 2
+    # No data, or a block that reaches into no data.
+    lbad = ~lok
+    rbad = ~rok
+    if half > 0:
+        kernel = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
+        lbad = cv2.dilate(lbad.astype(np.uint8), kernel).astype(bool)
+        rbad = cv2.dilate(rbad.astype(np.uint8), kernel).astype(bool)
+    code = np.full(lwin.shape, _VALID, dtype=np.uint8)
+    # The partner (the right pixel nearest to x - d) must have data and, with the "flip"
+    # check, point back within tolerance.
+    xs = np.arange(width, dtype=np.float32)[None, :]
+    u = np.rint(xs - dl).astype(np.int64)
+    inside = (u >= 0) & (u < width)
+    uc = np.clip(u, 0, width - 1)
+    rr = np.arange(lwin.shape[0])[:, None]
+    lr_ok = inside & ~rbad[rr, uc]
+    if params.lr_check == "flip":
+        raw_r = matcher.compute(
+            np.ascontiguousarray(rwin[:, ::-1]), np.ascontiguousarray(lwin[:, ::-1])
+        )[:, ::-1]  # disparity of each right pixel u: its left partner is u + d
+        back = raw_r[rr, uc]
+        lr_ok &= (back != invalid) & (
+            np.abs(back.astype(np.float32) / 16.0 - dl) <= params.lr_tolerance_px
+        )
+    code[~lr_ok] = _LR
+    code[raw_l == invalid] = _NO_MATCH
+    low = _texture(lwin, 2 * params.block_size + 1) < params.min_texture_dn
+    code[low] = _LOW_TEXTURE
+    code[lbad] = _NODATA
+    out = np.where(code == _VALID, dl + np.float32(prep.shift), np.float32(np.nan))
+    s = slice(prep.pad, prep.pad + (b - a))
+    return out[:, s].astype(np.float32), code[:, s]
+
+
+def _spans(n: int, tile: int) -> list[tuple[int, int]]:
+    return [(s, min(n, s + tile)) for s in range(0, n, tile)]
+
+
+def match_pair(
+    left: NDArray[Any],
+    right: NDArray[Any],
+    *,
+    d_range: tuple[int, int],
+    nodata: float | None = 0.0,
+    left_mask: BoolArray | None = None,
+    right_mask: BoolArray | None = None,
+    tile_rows: int = 1024,
+    tile_cols: int = 1024,
+    overlap: int = 64,
+    params: SgbmParams | None = None,
+) -> DisparityResult:
+    """Dense disparity of a normalized pair (left grid), NaN where invalid.
+
+    Args:
+        left: left normalized image (rows, cols), uint8, uint16 or float32.
+        right: right normalized image, same shape (same grid rows, as the pipeline makes them).
+        d_range: (dmin, dmax) searched, pixels, from :func:`disparity_range` (either order);
+            widened to a multiple of 16 disparities as SGBM needs.
+        nodata: pixel value meaning "no data" in both images (None: every value is data).
+        left_mask: optional bool (rows, cols), True where the left image has data.
+        right_mask: same for the right image.
+        tile_rows: rows of a tile, pixels. The working memory is bounded by the tile, not the
+            image: on a 4096 x 4096 pair, 1024 px tiles took 144 MB besides the 64 MB result
+            (one 4096 px tile: 1.25 GB).
+        tile_cols: columns of a tile, pixels.
+        overlap: rows and columns matched around each tile and dropped, pixels; it lets the
+            SGM paths settle so that tiles join without seams.
+        params: matcher settings (default :class:`SgbmParams`).
+
+    Returns:
+        The disparity map, its status and the count of pixels per outcome. Bad inputs
+        (textureless or saturated images, a range wider than the image, no data) give a
+        status other than OK and an all-NaN (or mostly NaN) map, never an exception.
+
+    Raises:
+        ValueError: the images are not 2-D arrays of the same shape, or a tile size is < 16.
+    """
+    p = params or SgbmParams()
+    if left.ndim != 2 or left.shape != right.shape:
+        raise ValueError(f"need two 2-D images of one shape, got {left.shape} and {right.shape}")
+    if min(tile_rows, tile_cols) < 16 or overlap < 0:
+        raise ValueError("tile sizes must be >= 16 px and the overlap >= 0 px")
+    h, w = left.shape
+    dmin, dmax = sorted(int(v) for v in d_range)
+    ndisp = max(16, math.ceil((dmax - dmin + 1) / 16.0) * 16)
+    rng = (dmin, dmin + ndisp - 1)
+    shift = dmin + ndisp // 2
+    # Data masks and stretch limits, one row band at a time (no full-size temporary).
+    # Per row, the first and last column with data of each image (-1, -1: none).
+    n_data = n_right = 0
+    samples: tuple[list[NDArray[Any]], list[NDArray[Any]]] = ([], [])
+    extent = np.full((2, 2, h), -1, dtype=np.int64)
+    step = max(1, math.ceil(math.sqrt(h * w / 1_000_000)))
+    for r0, r1 in _spans(h, tile_rows):
+        for side, (img, mask) in enumerate(((left, left_mask), (right, right_mask))):
+            ok = _valid_mask(img[r0:r1], nodata, None if mask is None else mask[r0:r1])
+            if side == 0:
+                n_data += int(ok.sum())
+            else:
+                n_right += int(ok.sum())
+            has = ok.any(axis=1)
+            extent[side, 0, r0:r1] = np.where(has, np.argmax(ok, axis=1), -1)
+            extent[side, 1, r0:r1] = np.where(has, w - 1 - np.argmax(ok[:, ::-1], axis=1), -1)
+            first = (-r0) % step
+            sub = img[r0 + first : r1 : step, ::step][ok[first::step, ::step]]
+            samples[side].append(sub.astype(np.float64))
+    # A left column c can meet right columns c - dmax .. c - dmin.
+    both = (extent[0, 0] >= 0) & (extent[1, 0] >= 0)
+    meet = both & (extent[0, 0] <= extent[1, 1] + rng[1]) & (extent[0, 1] >= extent[1, 0] + dmin)
+
+    def failed(status: DenseStatus, message: str, reason: str) -> DisparityResult:
+        counts = dict.fromkeys(_REASONS, 0)
+        counts["nodata"] = h * w - n_data
+        counts[reason] += n_data
+        nan_map = np.full((h, w), np.nan, dtype=np.float32)
+        return DisparityResult(nan_map, status, rng, 0.0, counts, message)
+
+    if n_data == 0 or n_right == 0:
+        return failed(DenseStatus.NO_OVERLAP, "the left or the right image has no data", "nodata")
+    if not meet.any():
+        return failed(
+            DenseStatus.NO_OVERLAP,
+            f"no left pixel with data has a partner with data within disparities {rng}",
+            "lr_failure",
+        )
+    if ndisp >= w or ndisp > p.max_disparities:
+        return failed(
+            DenseStatus.RANGE_TOO_WIDE,
+            f"disparity range {rng} ({ndisp} px) is as wide as the image ({w} px) or wider "
+            f"than max_disparities ({p.max_disparities}): narrow the height range",
+            "no_match",
+        )
+    limits: list[tuple[float, float]] = []
+    for side, name in enumerate(("left", "right")):
+        vals = np.concatenate(samples[side])
+        if vals.size == 0:  # data only off the subsample: use every valid pixel
+            img, mask = (left, left_mask) if side == 0 else (right, right_mask)
+            vals = img[_valid_mask(img, nodata, mask)].astype(np.float64)
+        lo, hi = (float(v) for v in np.percentile(vals, p.stretch_percentiles))
+        if not hi > lo:
+            return failed(
+                DenseStatus.TEXTURELESS,
+                f"the {name} image is uniform (or saturated): {p.stretch_percentiles} "
+                f"percentiles {lo:g}, {hi:g} DN",
+                "low_texture",
+            )
+        limits.append((lo, hi))
+    prep = _Prepared(
+        left,
+        right,
+        left_mask,
+        right_mask,
+        nodata,
+        (limits[0], limits[1]),
+        dmin - shift,
+        ndisp,
+        max(abs(rng[0] - shift), abs(rng[1] - shift)) + 1,
+        shift,
+    )
+    matcher = _matcher(p, prep.dmin, ndisp)
+    disp = np.full((h, w), np.nan, dtype=np.float32)
+    counts = np.zeros(len(_REASONS), dtype=np.int64)
+    for r0, r1 in _spans(h, tile_rows):
+        ra, rb = max(0, r0 - overlap), min(h, r1 + overlap)
+        for c0, c1 in _spans(w, tile_cols):
+            ca, cb = max(0, c0 - overlap), min(w, c1 + overlap)
+            d, code = _match_tile(prep, matcher, p, (ra, rb), (ca, cb))
+            sr, sc = slice(r0 - ra, r1 - ra), slice(c0 - ca, c1 - ca)
+            disp[r0:r1, c0:c1] = d[sr, sc]
+            counts += np.bincount(code[sr, sc].ravel(), minlength=len(_REASONS))
+    named = {k: int(v) for k, v in zip(_REASONS, counts, strict=True)}
+    share = named["valid"] / n_data
+    if share >= p.min_valid_share:
+        status, msg = DenseStatus.OK, f"{100 * share:.1f} % of the left pixels with data matched"
+    else:
+        worst = max(("low_texture", "no_match", "lr_failure"), key=lambda k: named[k])
+        status = DenseStatus.TEXTURELESS if worst == "low_texture" else DenseStatus.NO_MATCH
+        msg = (
+            f"only {100 * share:.1f} % of the left pixels with data matched "
+            f"(< {100 * p.min_valid_share:.0f} %); most failures: {worst}"
+        )
+    return DisparityResult(disp, status, rng, share, named, msg)
+
+
+def refine_range(
+    left: NDArray[Any],
+    right: NDArray[Any],
+    *,
+    d_range: tuple[int, int],
+    scale: int = 4,
+    nodata: float | None = 0.0,
+    percentiles: tuple[float, float] = (0.5, 99.5),
+    margin_px: float = 8.0,
+    params: SgbmParams | None = None,
+) -> tuple[int, int] | None:
+    """A narrower disparity range from matching a ``scale`` times reduced pair over ``d_range``.
+
+    For a pair whose height range (GCP, ``z_avg`` +- ``height_range``) gives a search range too
+    wide to match at full resolution: both images are reduced by area averaging (a reduced
+    pixel with any no-data input pixel has no data), matched over ``d_range / scale``, and the
+    ``percentiles`` of the valid reduced disparities, times ``scale`` and widened by
+    ``margin_px`` plus one reduced pixel, are returned (intersected with ``d_range``).
+
+    Args:
+        left: left normalized image.
+        right: right normalized image (same shape).
+        d_range: the wide range, pixels (either order).
+        scale: reduction factor (>= 2).
+        nodata: the images' no-data value (None: none).
+        percentiles: of the reduced disparities kept, percent.
+        margin_px: added on both sides, full-resolution pixels.
+        params: matcher settings of the reduced matching.
+
+    Returns:
+        (dmin, dmax), full-resolution pixels, or None when the reduced pair does not match
+        (its :class:`DenseStatus` is not OK): search the whole ``d_range`` or give up.
+    """
+    if scale < 2:
+        raise ValueError(f"scale must be >= 2, got {scale}")
+    lo, hi = sorted(int(v) for v in d_range)
+    h, w = left.shape
+    size = (max(1, w // scale), max(1, h // scale))
+    small: list[NDArray[Any]] = []
+    for img in (left, right):
+        f = img.astype(np.float32)
+        red = cv2.resize(f, size, interpolation=cv2.INTER_AREA)
+        if nodata is not None:
+            bad = (~_valid_mask(img, nodata, None)).astype(np.float32)
+            red[cv2.resize(bad, size, interpolation=cv2.INTER_AREA) > 0] = np.nan
+        small.append(red)
+    res = match_pair(
+        small[0],
+        small[1],
+        d_range=(math.floor(lo / scale), math.ceil(hi / scale)),
+        nodata=None,
+        params=params,
+    )
+    if res.status != DenseStatus.OK:
+        return None
+    d = res.disparity[np.isfinite(res.disparity)]
+    p0, p1 = (float(v) for v in np.percentile(d, percentiles))
+    pad = margin_px + scale
+    out = (max(lo, math.floor(p0 * scale - pad)), min(hi, math.ceil(p1 * scale + pad)))
+    return out if out[0] <= out[1] else None

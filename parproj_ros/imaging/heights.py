@@ -1,0 +1,443 @@
+"""Heights, DSM and ortho-image from the disparity map of a normalized pair.
+
+A left normalized pixel (col, row) with disparity d has the height ``Z = a d + b`` (the pair's
+``height_per_disparity_px`` a, metres per pixel, and ``height_offset_m`` b, metres). Its object
+X, Y follow from inverting the chain the pair was resampled with (paper 1 Eqs 1-2, paper 2
+Eq 8): normalized pixel -> normalized metres (the :class:`OutputGrid`) -> parallel scene
+(x, y') (inverse of the scene's 2x3 normalization affine) -> object X, Y at the known Z from
+``x = A1 X + A2 Y + A3 Z + A4``, ``y' = A5 X + A6 Y + A7 Z + A8``. For a fixed Z this chain is
+affine, so :class:`GroundMapping` holds it as one 2x3 matrix plus the shift per metre of height
+(the horizontal step along the scene's projection vector).
+
+The DSM is a north-up grid in the object frame (:class:`DsmGrid`: row 0 at the largest Y);
+cells take the mean (or median) height of the points falling in them; cells without points
+are NaN (optionally filled from the nearest cell, and flagged). The ortho-image resamples the
+left normalized image (or the original scene, through its :class:`SceneGeometry`) onto the DSM
+grid with ``cv2.remap``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, cast
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..geometry.epipolar import Normalization, invert_affine_2x3
+from ..geometry.parallel import AffineModel
+from .resample import OutputGrid, SceneGeometry
+
+__all__ = [
+    "Dsm",
+    "DsmGrid",
+    "GroundMapping",
+    "PairLike",
+    "dsm_errors",
+    "heights_from_disparity",
+    "make_dsm",
+    "orthoimage",
+]
+
+FloatArray = NDArray[np.float64]
+Float32Array = NDArray[np.float32]
+BoolArray = NDArray[np.bool_]
+
+
+def heights_from_disparity(
+    disparity: ArrayLike, height_per_disparity_px: float, height_offset_m: float
+) -> Float32Array:
+    """``Z = a d + b`` per pixel, metres, float32 (NaN where the disparity is NaN).
+
+    Args:
+        disparity: col_left - col_right, pixels (any shape).
+        height_per_disparity_px: a, metres per pixel.
+        height_offset_m: b, metres.
+    """
+    d = np.asarray(disparity, dtype=np.float32)
+    return cast(
+        "Float32Array",
+        (d * np.float32(height_per_disparity_px) + np.float32(height_offset_m)).astype(np.float32),
+    )
+
+
+class _SceneLike(Protocol):
+    @property
+    def affine(self) -> AffineModel: ...
+
+
+class PairLike(Protocol):
+    """What :meth:`GroundMapping.of_pair` reads of a pair (a ``core.results.PairResult``)."""
+
+    @property
+    def left(self) -> _SceneLike:
+        """The left scene (its A1..A8 ``affine``)."""
+
+    @property
+    def right(self) -> _SceneLike:
+        """The right scene."""
+
+    @property
+    def normalization(self) -> Normalization:
+        """Paper 2 Eq 8 (the 2x3 affines ``left`` and ``right``)."""
+
+    @property
+    def left_grid(self) -> OutputGrid:
+        """The left normalized image's grid."""
+
+    @property
+    def right_grid(self) -> OutputGrid:
+        """The right normalized image's grid."""
+
+
+@dataclass(frozen=True)
+class GroundMapping:
+    """Pixel of one normalized image <-> object X, Y at a known height Z (exact, affine in Z).
+
+    Attributes:
+        grid: the normalized image's grid (normalized metres per pixel, origin).
+        to_normalized: 2x3 affine, parallel scene metres (x, y') -> normalized metres
+            (``PairResult.normalization.left`` for the left image).
+        affine: the scene's A1..A8 (``PairResult.left.affine``), object metres -> scene metres.
+    """
+
+    grid: OutputGrid
+    to_normalized: FloatArray
+    affine: AffineModel
+
+    @classmethod
+    def of_pair(cls, pair: PairLike, side: Literal["left", "right"] = "left") -> GroundMapping:
+        """The mapping of one image of a pair: its grid, normalization affine and A1..A8."""
+        if side == "left":
+            return cls(pair.left_grid, pair.normalization.left, pair.left.affine)
+        if side == "right":
+            return cls(pair.right_grid, pair.normalization.right, pair.right.affine)
+        raise ValueError(f"side must be 'left' or 'right', got {side!r}")
+
+    @property
+    def _pixel_to_ground(self) -> tuple[FloatArray, FloatArray]:
+        """(2x3 M, (2,) v): (X, Y) = M (col, row, 1) + v Z."""
+        g = self.grid
+        to_pix = np.array([[g.pixel, 0.0, g.x_origin], [0.0, g.pixel, g.y_origin]])
+        scene = invert_affine_2x3(self.to_normalized)  # normalized metres -> scene (x, y')
+        a = self.affine.matrix
+        inv = np.linalg.inv(a[:, :2])
+        # (X, Y) = inv ((x, y') - A[:, 2] Z - A[:, 3])
+        m_scene = np.hstack([inv, (-inv @ a[:, 3])[:, None]])
+        m = _compose(m_scene, _compose(scene, to_pix))
+        return m, np.asarray(-inv @ a[:, 2], dtype=float)
+
+    @property
+    def ground_sample_distance(self) -> float:
+        """Object metres per normalized pixel (square root of the pixel's ground area), m."""
+        m, _ = self._pixel_to_ground
+        return float(math.sqrt(abs(np.linalg.det(m[:, :2]))))
+
+    def pixel_to_ground(
+        self, col: ArrayLike, row: ArrayLike, z: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """Normalized pixel (col, row) at height z (m) -> object (X, Y), metres."""
+        m, v = self._pixel_to_ground
+        c, r, zz = (np.asarray(t, dtype=float) for t in (col, row, z))
+        x = m[0, 0] * c + m[0, 1] * r + m[0, 2] + v[0] * zz
+        y = m[1, 0] * c + m[1, 1] * r + m[1, 2] + v[1] * zz
+        return x, y
+
+    def ground_to_normalized(
+        self, x: ArrayLike, y: ArrayLike, z: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """Object (X, Y, Z), metres -> normalized metres (x_n, y_n) (Eq 2, then Eq 8)."""
+        a = self.affine.matrix
+        xx, yy, zz = (np.asarray(t, dtype=float) for t in (x, y, z))
+        xs = a[0, 0] * xx + a[0, 1] * yy + a[0, 2] * zz + a[0, 3]
+        ys = a[1, 0] * xx + a[1, 1] * yy + a[1, 2] * zz + a[1, 3]
+        h = self.to_normalized
+        return h[0, 0] * xs + h[0, 1] * ys + h[0, 2], h[1, 0] * xs + h[1, 1] * ys + h[1, 2]
+
+    def ground_to_pixel(
+        self, x: ArrayLike, y: ArrayLike, z: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """Object (X, Y, Z), metres -> normalized pixel (col, row)."""
+        xn, yn = self.ground_to_normalized(x, y, z)
+        g = self.grid
+        return (xn - g.x_origin) / g.pixel, (yn - g.y_origin) / g.pixel
+
+
+def _compose(outer: FloatArray, inner: FloatArray) -> FloatArray:
+    """2x3 affine outer(inner(p))."""
+    return np.hstack(
+        [outer[:, :2] @ inner[:, :2], (outer[:, :2] @ inner[:, 2] + outer[:, 2])[:, None]]
+    )
+
+
+@dataclass(frozen=True)
+class DsmGrid:
+    """A north-up object-frame grid: cell (row, col) at X = x0 + col cell, Y = y0 - row cell.
+
+    Attributes:
+        x0: X of the centre of column 0, metres.
+        y0: Y of the centre of row 0 (the largest Y), metres.
+        cell: cell side, metres.
+        width: columns.
+        height: rows.
+    """
+
+    x0: float
+    y0: float
+    cell: float
+    width: int
+    height: int
+
+    @classmethod
+    def covering(cls, xmin: float, xmax: float, ymin: float, ymax: float, cell: float) -> DsmGrid:
+        """The grid of cell side ``cell`` (m), centres on multiples of it, holding the box.
+
+        Every point of [xmin, xmax] x [ymin, ymax] (metres) falls in one of its cells.
+        """
+        if not (cell > 0 and math.isfinite(cell)):
+            raise ValueError(f"cell must be a finite size > 0 m, got {cell}")
+        # Cell centres on multiples of ``cell``; the cells holding the extreme points.
+        x0 = math.floor(xmin / cell + 0.5) * cell
+        y0 = math.floor(ymax / cell + 0.5) * cell
+        w = math.floor((xmax - x0) / cell + 0.5) + 1
+        h = math.floor((y0 - ymin) / cell + 0.5) + 1
+        return cls(x0, y0, cell, w, h)
+
+    def centres(self, rows: tuple[int, int] | None = None) -> tuple[FloatArray, FloatArray]:
+        """(X, Y) of the cell centres of rows[0]:rows[1] (all rows by default), metres."""
+        r0, r1 = rows or (0, self.height)
+        cols = self.x0 + self.cell * np.arange(self.width, dtype=float)
+        ys = self.y0 - self.cell * np.arange(r0, r1, dtype=float)
+        x, y = np.meshgrid(cols, ys)
+        return x, y
+
+    def index(self, x: FloatArray, y: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """(row, col) of the cell holding each point (may be outside the grid)."""
+        col = np.floor((x - self.x0) / self.cell + 0.5).astype(np.int64)
+        row = np.floor((self.y0 - y) / self.cell + 0.5).astype(np.int64)
+        return row, col
+
+
+@dataclass(frozen=True)
+class Dsm:
+    """A gridded digital surface model.
+
+    Attributes:
+        heights: float32 (grid.height, grid.width), metres; NaN where no point fell (and
+            not filled).
+        grid: where the cells are.
+        count: int32, points per cell (0 for holes and filled cells).
+        filled: bool, True where the height was filled from the nearest cell with points.
+    """
+
+    heights: Float32Array
+    grid: DsmGrid
+    count: NDArray[np.int32]
+    filled: BoolArray
+
+
+def _spans(n: int, step: int) -> list[tuple[int, int]]:
+    return [(s, min(n, s + step)) for s in range(0, n, step)]
+
+
+def make_dsm(
+    disparity: NDArray[np.floating[Any]],
+    height_per_disparity_px: float,
+    height_offset_m: float,
+    mapping: GroundMapping,
+    *,
+    cell: float | None = None,
+    grid: DsmGrid | None = None,
+    reducer: Literal["mean", "median"] = "mean",
+    fill: Literal["none", "nearest"] = "none",
+    max_fill_cells: float = 3.0,
+    block_rows: int = 512,
+) -> Dsm:
+    """Grid the heights of a left disparity map in the object frame.
+
+    Every valid left pixel (col, row) gives ``Z = a d + b`` and its object (X, Y) through
+    ``mapping`` (:class:`GroundMapping` of the left image); each DSM cell takes the mean (or
+    median) Z of the points falling in it.
+
+    Args:
+        disparity: float (rows, cols) in the left normalized grid, pixels, NaN where invalid
+            (:func:`parproj_ros.imaging.dense.match_pair`).
+        height_per_disparity_px: a, metres per pixel.
+        height_offset_m: b, metres.
+        mapping: the left image's ground mapping.
+        cell: cell side, metres (default: the ground sample distance of the normalized
+            image, :attr:`GroundMapping.ground_sample_distance`). Ignored with ``grid``.
+        grid: the DSM grid (default: the one covering the valid points).
+        reducer: "mean" (memory: 12 bytes per cell) or "median" (also 12 bytes per valid
+            point).
+        fill: "nearest" fills holes from the nearest cell with points, up to
+            ``max_fill_cells`` cells away, and flags them in :attr:`Dsm.filled`.
+        max_fill_cells: largest filled distance, cells.
+        block_rows: disparity rows handled at once (bounds the temporaries).
+
+    Returns:
+        The DSM (all NaN when the map has no valid pixel).
+    """
+    h = disparity.shape[0]
+    a, b = float(height_per_disparity_px), float(height_offset_m)
+    valid = np.isfinite(disparity)
+    if grid is None:
+        size = cell if cell is not None else mapping.ground_sample_distance
+        if not valid.any():
+            grid = DsmGrid(0.0, 0.0, size, 1, 1)
+        else:
+            # The ground of the valid pixels lies within the ground of the corners of their
+            # bounding box at the extreme heights (the mapping is affine).
+            rows = np.flatnonzero(valid.any(axis=1))
+            cols = np.flatnonzero(valid.any(axis=0))
+            z = heights_from_disparity([np.nanmin(disparity), np.nanmax(disparity)], a, b).astype(
+                float
+            )
+            cc, rr, zz = np.meshgrid([cols[0], cols[-1]], [rows[0], rows[-1]], z)
+            x, y = mapping.pixel_to_ground(cc, rr, zz)
+            grid = DsmGrid.covering(x.min(), x.max(), y.min(), y.max(), size)
+    n_cells = grid.width * grid.height
+    sums = np.zeros(n_cells, dtype=np.float64)
+    count = np.zeros(n_cells, dtype=np.int64)
+    keys: list[NDArray[np.int64]] = []
+    vals: list[Float32Array] = []
+    for r0, r1 in _spans(h, block_rows):
+        d = disparity[r0:r1]
+        rr, cc = np.nonzero(np.isfinite(d))
+        if rr.size == 0:
+            continue
+        z = heights_from_disparity(d[rr, cc], a, b)
+        x, y = mapping.pixel_to_ground(cc, rr + r0, z)
+        gr, gc = grid.index(x, y)
+        inside = (gr >= 0) & (gr < grid.height) & (gc >= 0) & (gc < grid.width)
+        idx = gr[inside] * grid.width + gc[inside]
+        zin = z[inside]
+        if idx.size == 0:
+            continue
+        if reducer == "median":
+            keys.append(idx)
+            vals.append(zin)
+        lo = int(idx.min())
+        n = int(idx.max()) - lo + 1
+        sums[lo : lo + n] += np.bincount(idx - lo, weights=zin.astype(np.float64), minlength=n)
+        count[lo : lo + n] += np.bincount(idx - lo, minlength=n)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
+    if reducer == "median" and keys:
+        k = np.concatenate(keys)
+        v = np.concatenate(vals)
+        order = np.lexsort((v, k))
+        k, v = k[order], v[order]
+        starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
+        lens = np.diff(np.r_[starts, k.size])
+        lo_i = starts + (lens - 1) // 2
+        hi_i = starts + lens // 2
+        out[k[starts]] = 0.5 * (v[lo_i].astype(float) + v[hi_i].astype(float))
+    heights = out.reshape(grid.height, grid.width).astype(np.float32)
+    filled = np.zeros(heights.shape, dtype=bool)
+    if fill == "nearest" and np.isfinite(heights).any():
+        from scipy.ndimage import distance_transform_edt
+
+        holes = ~np.isfinite(heights)
+        dist, (ir, ic) = distance_transform_edt(holes, return_indices=True)
+        filled = holes & (dist <= max_fill_cells)
+        heights[filled] = heights[ir[filled], ic[filled]]
+    return Dsm(
+        heights,
+        grid,
+        count.reshape(grid.height, grid.width).astype(np.int32),
+        filled,
+    )
+
+
+def orthoimage(
+    image: NDArray[Any],
+    dsm: Dsm,
+    mapping: GroundMapping,
+    *,
+    scene: SceneGeometry | None = None,
+    nodata: float = 0.0,
+    interpolation: int = cv2.INTER_LINEAR,
+    block_rows: int = 512,
+) -> NDArray[Any]:
+    """Resample an image onto the DSM grid through its model; nodata where the DSM has none.
+
+    Each DSM cell (X, Y, Z) is projected into the image: with ``scene`` None, ``image`` is the
+    normalized image of ``mapping.grid``; with ``scene``, ``image`` is the original scene
+    (lines, detectors) and the normalized metres go on through the scene's normalization
+    affine, inverse PTP and frame (:meth:`SceneGeometry.normalized_to_image`; ``scene`` and
+    ``mapping`` must share the normalization affine).
+
+    Args:
+        image: uint8, uint16 or float32 (rows, cols).
+        dsm: heights and grid.
+        mapping: ground mapping of the image's side of the pair.
+        scene: the original scene's geometry, or None for a normalized image.
+        nodata: value of cells without height or outside the image.
+        interpolation: OpenCV interpolation flag.
+        block_rows: DSM rows remapped at once.
+
+    Returns:
+        (dsm.grid.height, dsm.grid.width) of the image's dtype.
+    """
+    g = dsm.grid
+    out = np.full((g.height, g.width), nodata, dtype=image.dtype)
+    for r0, r1 in _spans(g.height, block_rows):
+        x, y = g.centres((r0, r1))
+        z = dsm.heights[r0:r1].astype(float)
+        ok = np.isfinite(z)
+        zz = np.where(ok, z, 0.0)
+        if scene is None:
+            col, row = mapping.ground_to_pixel(x, y, zz)
+        else:
+            xn, yn = mapping.ground_to_normalized(x, y, zz)
+            row, col = scene.normalized_to_image(xn, yn)
+        col = np.where(ok, col, -1e6)
+        row = np.where(ok, row, -1e6)
+        out[r0:r1] = cv2.remap(
+            image,
+            col.astype(np.float32),
+            row.astype(np.float32),
+            interpolation,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=float(nodata),
+        )
+    return out
+
+
+def dsm_errors(
+    dsm: ArrayLike, truth: ArrayLike, mask: ArrayLike | None = None
+) -> dict[str, float]:
+    """Height errors of a DSM against the true heights of the same cells.
+
+    Args:
+        dsm: heights, metres, NaN for holes.
+        truth: true heights of the same cells, metres, NaN where unknown.
+        mask: optional bool, True for the cells to evaluate (e.g. seen by both images).
+
+    Returns:
+        ``rms`` and ``nmad`` (1.4826 median |e - median e|) of e = dsm - truth, metres,
+        ``mean`` (bias), metres, ``n`` (cells compared) and ``completeness`` (share of the
+        evaluated cells with a true height that have a DSM height, 0..1). The error figures
+        are NaN when n is 0.
+    """
+    d = np.asarray(dsm, dtype=float)
+    t = np.asarray(truth, dtype=float)
+    if d.shape != t.shape:
+        raise ValueError(f"dsm {d.shape} and truth {t.shape} differ in shape")
+    sel = np.isfinite(t)
+    if mask is not None:
+        sel &= np.asarray(mask, dtype=bool)
+    both = sel & np.isfinite(d)
+    n_sel, n = int(sel.sum()), int(both.sum())
+    e = d[both] - t[both]
+    nan = float("nan")
+    return {
+        "rms": float(np.sqrt(np.mean(e**2))) if n else nan,
+        "nmad": float(1.4826 * np.median(np.abs(e - np.median(e)))) if n else nan,
+        "mean": float(e.mean()) if n else nan,
+        "completeness": n / n_sel if n_sel else 0.0,
+        "n": float(n),
+    }
