@@ -1,4 +1,4 @@
-"""Micro-benchmark of dense matching and DSM: ``python -m tools.bench_heights [--size N]``.
+"""Micro-benchmark of dense matching and DSM: ``python -m tools.bench.heights [--size N]``.
 
 A synthetic uint16 pair (band-limited random texture, the right image displaced by a smooth
 disparity field of about ``--range`` pixels) is matched by
