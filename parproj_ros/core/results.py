@@ -28,12 +28,15 @@ from ..geometry import (
     SceneFrame,
 )
 from ..imaging.assembly import Scene, SceneEnd
+from ..imaging.dense import DenseStatus
+from ..imaging.heights import Dsm
 from ..imaging.resample import OutputGrid, SceneGeometry
 
 __all__ = [
     "METHODS",
     "BlockResult",
     "GroundPoint",
+    "HeightsResult",
     "Issue",
     "Level",
     "Method",
@@ -288,6 +291,47 @@ class BlockResult:
     last: bool
 
 
+@dataclass(frozen=True)
+class HeightsResult:
+    """Heights of one normalized pair.
+
+    Attributes:
+        pair_id: the pair.
+        stamp_ns: the pair's stamp, nanoseconds.
+        status: the matching's outcome (``ok`` or why there are no heights).
+        message: the outcome in words.
+        d_range: (dmin, dmax) searched, pixels (``col_left - col_right``).
+        valid_share: valid disparities / left pixels with data.
+        disparity: float32 (rows, cols) in the left normalized grid, pixels, NaN invalid.
+        height: float32, same grid, ``a d + b`` metres, NaN invalid.
+        dsm: the DSM (None unless ``status`` is ok).
+        ortho: the left normalized image on the DSM grid (None with ``dsm``); nodata where the
+            DSM has none.
+        height_per_disparity_px: a, metres per pixel.
+        height_offset_m: b, metres.
+        max_fill_cells: largest hole filled in the DSM, cells (0: none filled).
+    """
+
+    pair_id: str
+    stamp_ns: int
+    status: DenseStatus
+    message: str
+    d_range: tuple[int, int]
+    valid_share: float
+    disparity: NDArray[np.float32]
+    height: NDArray[np.float32]
+    dsm: Dsm | None
+    ortho: NDArray[np.generic] | None
+    height_per_disparity_px: float
+    height_offset_m: float
+    max_fill_cells: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        """Whether there is a DSM."""
+        return self.status == DenseStatus.OK and self.dsm is not None
+
+
 @dataclass
 class Outputs:
     """What one call of the pipeline produced."""
@@ -296,6 +340,7 @@ class Outputs:
     pairs: list[PairResult] = field(default_factory=list)
     issues: list[Issue] = field(default_factory=list)
     blocks: list[BlockResult] = field(default_factory=list)
+    heights: list[HeightsResult] = field(default_factory=list)
 
     def extend(self, other: Outputs) -> None:
         """Append another call's outputs."""
@@ -303,3 +348,4 @@ class Outputs:
         self.pairs += other.pairs
         self.issues += other.issues
         self.blocks += other.blocks
+        self.heights += other.heights

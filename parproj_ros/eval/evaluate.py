@@ -27,8 +27,15 @@ from ..geometry.ptp import ptp_forward
 from ..imaging.matching import match_normalized
 from ..imaging.preview import anaglyph, to_uint8
 from ..ros.bag import BagError, BagReader
-from ..ros.conversions import ConversionError, assemble_blocks, image_to_array
+from ..ros.conversions import (
+    ConversionError,
+    assemble_blocks,
+    elevation_grid_from_msg,
+    image_to_array,
+    stamp_to_ns,
+)
 from ..sim.recording import truth_from_bag
+from .heights import Surface, dsm_accuracy, save_height_plots, scenario_terrain
 
 FloatArray = NDArray[np.float64]
 
@@ -115,8 +122,13 @@ def evaluate_bag(
     *,
     plots: Path | None = None,
     matching: bool = True,
+    surface: Surface | None = None,
 ) -> dict[str, Any]:
-    """Evaluate every StereoPair of ``out_bag`` (truth from ``truth_bag`` or ``out_bag``)."""
+    """Evaluate every StereoPair of ``out_bag`` (truth from ``truth_bag`` or ``out_bag``).
+
+    DSMs (``dsm`` topic) are evaluated against ``surface`` (default: the terrain of the
+    scenario named like the truth bag, if there is one; else only their completeness).
+    """
     reader = BagReader(out_bag)
     truth: list[GroundPoint] = (
         truth_from_bag(BagReader(truth_bag))
@@ -147,7 +159,57 @@ def evaluate_bag(
                 out_bag,
             ) from err
     result["pair_count"] = len(result["pairs"])
+    if "dsm" in reader.topics():
+        if surface is None and truth_bag is not None:
+            surface = scenario_terrain(Path(truth_bag).name)
+        result["heights"] = _evaluate_heights(reader, surface, plots)
     return result
+
+
+def _evaluate_heights(
+    reader: BagReader, surface: Surface | None, plots: Path | None
+) -> list[dict[str, Any]]:
+    """Per ElevationGrid: its figures, and against ``surface`` its errors (eval/heights.py)."""
+    disparities: dict[str, Any] = {}
+    if plots is not None and "disparity" in reader.topics():
+        # stamps tie a disparity image to its pair's DSM
+        for item in reader.messages(topics=["disparity"]):
+            d = image_to_array(item.msg.image).astype(np.float32)
+            d[d < item.msg.min_disparity] = np.nan
+            disparities[str(stamp_to_ns(item.msg.header.stamp))] = d
+    out = []
+    for item in reader.messages(topics=["dsm"]):
+        m = item.msg
+        heights, grid, ortho = elevation_grid_from_msg(m)
+        row: dict[str, Any] = {
+            "pair_id": m.pair_id,
+            "frame_id": m.header.frame_id,
+            "cells": [grid.width, grid.height],
+            "cell_size_m": grid.cell,
+            "disparity_range_px": [m.disparity_min, m.disparity_max],
+            "matched_share": float(m.matched_share),
+            "completeness_published": float(m.completeness),
+            "filled_cells": int(m.filled_cells),
+            "height_per_disparity_px": float(m.height_per_disparity_px),
+        }
+        truth = surface
+        if truth is not None:
+            # which cells were filled is not in the message (their count is): the error
+            # figures take every cell with a height
+            row["against_truth"] = dsm_accuracy(heights, grid, truth)
+        if plots is not None:
+            files = save_height_plots(
+                plots,
+                m.pair_id.replace("+", "_"),
+                heights,
+                grid,
+                disparity=disparities.get(str(stamp_to_ns(m.header.stamp))),
+                truth=truth,
+                ortho=ortho,
+            )
+            row["plots"] = [f.name for f in files]
+        out.append(row)
+    return out
 
 
 def print_evaluation(res: dict[str, Any]) -> None:

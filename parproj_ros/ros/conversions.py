@@ -8,6 +8,7 @@ Python loops: ``bytes`` in, ``np.frombuffer`` out (ROS2_WHEELS.md: assigning a n
 from __future__ import annotations
 
 import array
+import math
 from typing import Any, cast
 
 import numpy as np
@@ -364,6 +365,8 @@ def outputs_to_messages(out: Any, *, frame_id: str, stamp_ns: int) -> list[tuple
                 ("anaglyph", ana, pair.stamp_ns),
             ]
         msgs.append(("stereo_pair", sp, pair.stamp_ns))
+    for h in getattr(out, "heights", []):
+        msgs += heights_to_msgs(h, frame_id=frame_id)
     if out.issues:
         msgs.append(
             (
@@ -416,8 +419,98 @@ OUTPUT_TOPICS = {
     "anaglyph": "sensor_msgs/msg/Image",
     "left/normalized_block": "parproj_msgs/msg/NormalizedBlock",
     "right/normalized_block": "parproj_msgs/msg/NormalizedBlock",
+    "disparity": "stereo_msgs/msg/DisparityImage",
+    "height": "sensor_msgs/msg/Image",
+    "dsm": "parproj_msgs/msg/ElevationGrid",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 #: The images of a pair sent whole, published after its StereoPair (a streamed pair's pixels
 #: come before it, as NormalizedBlock messages).
 PAIR_IMAGE_TOPICS = ("left/image_normalized", "right/image_normalized", "anaglyph")
+
+
+def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
+    """A pair's :class:`~parproj_ros.core.results.HeightsResult` -> its three messages.
+
+    ``disparity`` (stereo_msgs/DisparityImage, 32FC1 in the left normalized grid,
+    ``col_left - col_right`` pixels; an invalid pixel holds ``min_disparity - 1``, below the
+    range as the message defines; ``f`` and ``t`` are 0: a push-broom pair has no focal length
+    and baseline, its heights are linear in disparity, ``Z = a d + b``, published as
+    StereoPair.height_per_disparity_px and .height_offset_m and applied in ``height``);
+    ``height`` (sensor_msgs/Image 32FC1, the same grid, metres, NaN invalid); ``dsm``
+    (parproj_msgs/ElevationGrid, only when there is a DSM).
+    """
+    from parproj_msgs.msg import ElevationGrid
+    from sensor_msgs.msg import Image
+    from stereo_msgs.msg import DisparityImage
+
+    left_frame = f"{frame_id}/normalized_left"
+    dmin, dmax = (float(v) for v in h.d_range)
+    disp = np.where(np.isfinite(h.disparity), h.disparity, dmin - 1.0).astype(np.float32)
+    dm = DisparityImage()
+    ns_to_stamp(h.stamp_ns, dm.header.stamp)
+    dm.header.frame_id = left_frame
+    dm.image = array_to_image(disp, Image(), frame_id=left_frame, stamp_ns=h.stamp_ns)
+    dm.f, dm.t = 0.0, 0.0
+    rows, cols = h.disparity.shape
+    dm.valid_window.width, dm.valid_window.height = int(cols), int(rows)
+    dm.min_disparity, dm.max_disparity = dmin, dmax
+    dm.delta_d = 1.0 / 16.0
+    height = array_to_image(
+        np.ascontiguousarray(h.height, dtype=np.float32),
+        Image(),
+        frame_id=left_frame,
+        stamp_ns=h.stamp_ns,
+    )
+    out: list[tuple[str, Any, int]] = [
+        ("disparity", dm, h.stamp_ns),
+        ("height", height, h.stamp_ns),
+    ]
+    if h.dsm is None:
+        return out
+    g = h.dsm.grid
+    m = ElevationGrid()
+    ns_to_stamp(h.stamp_ns, m.header.stamp)
+    m.header.frame_id = frame_id
+    m.pair_id = h.pair_id
+    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
+    m.heights = array_to_image(
+        np.ascontiguousarray(h.dsm.heights, dtype=np.float32),
+        Image(),
+        frame_id=frame_id,
+        stamp_ns=h.stamp_ns,
+    )
+    if h.ortho is not None:
+        m.ortho = array_to_image(h.ortho, Image(), frame_id=frame_id, stamp_ns=h.stamp_ns)
+    m.filled_cells = int(h.dsm.filled.sum())
+    m.max_fill_cells = float(h.max_fill_cells)
+    m.completeness = float(np.isfinite(h.dsm.heights).mean()) if h.dsm.heights.size else 0.0
+    m.disparity_min, m.disparity_max = int(h.d_range[0]), int(h.d_range[1])
+    m.matched_share = float(h.valid_share)
+    m.height_per_disparity_px = float(h.height_per_disparity_px)
+    m.height_offset_m = float(h.height_offset_m)
+    out.append(("dsm", m, h.stamp_ns))
+    return out
+
+
+def elevation_grid_from_msg(msg: Any) -> tuple[Any, Any, Any]:
+    """parproj_msgs/ElevationGrid -> (heights float32 (rows, cols) m, DsmGrid, ortho or None).
+
+    Raises:
+        ConversionError: heights not 32FC1, ortho of another size, or a cell size <= 0.
+    """
+    from ..imaging.heights import DsmGrid
+
+    if msg.heights.encoding != "32FC1":
+        raise ConversionError(f"ElevationGrid heights must be 32FC1, got {msg.heights.encoding!r}")
+    heights = image_to_array(msg.heights)
+    if not (msg.cell_size > 0 and math.isfinite(msg.cell_size)):
+        raise ConversionError(f"ElevationGrid cell_size must be > 0 m, got {msg.cell_size}")
+    rows, cols = heights.shape[:2]
+    grid = DsmGrid(float(msg.x0), float(msg.y0), float(msg.cell_size), int(cols), int(rows))
+    ortho = image_to_array(msg.ortho) if msg.ortho.height and msg.ortho.width else None
+    if ortho is not None and ortho.shape[:2] != heights.shape[:2]:
+        raise ConversionError(
+            f"ElevationGrid ortho {ortho.shape[:2]} and heights {heights.shape[:2]} differ"
+        )
+    return heights, grid, ortho

@@ -363,7 +363,15 @@ ROSDEP = {
     "psutil": "python3-psutil",
 }
 #: ROS packages imported (package.xml exec_depend under the same name)
-ROS = {"rclpy", "rcl_interfaces", "sensor_msgs", "nav_msgs", "diagnostic_msgs", "parproj_msgs"}
+ROS = {
+    "rclpy",
+    "rcl_interfaces",
+    "sensor_msgs",
+    "nav_msgs",
+    "diagnostic_msgs",
+    "stereo_msgs",
+    "parproj_msgs",
+}
 
 
 def _optional(tree: ast.AST) -> set[int]:

@@ -18,6 +18,7 @@ import pytest
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import Point, Quaternion
 from parproj_msgs.msg import (
+    ElevationGrid,
     GroundControlPoint,
     GroundControlPoints,
     ImageObservation,
@@ -43,6 +44,7 @@ ALL_TYPES = (
     ParallelProjection,
     StereoPair,
     NormalizedBlock,
+    ElevationGrid,
 )
 
 # The interface contract (issue brief): field name -> rosidl type, in declaration order.
@@ -139,6 +141,23 @@ EXPECTED_FIELDS: dict[type, dict[str, str]] = {
         "index": "uint32",
         "last": "boolean",
         "image": "sensor_msgs/Image",
+    },
+    ElevationGrid: {
+        "header": "std_msgs/Header",
+        "pair_id": "string",
+        "x0": "double",
+        "y0": "double",
+        "cell_size": "double",
+        "heights": "sensor_msgs/Image",
+        "ortho": "sensor_msgs/Image",
+        "filled_cells": "uint32",
+        "max_fill_cells": "float",
+        "completeness": "float",
+        "disparity_min": "int32",
+        "disparity_max": "int32",
+        "matched_share": "float",
+        "height_per_disparity_px": "double",
+        "height_offset_m": "double",
     },
 }
 

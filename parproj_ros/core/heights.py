@@ -1,0 +1,149 @@
+"""Heights of a normalized pair: disparity, height image, DSM and ortho-image (issue 12).
+
+The step after normalization (and tie-point refinement) for one :class:`PairResult` with its
+images: the disparity search range predicted from the pair's own linear relation
+``Z = a (col_left - col_right) + b`` over the pair's height range (plus a margin, narrowed on a
+reduced pair when it is wide), dense matching (:func:`~parproj_ros.imaging.dense.match_pair`:
+semi-global matching, sub-pixel, left-right check, no-data / low texture masked), heights per
+left normalized pixel, a DSM north-up in the object frame (cell = the ground sample distance of
+the left normalized image unless set) and the left normalized image resampled onto it (the
+ortho-image). A bad case (textureless or saturated images, a range wider than the image,
+nodata-only overlap, no match) gives a :class:`HeightsResult` with that status and no DSM, and
+an :class:`~.results.Issue` that says so; it never raises for image content.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..imaging.dense import (
+    DenseStatus,
+    DisparityResult,
+    disparity_range,
+    match_pair,
+    refine_range,
+)
+from ..imaging.heights import GroundMapping, make_dsm, orthoimage
+from .results import HeightsResult, Issue, Level, PairResult
+
+Float32Array = NDArray[np.float32]
+
+#: Search ranges wider than this share of the image width are first narrowed on a reduced pair.
+REFINE_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class HeightsOptions:
+    """How heights are made (node parameters ``heights_*``).
+
+    Attributes:
+        margin_px: added to both ends of the predicted disparity range, pixels.
+        cell_m: DSM cell side, metres (0: the ground sample distance of the left image).
+        fill: "none" (holes stay NaN) or "nearest" (holes up to ``max_fill_cells`` from a
+            cell with points take its height, and are flagged).
+        max_fill_cells: largest hole filled, in cells.
+        tile_px: side of the matching tiles, pixels (memory: a few tiles at a time).
+        nodata: pixel value meaning "no data" in the normalized images.
+    """
+
+    margin_px: float = 8.0
+    cell_m: float = 0.0
+    fill: Literal["none", "nearest"] = "nearest"
+    max_fill_cells: float = 1.0
+    tile_px: int = 1024
+    nodata: float = 0.0
+
+
+def pair_heights(
+    pair: PairResult,
+    left: NDArray[np.generic],
+    right: NDArray[np.generic],
+    z_range_m: tuple[float, float],
+    options: HeightsOptions | None = None,
+) -> tuple[HeightsResult, list[Issue]]:
+    """Disparity, heights, DSM and ortho-image of a normalized pair (module docstring).
+
+    Args:
+        pair: the pair (its grids, normalization, A1..A8 and height relation).
+        left: its left normalized image (rows, cols).
+        right: its right normalized image (same rows; same shape as made by the pipeline).
+        z_range_m: the heights the pair may hold (lowest, highest), metres.
+        options: see :class:`HeightsOptions`.
+
+    Returns:
+        The result, and the issues to report (a WARN when there are no heights, an OK line
+        with the figures otherwise).
+    """
+    opt = options or HeightsOptions()
+    a, b = pair.height_per_disparity_px, pair.height_offset_m
+    where = f"pair {pair.pair_id}"
+    shape = left.shape[:2]
+    empty = np.full(shape, np.nan, dtype=np.float32)
+
+    def failed(
+        status: DenseStatus, message: str, rng: tuple[int, int]
+    ) -> tuple[HeightsResult, list[Issue]]:
+        res = HeightsResult(
+            pair.pair_id, pair.stamp_ns, status, message, rng, 0.0, empty, empty, None, None, a, b
+        )
+        return res, [Issue(Level.WARN, where, f"no heights ({status}): {message}")]
+
+    if left.shape != right.shape:
+        return failed(
+            DenseStatus.NO_OVERLAP, f"images of shapes {left.shape} and {right.shape}", (0, 0)
+        )
+    try:
+        lo, hi = disparity_range(a, b, z_range_m, margin_px=opt.margin_px)
+    except ValueError as err:  # a = 0 or not finite: no height relation
+        return failed(DenseStatus.NO_MATCH, str(err), (0, 0))
+    rng = (math.floor(lo), math.ceil(hi))
+    if rng[1] - rng[0] > REFINE_SHARE * shape[1]:
+        narrowed = refine_range(left, right, d_range=rng, nodata=opt.nodata)
+        if narrowed is not None:
+            rng = narrowed
+    tile = int(opt.tile_px)
+    res: DisparityResult = match_pair(
+        left, right, d_range=rng, nodata=opt.nodata, tile_rows=tile, tile_cols=tile
+    )
+    if res.status != DenseStatus.OK:
+        return failed(res.status, res.message, res.d_range)
+    height = (a * res.disparity + b).astype(np.float32)
+    mapping = GroundMapping.of_pair(pair, "left")
+    dsm = make_dsm(
+        res.disparity,
+        a,
+        b,
+        mapping,
+        cell=opt.cell_m or None,
+        fill=opt.fill,
+        max_fill_cells=opt.max_fill_cells,
+    )
+    ortho = orthoimage(left, dsm, mapping, nodata=opt.nodata)
+    valid = np.isfinite(dsm.heights)
+    out = HeightsResult(
+        pair.pair_id,
+        pair.stamp_ns,
+        res.status,
+        res.message,
+        res.d_range,
+        res.valid_share,
+        res.disparity,
+        height,
+        dsm,
+        ortho,
+        a,
+        b,
+        opt.max_fill_cells if opt.fill == "nearest" else 0.0,
+    )
+    text = (
+        f"heights: disparity {res.d_range[0]}..{res.d_range[1]} px, "
+        f"{100 * res.valid_share:.1f} % matched; DSM {dsm.grid.width} x {dsm.grid.height} cells "
+        f"of {dsm.grid.cell:.3g} m, {100 * valid.mean():.1f} % with a height "
+        f"({int(dsm.filled.sum())} filled)"
+    )
+    return out, [Issue(Level.OK, where, text)]
