@@ -307,6 +307,63 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "heights",
+        "bool",
+        False,
+        "dense matching of each normalized pair: disparity, heights per pixel, a DSM and an "
+        "ortho-image (topics disparity, height, dsm)",
+        offline=True,
+    ),
+    _p(
+        "heights_margin_px",
+        "double",
+        8.0,
+        "added to both ends of the disparity range predicted from the pair's height range",
+        unit="px",
+        low=0.0,
+        high=1000.0,
+        offline=True,
+    ),
+    _p(
+        "heights_cell_m",
+        "double",
+        0.0,
+        "DSM cell side; 0 = the ground sample distance of the left normalized image",
+        unit="m",
+        low=0.0,
+        high=1.0e4,
+        offline=True,
+    ),
+    _p(
+        "heights_fill",
+        "string",
+        "nearest",
+        "DSM holes: 'none' (left as NaN) or 'nearest' (holes of up to heights_max_fill_cells "
+        "take the nearest measured height; counted in ElevationGrid.filled_cells)",
+        choices=("none", "nearest"),
+        offline=True,
+    ),
+    _p(
+        "heights_max_fill_cells",
+        "double",
+        1.0,
+        "largest DSM hole filled with heights_fill 'nearest'",
+        unit="cells",
+        low=0.0,
+        high=100.0,
+        offline=True,
+    ),
+    _p(
+        "heights_tile_px",
+        "integer",
+        1024,
+        "side of the dense matching tiles (memory: a few tiles at a time)",
+        unit="px",
+        low=64,
+        high=16384,
+        offline=True,
+    ),
+    _p(
         "segment_max_error_px",
         "double",
         1.0,
@@ -546,6 +603,12 @@ class PipelineConfig:
     streaming: bool = _default("streaming")
     tie_points: bool = _default("tie_points")
     tie_threshold_px: float = _default("tie_threshold_px")
+    heights: bool = _default("heights")
+    heights_margin_px: float = _default("heights_margin_px")
+    heights_cell_m: float = _default("heights_cell_m")
+    heights_fill: Literal["none", "nearest"] = _default("heights_fill")
+    heights_max_fill_cells: float = _default("heights_max_fill_cells")
+    heights_tile_px: int = _default("heights_tile_px")
     nav_jump_s: float = _default("nav_jump_s")
     nav_position_tolerance_m: float = _default("nav_position_tolerance_m")
     segment_max_error_px: float = _default("segment_max_error_px")

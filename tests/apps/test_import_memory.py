@@ -113,4 +113,7 @@ def test_three_images_read_by_windows(tmp_path: Path) -> None:
     small = peak_rss_mb(make_pair(tmp_path / "small", 1100, views), tmp_path / "bag_small")
     large = peak_rss_mb(make_pair(tmp_path / "large", 3300, views), tmp_path / "bag_large")
     print(f"peak RSS: 3 x 1100 x 1100 {small:.0f} MB, 3 x 3300 x 3300 {large:.0f} MB")
-    assert large - small < 8.0  # one image is 22 MB
+    # Holding the images (the old path) costs 3 x 22 MB = 66 MB more; reading by windows costs
+    # 1-6 MB more here, up to 13 MB on a loaded machine (GDAL's threads): the bound is below
+    # one image.
+    assert large - small < 20.0  # one image is 22 MB
