@@ -241,14 +241,19 @@ def _peak_rss() -> Iterator[dict[str, float]]:
 
 
 def _pair_rows(evaluation: Mapping[str, Any]) -> dict[str, Any]:
-    """Per-input figures from an evaluation: pairs, largest published and geometric y rms."""
+    """Per-input figures from an evaluation: pairs, worst y rms and DSM figures of its pairs."""
     pairs = evaluation.get("pairs", [])
     published = [p["published_y_parallax_px"]["rms"] for p in pairs]
     geometric = [p["geometric"]["y_parallax_px"]["rms"] for p in pairs if "geometric" in p]
+    dsms = evaluation.get("heights", [])
+    truth = [d["against_truth"] for d in dsms if "against_truth" in d]
     return {
         "pairs": len(pairs),
         "y_parallax_rms_px": max(published) if published else None,
         "truth_y_parallax_rms_px": max(geometric) if geometric else None,
+        "dsms": len(dsms),
+        "dsm_completeness": min(d["completeness_published"] for d in dsms) if dsms else None,
+        "dsm_nmad_m": max(t["nmad"] for t in truth) if truth else None,
     }
 
 
