@@ -59,7 +59,7 @@ class HeightsOptions:
     nodata: float = 0.0
 
 
-def pair_heights(
+def measure_heights(
     pair: PairResult,
     left: NDArray[np.generic],
     right: NDArray[np.generic],
