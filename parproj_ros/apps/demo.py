@@ -3,7 +3,8 @@
 Steps: start ``parproj_node`` in its own process with the bag's cameras as parameters (reliable
 input QoS for a lossless replay), replay the bag into the graph, record the node's outputs into
 ``<out>/output`` (an MCAP bag), stop the node, evaluate against the bag's truth, and leave the
-normalized pair, the anaglyph, plots and ``evaluation.json`` in ``<out>``.
+normalized pair, the anaglyph, plots, the DSM (its hillshade, ortho-image and height error map)
+and ``evaluation.json`` in ``<out>``.
 """
 
 from __future__ import annotations
@@ -39,13 +40,14 @@ def run_demo(
     run = run_through_node(
         bag,
         out,
-        params=node_parameters(views, scene_timeout=2.0),
+        params=node_parameters(views, scene_timeout=2.0, heights=True),
         rate=rate,
         max_gap_s=0.5,
         pairs=1,  # every bag in bags/ holds one stereo pair
         timeout_s=timeout_s,
         env=env,
         progress=progress,
+        also=("disparity", "height"),
     )
     print(f"demo: replayed {run.replay.get('sent', 0)} messages in "
           f"{run.replay.get('seconds', 0.0):.1f} s")  # fmt: skip
@@ -58,7 +60,7 @@ def run_demo(
     print_evaluation(result)
     shown = shown_as or out
     print(
-        f"demo: normalized pair, anaglyph and plots in {shown}/, evaluation in "
+        f"demo: normalized pair, anaglyph, DSM and plots in {shown}/, evaluation in "
         f"{shown / 'evaluation.json'}, output bag in {shown / run.output.relative_to(out)}"
     )
     return 0

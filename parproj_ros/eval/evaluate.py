@@ -243,6 +243,24 @@ def print_evaluation(res: dict[str, Any]) -> None:
                 f"  image matches ({m['matches']}): median |y| {y['median_abs']:.3f} px, "
                 f"rms {y['rms']:.3f} px"
             )
+    for d in res.get("heights", []):
+        print(
+            f"DSM {d['pair_id']}: {d['cells'][0]} x {d['cells'][1]} cells of "
+            f"{d['cell_size_m']:.3g} m, disparity {d['disparity_range_px'][0]}.."
+            f"{d['disparity_range_px'][1]} px, {100 * d['matched_share']:.1f} % matched, "
+            f"{100 * d['completeness_published']:.1f} % of cells with a height "
+            f"({d['filled_cells']} filled)"
+        )
+        t = d.get("against_truth")
+        if t:
+            a = abs(d["height_per_disparity_px"])
+            print(
+                f"  against the true surface ({t['n']:.0f} cells): NMAD {t['nmad']:.3f} m "
+                f"({t['nmad'] / a:.2f} x the {a:.3f} m of one pixel of x-parallax), "
+                f"rms {t['rms']:.3f} m, bias {t['mean']:+.3f} m, completeness "
+                f"{100 * t['completeness']:.1f} % ({100 * t['completeness_measured']:.1f} % "
+                "measured)"
+            )
 
 
 def _observation(p: GroundPoint, params: Any) -> tuple[float, float] | None:

@@ -237,8 +237,11 @@ class Recorder:
             time.sleep(0.05)
         return False
 
-    def pairs_complete(self, pairs: int) -> bool:
+    def pairs_complete(self, pairs: int, also: Sequence[str] = ()) -> bool:
         """Whether ``pairs`` stereo pairs have arrived with every image that belongs to them.
+
+        ``also``: topics that carry one message per pair after it (``disparity``, ``height``
+        with heights on), each awaited ``pairs`` times too.
 
         A pair's StereoPair message comes first and its images follow it (left, right,
         anaglyph: large messages that take a while over DDS); a streamed pair's pixels came
@@ -250,13 +253,19 @@ class Recorder:
             if len(done) < pairs:
                 return False
             whole = sum(1 for p in done if not getattr(p, "streamed", False))
-            return all(self.counts.get(t, 0) >= whole for t in PAIR_IMAGE_TOPICS)
+            return all(self.counts.get(t, 0) >= whole for t in PAIR_IMAGE_TOPICS) and all(
+                self.counts.get(t, 0) >= pairs for t in also
+            )
 
     def wait_complete(
-        self, pairs: int, timeout_s: float, alive: Callable[[], bool] = lambda: True
+        self,
+        pairs: int,
+        timeout_s: float,
+        alive: Callable[[], bool] = lambda: True,
+        also: Sequence[str] = (),
     ) -> bool:
         """Wait until :meth:`pairs_complete` (or ``timeout_s``, or ``alive()`` turns false)."""
-        return wait_until(lambda: self.pairs_complete(pairs), timeout_s, alive)
+        return wait_until(lambda: self.pairs_complete(pairs, also), timeout_s, alive)
 
     def close(self) -> None:
         """Close the bag."""
@@ -360,6 +369,7 @@ def run_through_node(
     env: dict[str, str] | None = None,
     progress: bool = False,
     log: Callable[[str], None] = print,
+    also: Sequence[str] = (),
 ) -> LiveRun:
     """Replay ``bag`` into parproj_node (its own process) and record the outputs.
 
@@ -367,7 +377,8 @@ def run_through_node(
     from ``workdir/node_params.yaml`` and logs to ``workdir/node.log``; an rclpy node of ours,
     in its own Context, records :data:`conversions.OUTPUT_TOPICS` into ``workdir/output``,
     waits for the outputs to be discovered, replays, waits until ``pairs`` pairs have come
-    with all their images (or ``timeout_s``, or the node died), and stops the node (SIGINT).
+    with all their images and one message on each ``also`` topic (or ``timeout_s``, or the
+    node died), and stops the node (SIGINT).
     """
     import rclpy
     from rclpy.context import Context
@@ -407,7 +418,9 @@ def run_through_node(
             progress=progress,
             log=log,
         )
-        complete = recorder.wait_complete(pairs, timeout_s, lambda: proc.proc.poll() is None)
+        complete = recorder.wait_complete(
+            pairs, timeout_s, lambda: proc.proc.poll() is None, also=also
+        )
         time.sleep(1.0)  # one more 1 Hz diagnostics summary
     finally:
         code = proc.stop()
