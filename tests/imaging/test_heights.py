@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from testkit.scenes import feed, nav_events, strip_events
+from testkit.scenes import feed, nav_events, small_scenario, strip_events
 
 from parproj_ros.core.pipeline import PairResult, Pipeline
 from parproj_ros.geometry import AffineModel
@@ -47,13 +47,7 @@ class Sim:
 
 
 def small_ikonos() -> Scenario:
-    scn = SCENARIOS["ikonos_agile"]()
-    cam = dataclasses.replace(scn.views[0].camera, detectors=SIZE)
-    view = dataclasses.replace(scn.views[0], camera=cam)
-    # Same middle line as the full scenes: start later by half the lines removed.
-    dt = (scn.scenes[0].lines - SIZE) / 2 * cam.line_period
-    scenes = tuple(dataclasses.replace(s, lines=SIZE, start_s=s.start_s + dt) for s in scn.scenes)
-    return dataclasses.replace(scn, views=(view,), scenes=scenes, gcp=0, check=0)
+    return small_scenario("ikonos_agile", SIZE)
 
 
 @pytest.fixture(scope="module")

@@ -82,3 +82,33 @@ def feed(pipe: Pipeline, events: Iterable[Event], *, flush: bool = True) -> Outp
     if flush:
         out.extend(pipe.flush())
     return out
+
+
+def small_scenario(name: str = "ikonos_agile", size: int = 384) -> Scenario:
+    """A scenario's geometry with ``size`` x ``size`` px scenes (same middle lines), no GCP."""
+    import dataclasses
+
+    from parproj_ros.sim.scenarios import SCENARIOS
+
+    scn = SCENARIOS[name]()
+    cam = dataclasses.replace(scn.views[0].camera, detectors=size)
+    view = dataclasses.replace(scn.views[0], camera=cam)
+    dt = (scn.scenes[0].lines - size) / 2 * cam.line_period
+    scenes = tuple(dataclasses.replace(s, lines=size, start_s=s.start_s + dt) for s in scn.scenes)
+    return dataclasses.replace(scn, views=(view,), scenes=scenes, gcp=0, check=0)
+
+
+def rendered(scn: Scenario) -> tuple[Any, list[np.ndarray]]:
+    """The scenario's terrain and its scenes rendered over it (uint16) through the rigorous
+    model."""
+    from parproj_ros.sim.simulate import render_scene
+    from parproj_ros.sim.terrain import procedural_terrain
+
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    scenes = [
+        render_scene(scn.model(i), terrain, 0, sc.lines, dtype=np.uint16, workers=2)
+        for i, sc in enumerate(scn.scenes)
+    ]
+    return terrain, scenes

@@ -1,0 +1,114 @@
+"""The heights step of a pair (core/heights.py): DSM accuracy on a simulated pair, bad cases.
+
+The ikonos_agile geometry at 384 x 384 px scenes, rendered through the rigorous model over its
+terrain and normalized by the Pipeline without DDS (as tests/imaging/test_heights.py); the
+terrain gives the true height of every DSM cell. One pixel of x-parallax is |a| metres
+(``height_per_disparity_px``): the DSM's robust error (NMAD) must stay within it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+import pytest
+from testkit.scenes import feed, nav_events, rendered, small_scenario, strip_events
+
+from parproj_ros.core.heights import HeightsOptions, measure_heights
+from parproj_ros.core.pipeline import Pipeline
+from parproj_ros.core.results import Level
+from parproj_ros.eval.heights import dsm_accuracy, hillshade
+from parproj_ros.imaging.dense import DenseStatus
+
+
+@pytest.fixture(scope="module")
+def pair() -> dict[str, Any]:
+    scn = small_scenario("ikonos_agile", 384)
+    terrain, scenes = rendered(scn)
+    pipe = Pipeline(scn.pipeline_config(tie_points=False, streaming=False))
+    out = feed(pipe, nav_events(scn) + strip_events(scn, scenes))
+    (p,) = out.pairs
+    return {"pair": p, "terrain": terrain}
+
+
+def test_dsm_of_a_simulated_pair_within_one_pixel_of_parallax(pair: dict[str, Any]) -> None:
+    p, terrain = pair["pair"], pair["terrain"]
+    z = (terrain.min_height, terrain.max_height)
+    res, issues = measure_heights(p, p.left_image, p.right_image, z)
+    assert res.ok, res.message
+    assert [i.level for i in issues] == [Level.OK]
+    a = abs(p.height_per_disparity_px)
+    acc = dsm_accuracy(res.dsm.heights, res.dsm.grid, terrain.height, res.dsm.filled)
+    print(f"|a| {a:.3f} m/px: {acc}")
+    assert acc["nmad"] <= a
+    assert abs(acc["mean"]) <= a / 2
+    assert acc["completeness"] >= 0.95
+    # the height image is a d + b of the disparity, pixel for pixel
+    valid = np.isfinite(res.disparity)
+    assert np.allclose(
+        res.height[valid], p.height_per_disparity_px * res.disparity[valid] + p.height_offset_m
+    )
+    # the ortho-image has data where the DSM has a height, and nodata elsewhere
+    assert np.all(res.ortho[~np.isfinite(res.dsm.heights)] == 0)
+    assert (res.ortho[np.isfinite(res.dsm.heights)] > 0).mean() > 0.99
+    shade = hillshade(res.dsm.heights, res.dsm.grid.cell)
+    assert shade.dtype == np.uint8 and shade[np.isfinite(res.dsm.heights)].std() > 5
+
+
+def test_the_cell_follows_the_option(pair: dict[str, Any]) -> None:
+    p, terrain = pair["pair"], pair["terrain"]
+    z = (terrain.min_height, terrain.max_height)
+    res, _ = measure_heights(p, p.left_image, p.right_image, z, HeightsOptions(cell_m=2.0))
+    assert res.ok and res.dsm.grid.cell == 2.0
+
+
+def test_inverted_x_parallax_sign_gives_the_same_heights(pair: dict[str, Any]) -> None:
+    """Both images mirrored and a -> -a: the disparities change sign, the heights do not."""
+    p, terrain = pair["pair"], pair["terrain"]
+    z = (terrain.min_height, terrain.max_height)
+    ref, _ = measure_heights(p, p.left_image, p.right_image, z)
+    flipped = dataclasses.replace(p, height_per_disparity_px=-p.height_per_disparity_px)
+    res, _ = measure_heights(
+        flipped, np.ascontiguousarray(p.left_image[:, ::-1]),
+        np.ascontiguousarray(p.right_image[:, ::-1]), z,
+    )  # fmt: skip
+    assert res.status == DenseStatus.OK, res.message
+    both = np.isfinite(ref.height) & np.isfinite(res.height[:, ::-1])
+    assert both.mean() > 0.8
+    diff = np.abs(ref.height[both] - res.height[:, ::-1][both])
+    assert np.median(diff) < abs(p.height_per_disparity_px) / 4
+
+
+@pytest.mark.parametrize(
+    ("case", "status"),
+    [
+        ("textureless", DenseStatus.TEXTURELESS),
+        ("saturated", DenseStatus.TEXTURELESS),
+        ("nodata", DenseStatus.NO_OVERLAP),
+        ("wide_range", DenseStatus.RANGE_TOO_WIDE),
+        ("no_relation", DenseStatus.NO_MATCH),
+    ],
+)
+def test_bad_cases_get_a_status_and_a_warning(
+    pair: dict[str, Any], case: str, status: DenseStatus
+) -> None:
+    p, terrain = pair["pair"], pair["terrain"]
+    left, right = p.left_image, p.right_image
+    z = (terrain.min_height, terrain.max_height)
+    if case == "textureless":
+        left, right = np.full_like(left, 700), np.full_like(right, 700)
+    elif case == "saturated":
+        left, right = np.full_like(left, 65535), np.full_like(right, 65535)
+    elif case == "nodata":
+        left, right = np.zeros_like(left), np.zeros_like(right)
+    elif case == "wide_range":
+        z = (-1.0e5, 1.0e5)
+    elif case == "no_relation":
+        p = dataclasses.replace(p, height_per_disparity_px=0.0)
+    res, issues = measure_heights(p, left, right, z)
+    assert res.status == status, res.message
+    assert not res.ok and res.dsm is None and res.ortho is None
+    assert np.isnan(res.height).all()
+    (iss,) = issues
+    assert iss.level == Level.WARN and str(status) in iss.message
