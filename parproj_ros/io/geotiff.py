@@ -1,0 +1,613 @@
+"""GeoTIFF export of a DSM and an ortho-image, with a proper coordinate reference system.
+
+The DSM and the ortho-image of a pair live on a north-up :class:`DsmGrid` in the pair's object
+frame (``parproj_ros.imaging.heights``). What that frame is decides what is written:
+
+* an imported (real RPC) pair: a local east-north-up tangent plane on WGS84, named by the frame_id
+  ``enu_wgs84:lat=...,lon=...,h=...`` (:func:`parproj_ros.io.scene_import.frame_id_of`). That
+  plane is not a map projection, and its Z is the height above the plane, not above the ellipsoid
+  (the plane leaves the ellipsoid by d^2 / 2R: 8 cm at 1 km, 2 m at 5 km from the origin). The
+  export is an exact reprojection onto a regular north-up grid of a real CRS
+  (:func:`crs_for_frame`): the UTM zone of the frame origin (EPSG 326xx north, 327xx south) or
+  a transverse Mercator centred on the origin (``target="local"``). Each output cell centre
+  (E, N) is taken to geodetic (lon, lat); the ellipsoidal height h of the DSM surface on the
+  normal through (lon, lat) is found by fixed-point iteration (point (lon, lat, h) -> ENU
+  (x, y, z); h += Z_dsm(x, y) - z; the horizontal (x, y) moves by about d / R = 1e-3 m per
+  metre of h at 6 km, so 2-3 rounds get below 1e-5 m), Z_dsm bilinear in the DSM. Heights
+  written are WGS84 ellipsoidal heights, metres (band description and tags say so). The
+  ortho-image is sampled at the same (x, y) (it needs the DSM heights of its cells for that), so
+  both files share one grid.
+* any other frame (a simulated bag's ``map``): a local Cartesian engineering frame, metres, with
+  no geodetic anchor. The grid is written as it is (geotransform in frame metres, no CRS, the
+  exact values); the file's description and tags say so.
+
+No data: float rasters use NaN (DSM) and a nodata value (ortho, default 0). An output cell has a
+height only where every DSM cell that its bilinear interpolation weighs (non-zero weight) has
+one, so a hole grows by less than one cell and nothing is extrapolated (the outer half cell of
+the DSM's border is not written either). Files are float32 (DSM) or the image's dtype (ortho),
+deflate-compressed, tiled 256 x 256, written under a temporary name and renamed when complete.
+
+:func:`write_plain_tiff` writes an array with no georeferencing (e.g. a disparity map, which
+lives in the normalized image's pixel grid).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..geometry.geodesy import LocalTangentPlane
+from ..imaging.heights import DsmGrid
+from .scene_import import FRAME_PREFIX, frame_from_id
+
+if TYPE_CHECKING:
+    from pyproj import CRS
+
+__all__ = [
+    "Target",
+    "crs_for_frame",
+    "export_grid",
+    "frame_of",
+    "utm_zone",
+    "write_dsm_geotiff",
+    "write_ortho_geotiff",
+    "write_plain_tiff",
+]
+
+FloatArray = NDArray[np.float64]
+Target = Literal["utm", "local"]
+
+#: Output rows computed and written at once (a multiple of the tile height).
+BLOCK_ROWS = 256
+#: Tile side, pixels.
+TILE = 256
+#: Fixed-point rounds for the ellipsoidal height of an output cell, and the step (m) ending them.
+MAX_ROUNDS = 12
+HEIGHT_TOL_M = 1e-5
+#: Tag and band texts.
+ELLIPSOIDAL = "ellipsoidal height above WGS84, metres"
+NO_CRS_NOTE = (
+    "local engineering frame {frame!r}: Cartesian metres, no geodetic anchor, no CRS "
+    "(X east-like, Y north-like as the frame defines them)"
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames and CRS
+
+
+def frame_of(frame_id: str) -> LocalTangentPlane | None:
+    """The local tangent plane a frame_id names; None for a frame without a geodetic anchor.
+
+    Raises:
+        ValueError: a frame_id with the tangent-plane prefix that does not parse.
+    """
+    if frame_id.strip().startswith(FRAME_PREFIX + ":"):
+        return frame_from_id(frame_id)
+    return None
+
+
+def utm_zone(lon_deg: float, lat_deg: float) -> tuple[int, bool]:
+    """(zone 1..60, north) of the UTM zone holding a point (Norway and Svalbard exceptions).
+
+    Args:
+        lon_deg: longitude, degrees (any turn; normalized to [-180, 180)).
+        lat_deg: latitude, degrees, within UTM's [-80, 84].
+
+    Raises:
+        ValueError: a latitude outside UTM (polar: use ``target="local"``).
+    """
+    if not (math.isfinite(lon_deg) and -80.0 <= lat_deg <= 84.0):
+        raise ValueError(
+            f"no UTM zone at lat {lat_deg}, lon {lon_deg} (UTM spans 80 S to 84 N); "
+            "use target='local'"
+        )
+    lon = (lon_deg + 180.0) % 360.0 - 180.0
+    zone = min(math.floor((lon + 180.0) / 6.0) + 1, 60)
+    if 56.0 <= lat_deg < 64.0 and 3.0 <= lon < 12.0:
+        zone = 32  # 32V covers south-west Norway
+    elif lat_deg >= 72.0 and 0.0 <= lon < 42.0:
+        zone = 31 if lon < 9.0 else 33 if lon < 21.0 else 35 if lon < 33.0 else 37  # Svalbard
+    return zone, lat_deg >= 0.0
+
+
+def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS | None:
+    """The map CRS an object frame is exported in.
+
+    Args:
+        frame_id: the object frame; ``enu_wgs84:lat=...,lon=...,h=...`` for an imported pair.
+        target: "utm": WGS 84 / UTM zone of the frame origin (EPSG 326zz north, 327zz south);
+            "local": a transverse Mercator on WGS84 centred on the origin (scale 1, no false
+            easting or northing), metres.
+
+    Returns:
+        A ``pyproj.CRS``; None for any other frame (e.g. ``map``: a local engineering frame in
+        metres with no geodetic anchor, written without CRS).
+
+    Raises:
+        ValueError: an unknown target, a malformed tangent-plane frame_id, or a UTM target
+            outside UTM's latitudes.
+    """
+    from pyproj import CRS
+    from pyproj.crs import ProjectedCRS
+    from pyproj.crs.coordinate_operation import TransverseMercatorConversion
+
+    if target not in ("utm", "local"):
+        raise ValueError(f"target must be 'utm' or 'local', got {target!r}")
+    frame = frame_of(frame_id)
+    if frame is None:
+        return None
+    if target == "utm":
+        zone, north = utm_zone(frame.lon0, frame.lat0)
+        return CRS.from_epsg((32600 if north else 32700) + zone)
+    return ProjectedCRS(
+        conversion=TransverseMercatorConversion(
+            latitude_natural_origin=frame.lat0,
+            longitude_natural_origin=frame.lon0,
+            false_easting=0.0,
+            false_northing=0.0,
+            scale_factor_natural_origin=1.0,
+        ),
+        geodetic_crs=CRS.from_epsg(4326),  # WGS 84
+        name=f"WGS 84 / local transverse Mercator (lat {frame.lat0:.7f}, lon {frame.lon0:.7f})",
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Sampling a grid at object (x, y)
+
+
+def _bilinear(
+    values: NDArray[Any], grid: DsmGrid, x: FloatArray, y: FloatArray, valid: NDArray[np.bool_]
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
+    """Bilinear sample of ``values`` (grid.height, grid.width) at object (x, y), metres.
+
+    Returns:
+        (value, ok, weight_ok, nearest): ``value`` the weighted sum over the neighbours of
+        non-zero weight that are ``valid``, ``ok`` True where all of those are valid and the
+        point lies within the box of the cell centres, ``weight_ok`` their total weight (NaN
+        outside the box), ``nearest`` the value of the nearest cell (NaN outside the box).
+    """
+    w, h = grid.width, grid.height
+    c = (x - grid.x0) / grid.cell
+    r = (grid.y0 - y) / grid.cell
+    inside = (c >= 0.0) & (c <= w - 1) & (r >= 0.0) & (r <= h - 1)  # False for NaN
+    c = np.where(inside, c, 0.0)
+    r = np.where(inside, r, 0.0)
+    c0 = np.clip(np.floor(c).astype(np.int64), 0, max(w - 2, 0))
+    r0 = np.clip(np.floor(r).astype(np.int64), 0, max(h - 2, 0))
+    c1 = np.minimum(c0 + 1, w - 1)
+    r1 = np.minimum(r0 + 1, h - 1)
+    fc = c - c0
+    fr = r - r0
+    total = np.zeros(c.shape)
+    wsum = np.zeros(c.shape)
+    ok = inside.copy()
+    for rr, cc, wk in (
+        (r0, c0, (1.0 - fr) * (1.0 - fc)),
+        (r0, c1, (1.0 - fr) * fc),
+        (r1, c0, fr * (1.0 - fc)),
+        (r1, c1, fr * fc),
+    ):
+        good = valid[rr, cc]
+        use = good & (wk > 0.0)
+        total += np.where(use, wk * np.where(good, values[rr, cc], 0.0).astype(float), 0.0)
+        wsum += np.where(use, wk, 0.0)
+        ok &= good | (wk <= 0.0)
+    nr = np.where(fr < 0.5, r0, r1)
+    nc = np.where(fc < 0.5, c0, c1)
+    nearest = np.where(inside, values[nr, nc].astype(float), np.nan)
+    return total, ok, np.where(inside, wsum, np.nan), nearest
+
+
+class _Reprojection:
+    """Output cells of a map grid -> object (x, y) and ellipsoidal height on the DSM surface."""
+
+    def __init__(
+        self,
+        frame: LocalTangentPlane,
+        crs: CRS,
+        heights: NDArray[np.floating[Any]],
+        grid: DsmGrid,
+        out: DsmGrid,
+    ) -> None:
+        from pyproj import CRS as _CRS
+        from pyproj import Transformer
+
+        self.frame = frame
+        self.heights = heights
+        self.grid = grid
+        self.out = out
+        self.valid = np.isfinite(heights)
+        z = heights[self.valid]
+        self.z_ref = float(np.median(z)) if z.size else 0.0
+        self.to_geodetic = Transformer.from_crs(crs, _CRS.from_epsg(4326), always_xy=True)
+
+    def rows(self, r0: int, r1: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Object (x, y) metres and ellipsoidal height h metres of output rows r0:r1.
+
+        (x, y) is where the DSM surface meets the ellipsoid normal through the cell centre's
+        (lon, lat); h is NaN where the DSM has no bilinear height there.
+        """
+        e, n = self.out.centres((r0, r1))
+        lon, lat = self.to_geodetic.transform(e, n)
+        lon = np.asarray(lon, dtype=float)
+        lat = np.asarray(lat, dtype=float)
+        frame = self.frame
+        h = np.full(e.shape, frame.h0 + self.z_ref)
+        for _ in range(MAX_ROUNDS):
+            x, y, z = frame.to_local(lon, lat, h)
+            total, _, wsum, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                dh = total / wsum - z  # NaN-tolerant (weights of valid neighbours) while iterating
+            step = np.isfinite(dh)
+            h = np.where(step, h + np.where(step, dh, 0.0), h)
+            if not step.any() or float(np.max(np.abs(dh[step]))) < HEIGHT_TOL_M:
+                break
+        x, y, z = frame.to_local(lon, lat, h)
+        total, ok, _, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
+        return x, y, np.where(ok, h + (total - z), np.nan)
+
+
+# ---------------------------------------------------------------------------------------------
+# The output grid
+
+
+def _edge_points(grid: DsmGrid) -> tuple[FloatArray, FloatArray]:
+    """Object (x, y) along the outline of the grid's cells (outer corners included), metres."""
+    half = 0.5 * grid.cell
+    xa = grid.x0 - half
+    xb = grid.x0 + (grid.width - 1) * grid.cell + half
+    ya = grid.y0 + half
+    yb = grid.y0 - (grid.height - 1) * grid.cell - half
+    t = np.linspace(0.0, 1.0, 513)
+    xs = np.concatenate(
+        [xa + (xb - xa) * t, xa + (xb - xa) * t, np.full(513, xa), np.full(513, xb)]
+    )
+    ys = np.concatenate(
+        [np.full(513, ya), np.full(513, yb), ya + (yb - ya) * t, ya + (yb - ya) * t]
+    )
+    return xs, ys
+
+
+def _check_grid(name: str, array: NDArray[Any], grid: DsmGrid) -> None:
+    if array.shape != (grid.height, grid.width):
+        raise ValueError(
+            f"{name} has shape {array.shape}, the grid is {grid.height} x {grid.width} cells"
+        )
+
+
+def export_grid(
+    grid: DsmGrid,
+    frame_id: str,
+    heights: ArrayLike | None = None,
+    *,
+    target: Target = "utm",
+    resolution: float | None = None,
+) -> tuple[CRS | None, DsmGrid]:
+    """The CRS and north-up grid a DSM (and its ortho-image) are exported on.
+
+    For a tangent-plane frame: the grid of cell ``resolution`` (default ``grid.cell``), centres
+    on multiples of it in map metres, covering the map position of the grid's outline at the
+    lowest and the highest valid height (at Z = 0 without heights). For any other frame: no CRS
+    and ``grid`` itself.
+
+    Args:
+        grid: the DSM grid in the object frame.
+        frame_id: the object frame (see :func:`crs_for_frame`).
+        heights: the DSM, Z metres in the object frame, (grid.height, grid.width).
+        target: "utm" or "local".
+        resolution: output cell side, map metres (tangent-plane frames only).
+
+    Returns:
+        (crs, grid): ``DsmGrid`` in map metres (x0 = easting, y0 = northing of the centre of
+        the first cell).
+    """
+    crs = crs_for_frame(frame_id, target=target)
+    frame = frame_of(frame_id)
+    if crs is None or frame is None:
+        if resolution is not None and resolution != grid.cell:
+            raise ValueError(
+                f"frame {frame_id!r} has no CRS: its grid is written as it is "
+                f"(cell {grid.cell} m), not resampled to {resolution} m"
+            )
+        return None, grid
+    from pyproj import CRS as _CRS
+    from pyproj import Transformer
+
+    cell = grid.cell if resolution is None else float(resolution)
+    if not (cell > 0 and math.isfinite(cell)):
+        raise ValueError(f"resolution must be a finite size > 0 m, got {resolution}")
+    zs = [0.0]
+    if heights is not None:
+        z = np.asarray(heights, dtype=float)
+        _check_grid("heights", z, grid)
+        if np.isfinite(z).any():
+            zs = [float(np.nanmin(z)), float(np.nanmax(z))]
+    x, y = _edge_points(grid)
+    fwd = Transformer.from_crs(_CRS.from_epsg(4326), crs, always_xy=True)
+    es, ns = [], []
+    for zz in zs:
+        lon, lat, _ = frame.to_geodetic(x, y, zz)
+        e, n = fwd.transform(lon, lat)
+        es.append(np.asarray(e))
+        ns.append(np.asarray(n))
+    e_all, n_all = np.concatenate(es), np.concatenate(ns)
+    half = 0.5 * cell  # the outline is of cell edges: keep cells whose centre is inside it
+    return crs, DsmGrid.covering(
+        float(e_all.min()) + half,
+        float(e_all.max()) - half,
+        float(n_all.min()) + half,
+        float(n_all.max()) - half,
+        cell,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+
+def _spans(n: int) -> Iterator[tuple[int, int]]:
+    for s in range(0, n, BLOCK_ROWS):
+        yield s, min(n, s + BLOCK_ROWS)
+
+
+def _profile(
+    grid: DsmGrid, dtype: np.dtype[Any], crs: CRS | None, nodata: float
+) -> dict[str, Any]:
+    from rasterio.crs import CRS as RIO_CRS
+    from rasterio.transform import Affine
+
+    half = 0.5 * grid.cell
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": grid.width,
+        "height": grid.height,
+        "count": 1,
+        "dtype": dtype.name,
+        "transform": Affine(grid.cell, 0.0, grid.x0 - half, 0.0, -grid.cell, grid.y0 + half),
+        "crs": None if crs is None else RIO_CRS.from_wkt(crs.to_wkt()),
+        "nodata": nodata,
+        "compress": "deflate",
+        "predictor": 3 if dtype.kind == "f" else 2,
+        "tiled": True,
+        "blockxsize": TILE,
+        "blockysize": TILE,
+        "BIGTIFF": "IF_SAFER",
+    }
+    return profile
+
+
+class _Staged:
+    """Write to ``.<name>.partial`` beside ``path``; rename onto ``path`` when complete."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".{self.path.name}.partial")
+
+    def __enter__(self) -> Path:
+        return self.tmp
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        if exc_type is None:
+            os.replace(self.tmp, self.path)
+        else:
+            self.tmp.unlink(missing_ok=True)
+
+
+def _tags(frame_id: str, crs: CRS | None, target: Target, what: str) -> dict[str, str]:
+    if crs is None:
+        note = NO_CRS_NOTE.format(frame=frame_id)
+    else:
+        note = (
+            f"{what} reprojected exactly from the local tangent plane {frame_id} "
+            f"to {crs.name} ({target})"
+        )
+    return {
+        "TIFFTAG_IMAGEDESCRIPTION": f"parproj_ros {what}: {note}",
+        "PARPROJ_SOURCE_FRAME": frame_id,
+        "PARPROJ_CRS": "none (local engineering frame, metres)" if crs is None else crs.name,
+    }
+
+
+def _open_writer(tmp: Path, profile: dict[str, Any]) -> Any:
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NotGeoreferencedWarning)
+        return rasterio.open(tmp, "w", **profile)
+
+
+def write_dsm_geotiff(
+    path: str | os.PathLike[str],
+    dsm_heights: ArrayLike,
+    grid: DsmGrid,
+    frame_id: str,
+    *,
+    target: Target = "utm",
+    nodata: float = math.nan,
+    resolution: float | None = None,
+) -> tuple[CRS | None, DsmGrid]:
+    """Write a DSM as a float32 GeoTIFF (deflate, tiled) in the CRS of its frame.
+
+    Tangent-plane frame (``enu_wgs84:...``): exact reprojection (module doc) onto
+    :func:`export_grid`; values are WGS84 ellipsoidal heights, metres. Other frames: the grid
+    as it is, values Z in the frame, metres, no CRS.
+
+    Args:
+        path: the GeoTIFF to write (replaced if it exists).
+        dsm_heights: Z, metres in the object frame, float (grid.height, grid.width), NaN for
+            holes (:attr:`parproj_ros.imaging.heights.Dsm.heights`).
+        grid: the DSM's grid in the object frame.
+        frame_id: the object frame.
+        target: "utm" (zone of the frame origin) or "local" (transverse Mercator at it).
+        nodata: value written for cells without a height (NaN by default).
+        resolution: output cell side, map metres (default: ``grid.cell``).
+
+    Returns:
+        (crs, grid) of the file (``crs`` None without a geodetic anchor).
+    """
+    z = np.asarray(dsm_heights, dtype=np.float32)
+    _check_grid("dsm_heights", z, grid)
+    crs, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
+    frame = frame_of(frame_id)
+    profile = _profile(out, np.dtype(np.float32), crs, nodata)
+    with _Staged(path) as tmp, _open_writer(tmp, profile) as dst:
+        dst.update_tags(**_tags(frame_id, crs, target, "DSM"))
+        if crs is None or frame is None:
+            dst.set_band_description(1, f"height Z in frame {frame_id}, metres")
+            dst.update_tags(1, HEIGHT="Z in the local frame, metres")
+            dst.write(np.where(np.isfinite(z), z, np.float32(nodata)).astype(np.float32), 1)
+        else:
+            dst.set_band_description(1, ELLIPSOIDAL)
+            dst.update_tags(1, HEIGHT=ELLIPSOIDAL, VERTICAL_DATUM="WGS84 ellipsoid")
+            rep = _Reprojection(frame, crs, z, grid, out)
+            for r0, r1 in _spans(out.height):
+                _, _, h = rep.rows(r0, r1)
+                block = np.where(np.isfinite(h), h, nodata).astype(np.float32)
+                dst.write(block, 1, window=((r0, r1), (0, out.width)))
+        dst.set_band_unit(1, "metre")
+    return crs, out
+
+
+def _sample_image(
+    image: NDArray[Any],
+    grid: DsmGrid,
+    x: FloatArray,
+    y: FloatArray,
+    nodata: float,
+    interpolation: Literal["bilinear", "nearest"],
+) -> FloatArray:
+    """Image values at object (x, y), metres (float64; nodata where there is none).
+
+    Bilinear where every weighed pixel has data, else the nearest pixel; nodata outside the
+    grid's centre box or where (x, y) is NaN.
+    """
+    valid = image != nodata if image.dtype.kind != "f" else np.isfinite(image) & (image != nodata)
+    total, ok, _, nearest = _bilinear(image, grid, x, y, valid)
+    out = nearest if interpolation == "nearest" else np.where(ok, total, nearest)
+    return np.where(np.isfinite(out), out, nodata)
+
+
+def _cast(values: FloatArray, dtype: np.dtype[Any]) -> NDArray[Any]:
+    if dtype.kind in "iu":
+        info = np.iinfo(dtype)
+        return np.clip(np.rint(values), info.min, info.max).astype(dtype)
+    return values.astype(dtype)
+
+
+def write_ortho_geotiff(
+    path: str | os.PathLike[str],
+    image: ArrayLike,
+    grid: DsmGrid,
+    frame_id: str,
+    *,
+    heights: ArrayLike | None = None,
+    target: Target = "utm",
+    nodata: float = 0,
+    resolution: float | None = None,
+    interpolation: Literal["bilinear", "nearest"] = "bilinear",
+) -> tuple[CRS | None, DsmGrid]:
+    """Write an ortho-image on a DSM grid as a GeoTIFF (its dtype kept; deflate, tiled).
+
+    Tangent-plane frame: each output cell takes the image at the object (x, y) where the DSM
+    surface meets the ellipsoid normal through the cell centre, exactly as
+    :func:`write_dsm_geotiff` does with the same ``heights``, ``target`` and ``resolution``:
+    the two files share CRS and grid. Other frames: the image as it is, no CRS.
+
+    Args:
+        path: the GeoTIFF to write (replaced if it exists).
+        image: uint8, uint16, int16, float32 ... (grid.height, grid.width), on the DSM grid
+            (:func:`parproj_ros.imaging.heights.orthoimage`).
+        grid: the DSM grid in the object frame.
+        frame_id: the object frame.
+        heights: the DSM the ortho-image was made on, Z metres in the object frame; needed
+            for a tangent-plane frame (a cell's map position depends on its height by about
+            d / R per metre: 0.8 m at 5 km from the origin for 1000 m).
+        target: "utm" or "local".
+        nodata: the image's no-data value (written as the file's nodata).
+        resolution: output cell side, map metres (default: ``grid.cell``).
+        interpolation: "bilinear" (where all weighed pixels have data, else the nearest
+            pixel; integers rounded) or "nearest".
+
+    Returns:
+        (crs, grid) of the file.
+
+    Raises:
+        ValueError: shapes that do not match the grid, or no ``heights`` for a tangent-plane
+            frame.
+    """
+    img = np.asarray(image)
+    _check_grid("image", img, grid)
+    if img.dtype.kind not in "iuf":
+        raise ValueError(f"image must be of an integer or float type, got {img.dtype}")
+    frame = frame_of(frame_id)
+    z: NDArray[np.float32] | None = None
+    if heights is not None:
+        z = np.asarray(heights, dtype=np.float32)
+        _check_grid("heights", z, grid)
+    elif frame is not None:
+        raise ValueError(
+            f"frame {frame_id!r} is a tangent plane: give the DSM heights of the ortho-image's "
+            "cells (heights=...), its cells' map positions depend on them"
+        )
+    crs, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
+    profile = _profile(out, img.dtype, crs, nodata)
+    with _Staged(path) as tmp, _open_writer(tmp, profile) as dst:
+        dst.update_tags(**_tags(frame_id, crs, target, "ortho-image"))
+        dst.set_band_description(1, "ortho-image (left scene on the DSM)")
+        if crs is None or frame is None or z is None:
+            dst.write(img, 1)
+        else:
+            rep = _Reprojection(frame, crs, z, grid, out)
+            for r0, r1 in _spans(out.height):
+                x, y, h = rep.rows(r0, r1)
+                ok = np.isfinite(h)
+                v = _sample_image(img, grid, x, y, nodata, interpolation)
+                block = _cast(np.where(ok, v, nodata), img.dtype)
+                dst.write(block, 1, window=((r0, r1), (0, out.width)))
+    return crs, out
+
+
+def write_plain_tiff(
+    path: str | os.PathLike[str],
+    array: ArrayLike,
+    *,
+    nodata: float | None = None,
+    description: str = "",
+) -> None:
+    """Write one 2-D array as a TIFF with no georeferencing (deflate, tiled), dtype kept.
+
+    For rasters in an image's pixel grid, e.g. a disparity map (float32, pixels, NaN where
+    invalid): row 0 is the image's first row, no geotransform, no CRS.
+    """
+    a = np.asarray(array)
+    if a.ndim != 2 or a.dtype.kind not in "iuf":
+        raise ValueError(f"need a 2-D integer or float array, got {a.dtype} {a.shape}")
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": a.shape[1],
+        "height": a.shape[0],
+        "count": 1,
+        "dtype": a.dtype.name,
+        "nodata": nodata,
+        "compress": "deflate",
+        "predictor": 3 if a.dtype.kind == "f" else 2,
+        "tiled": True,
+        "blockxsize": TILE,
+        "blockysize": TILE,
+        "BIGTIFF": "IF_SAFER",
+    }
+    with _Staged(path) as tmp, _open_writer(tmp, profile) as dst:
+        if description:
+            dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=description)
+            dst.set_band_description(1, description)
+        dst.write(a, 1)

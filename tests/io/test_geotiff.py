@@ -1,0 +1,287 @@
+"""GeoTIFF export (parproj_ros/io/geotiff.py): CRS choice, exact reprojection, nodata, dtypes.
+
+Synthetic DSMs on a local tangent plane at the Ventoux origin (lat 44.17, lon 5.27, h 600 m),
+8 km x 8 km, 10 m cells: a plane, a tilted plane and a Gaussian bump. Each file is read back
+with rasterio (its CRS and transform, not what the writer returned); every valid cell's map
+centre and written ellipsoidal height go back through pyproj (map -> lon, lat) and the tangent
+plane (-> ENU x, y, z), independently of the writer's iteration, and must lie on the synthetic
+surface. Tolerance: the bilinear interpolation error of the surface, (cell^2 / 8) (max |Z_xx| +
+max |Z_yy|) (0 for the planes, 6.9 mm for the bump), plus float32 rounding (half an ulp of the
+DSM's Z and of the written h: 3e-5 + 6e-5 m here) and 2e-5 m for the iteration. Horizontally:
+an ortho-image whose values are the ENU x (or y) of its cells (bilinear is exact on it) must
+give, in each output cell, the x (y) of the back-transformed point, to 1 mm (float32 half-ulp
+at 4 km is 2.4e-4 m).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import rasterio
+from pyproj import CRS, Transformer
+
+from parproj_ros.geometry.geodesy import LocalTangentPlane
+from parproj_ros.imaging.heights import DsmGrid
+from parproj_ros.io.geotiff import (
+    crs_for_frame,
+    export_grid,
+    utm_zone,
+    write_dsm_geotiff,
+    write_ortho_geotiff,
+    write_plain_tiff,
+)
+from parproj_ros.io.scene_import import frame_id_of
+
+FloatArray = np.ndarray[Any, np.dtype[np.float64]]
+Surface = Callable[[FloatArray, FloatArray], FloatArray]
+
+VENTOUX = LocalTangentPlane(44.17, 5.27, 600.0)
+FID = frame_id_of(VENTOUX)
+GRID = DsmGrid.covering(-4000.0, 4000.0, -4000.0, 4000.0, 10.0)  # 801 x 801 cells
+BUMP_A, BUMP_S = 400.0, 1200.0  # bump height and width (sigma), metres
+#: Bilinear error bound of the bump: (cell^2 / 8) * 2 * max |Z_xx| with max |Z_xx| = A / sigma^2.
+BUMP_BOUND = GRID.cell**2 / 8.0 * 2.0 * BUMP_A / BUMP_S**2
+ITERATION_TOL = 2e-5  # m: the writer's fixed point stops below 1e-5 m
+
+
+def float_tol(z: Any, h: Any) -> float:
+    """Float32 rounding of the DSM (Z) and of the written heights (h): half an ulp of each."""
+    ulp = np.spacing(np.float32(np.nanmax(np.abs(z)))) + np.spacing(np.float32(np.nanmax(h)))
+    return float(ulp) / 2.0 + ITERATION_TOL
+
+
+SURFACES: dict[str, tuple[Surface, float]] = {
+    "plane": (lambda x, y: np.full(np.shape(x), 150.0), 0.0),
+    "tilted": (lambda x, y: 150.0 + 0.08 * x - 0.05 * y, 0.0),
+    "bump": (
+        lambda x, y: (
+            150.0 + BUMP_A * np.exp(-((x - 300.0) ** 2 + (y + 500.0) ** 2) / (2 * BUMP_S**2))
+        ),
+        BUMP_BOUND,
+    ),
+}
+
+
+def dsm_of(surface: Surface, grid: DsmGrid = GRID) -> np.ndarray[Any, np.dtype[np.float32]]:
+    x, y = grid.centres()
+    return surface(x, y).astype(np.float32)
+
+
+def read(path: Path) -> tuple[np.ndarray[Any, Any], CRS | None, Any, dict[str, str]]:
+    with rasterio.open(path) as src:
+        crs = None if src.crs is None else CRS.from_wkt(src.crs.to_wkt())
+        return src.read(1), crs, src.transform, dict(src.tags())
+
+
+def back_to_enu(
+    path: Path, frame: LocalTangentPlane = VENTOUX
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray[Any, Any]]:
+    """Every valid cell of a DSM GeoTIFF -> (x, y, z) ENU, its height h; and the valid mask."""
+    h, crs, t, _ = read(path)
+    assert crs is not None
+    ok = np.isfinite(h)
+    rows, cols = np.nonzero(ok)
+    e = t.c + (cols + 0.5) * t.a
+    n = t.f + (rows + 0.5) * t.e
+    lon, lat = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True).transform(e, n)
+    hh = h[ok].astype(float)
+    x, y, z = frame.to_local(lon, lat, hh)
+    return x, y, z, hh, ok
+
+
+def exact_positions(path: Path, surface: Surface, frame: LocalTangentPlane = VENTOUX) -> Any:
+    """ENU (x, y) of every cell of a GeoTIFF on the true surface (the test's own iteration)."""
+    _, crs, t, _ = read(path)
+    with rasterio.open(path) as src:
+        rows, cols = np.mgrid[0 : src.height, 0 : src.width]
+    e = t.c + (cols + 0.5) * t.a
+    n = t.f + (rows + 0.5) * t.e
+    lon, lat = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True).transform(e, n)
+    h = np.full(e.shape, frame.h0)
+    for _ in range(6):
+        x, y, z = frame.to_local(lon, lat, h)
+        h = h + surface(x, y) - z
+    x, y, _ = frame.to_local(lon, lat, h)
+    return x, y
+
+
+@pytest.mark.parametrize("target", ["utm", "local"])
+@pytest.mark.parametrize("name", list(SURFACES))
+def test_written_heights_lie_on_the_surface(tmp_path: Path, name: str, target: Any) -> None:
+    surface, bound = SURFACES[name]
+    path = tmp_path / "dsm.tif"
+    crs, out = write_dsm_geotiff(path, dsm_of(surface), GRID, FID, target=target)
+    h, file_crs, t, tags = read(path)
+    assert file_crs is not None and crs is not None and file_crs.equals(crs)
+    if target == "utm":
+        assert file_crs.to_epsg() == 32631
+    else:
+        p = {q.name: q.value for q in file_crs.coordinate_operation.params}
+        assert p["Latitude of natural origin"] == pytest.approx(44.17, abs=1e-9)
+        assert p["Longitude of natural origin"] == pytest.approx(5.27, abs=1e-9)
+    assert (t.a, -t.e) == (GRID.cell, GRID.cell) and h.dtype == np.float32
+    assert h.shape == (out.height, out.width)
+    assert "ellipsoidal" in tags["TIFFTAG_IMAGEDESCRIPTION"] or "WGS" in tags["PARPROJ_CRS"]
+
+    x, y, z, hh, ok = back_to_enu(path)
+    err = np.abs(z - surface(x, y))
+    tol = bound + float_tol(dsm_of(surface), hh)
+    assert bound < 0.01 and err.max() <= tol, (name, target, err.max(), tol)
+    # the tangent plane leaves the ellipsoid by d^2 / 2R: h - h0 - Z follows it (2.5 m at the
+    # corners), so the test would see heights written as h0 + Z
+    d2 = x**2 + y**2
+    drop = hh - VENTOUX.h0 - surface(x, y)
+    assert drop.max() > 2.0
+    assert np.abs(drop - d2 / (2 * 6_371_000.0)).max() < 0.02
+
+    # complete: every output cell whose surface point lies one cell inside the DSM has a height
+    xe, ye = exact_positions(path, surface)
+    lo_x, hi_x = GRID.x0 + GRID.cell, GRID.x0 + (GRID.width - 2) * GRID.cell
+    hi_y, lo_y = GRID.y0 - GRID.cell, GRID.y0 - (GRID.height - 2) * GRID.cell
+    inner = (xe >= lo_x) & (xe <= hi_x) & (ye >= lo_y) & (ye <= hi_y)
+    assert ok[inner].all()
+    assert not ok[(xe < GRID.x0 - 1e-6) | (ye > GRID.y0 + 1e-6)].any()
+
+
+@pytest.mark.parametrize("target", ["utm", "local"])
+def test_ortho_shares_the_grid_and_is_placed_to_a_millimetre(tmp_path: Path, target: Any) -> None:
+    surface = SURFACES["bump"][0]
+    z = dsm_of(surface)
+    gx, gy = GRID.centres()
+    dsm_path = tmp_path / "dsm.tif"
+    _, dsm_grid = write_dsm_geotiff(dsm_path, z, GRID, FID, target=target)
+    x, y, _, _, ok = back_to_enu(dsm_path)
+    for coord, truth in ((gx, x), (gy, y)):
+        path = tmp_path / "ortho.tif"
+        _, grid = write_ortho_geotiff(
+            path, coord.astype(np.float32), GRID, FID, heights=z, target=target, nodata=np.nan
+        )
+        img, _, t, _ = read(path)
+        assert grid == dsm_grid and img.dtype == np.float32
+        with rasterio.open(dsm_path) as src:
+            assert t == src.transform
+        assert (np.isfinite(img) == ok).all()
+        err = np.abs(img[ok] - truth)
+        assert err.max() < 1e-3, err.max()
+
+
+def test_ortho_dtypes_and_nodata_follow_the_dsm_holes(tmp_path: Path) -> None:
+    """A hole in the DSM: NaN exactly where a weighed neighbour is in it (less than one cell
+    around it), the ortho nodata exactly there; uint8, uint16 and float32 kept."""
+    surface = SURFACES["tilted"][0]
+    z = dsm_of(surface)
+    r0, r1, c0, c1 = 300, 340, 400, 460
+    z[r0:r1, c0:c1] = np.nan
+    path = tmp_path / "dsm.tif"
+    write_dsm_geotiff(path, z, GRID, FID)
+    h, _, _, _ = read(path)
+    xe, ye = exact_positions(path, surface)
+    # the hole's cell centres span [hx0, hx1] x [hy0, hy1]; NaN within one cell of that box
+    hx0, hx1 = GRID.x0 + c0 * GRID.cell, GRID.x0 + (c1 - 1) * GRID.cell
+    hy1, hy0 = GRID.y0 - r0 * GRID.cell, GRID.y0 - (r1 - 1) * GRID.cell
+    dist = np.maximum(
+        np.maximum(hx0 - xe, xe - hx1).clip(0), np.maximum(hy0 - ye, ye - hy1).clip(0)
+    )
+    inner = (
+        (xe >= GRID.x0 + GRID.cell)
+        & (xe <= GRID.x0 + (GRID.width - 2) * GRID.cell)
+        & (ye <= GRID.y0 - GRID.cell)
+        & (ye >= GRID.y0 - (GRID.height - 2) * GRID.cell)
+    )
+    nan = ~np.isfinite(h)
+    assert nan[inner & (dist < GRID.cell - 1e-3)].all()
+    assert not nan[inner & (dist > GRID.cell + 1e-3)].any()
+    assert nan[inner].sum() < (r1 - r0 + 2) * (c1 - c0 + 2)
+
+    rng = np.random.default_rng(5)
+    for dtype, nodata in ((np.uint8, 0), (np.uint16, 0), (np.float32, -9999.0)):
+        info = np.iinfo(dtype) if np.dtype(dtype).kind == "u" else None
+        top = 255 if info is None else int(info.max)
+        img = rng.integers(1, top, size=z.shape).astype(dtype)
+        img[r0:r1, c0:c1] = nodata  # as orthoimage() leaves cells without height
+        opath = tmp_path / f"ortho_{np.dtype(dtype).name}.tif"
+        write_ortho_geotiff(opath, img, GRID, FID, heights=z, nodata=nodata)
+        o, _, _, _ = read(opath)
+        with rasterio.open(opath) as src:
+            assert src.nodata == nodata
+        assert o.dtype == np.dtype(dtype)
+        assert ((o == nodata) == nan).all()
+        assert o[~nan].min() >= 1 and o[~nan].max() <= top
+
+
+def test_map_frame_is_written_as_it_is(tmp_path: Path) -> None:
+    grid = DsmGrid(-35.0, 120.0, 0.5, 70, 40)
+    z = dsm_of(SURFACES["tilted"][0], grid)
+    z[3:7, 10:12] = np.nan
+    assert crs_for_frame("map") is None
+    crs, out = write_dsm_geotiff(tmp_path / "dsm.tif", z, grid, "map")
+    assert crs is None and out == grid
+    h, file_crs, t, tags = read(tmp_path / "dsm.tif")
+    assert file_crs is None
+    assert tuple(t)[:6] == (0.5, 0.0, -35.25, 0.0, -0.5, 120.25)
+    np.testing.assert_array_equal(h, z)  # NaN where NaN, the rest bit for bit
+    assert "no CRS" in tags["TIFFTAG_IMAGEDESCRIPTION"] and "map" in tags["PARPROJ_SOURCE_FRAME"]
+    img = np.arange(70 * 40, dtype=np.uint16).reshape(40, 70)
+    write_ortho_geotiff(tmp_path / "ortho.tif", img, grid, "map")
+    o, _, t2, _ = read(tmp_path / "ortho.tif")
+    assert o.dtype == np.uint16 and t2 == t
+    np.testing.assert_array_equal(o, img)
+    with pytest.raises(ValueError, match="no CRS"):
+        write_dsm_geotiff(tmp_path / "x.tif", z, grid, "map", resolution=1.0)
+
+
+def test_utm_zone_and_hemisphere() -> None:
+    assert utm_zone(5.27, 44.17) == (31, True)
+    assert utm_zone(179.99, 10.0) == (60, True) and utm_zone(-180.0, 10.0) == (1, True)
+    assert utm_zone(5.0, 60.0) == (32, True)  # 32V, south-west Norway
+    assert utm_zone(15.0, 78.0) == (33, True)  # Svalbard
+    south = LocalTangentPlane(-33.92, 18.42, 20.0)  # Cape Town
+    crs = crs_for_frame(frame_id_of(south))
+    assert crs is not None and crs.to_epsg() == 32734
+    assert crs_for_frame(FID) == CRS.from_epsg(32631)
+    with pytest.raises(ValueError, match="UTM"):
+        crs_for_frame(frame_id_of(LocalTangentPlane(85.0, 10.0, 0.0)))
+    polar = crs_for_frame(frame_id_of(LocalTangentPlane(85.0, 10.0, 0.0)), target="local")
+    assert polar is not None and polar.is_projected
+    with pytest.raises(ValueError):
+        crs_for_frame("enu_wgs84:lat=nonsense")
+    with pytest.raises(ValueError, match="target"):
+        crs_for_frame(FID, target="mercator")  # type: ignore[arg-type]
+
+
+def test_southern_origin_round_trip(tmp_path: Path) -> None:
+    south = LocalTangentPlane(-33.92, 18.42, 20.0)
+    grid = DsmGrid.covering(-2500.0, 2500.0, -2500.0, 2500.0, 25.0)
+    surface = SURFACES["tilted"][0]
+    crs, _ = write_dsm_geotiff(tmp_path / "s.tif", dsm_of(surface, grid), grid, frame_id_of(south))
+    assert crs is not None and crs.to_epsg() == 32734
+    x, y, z, hh, _ = back_to_enu(tmp_path / "s.tif", south)
+    tol = float_tol(dsm_of(surface, grid), hh)
+    assert x.size > 30_000 and np.abs(z - surface(x, y)).max() <= tol
+
+
+def test_resolution_and_errors(tmp_path: Path) -> None:
+    z = dsm_of(SURFACES["plane"][0])
+    crs, grid = export_grid(GRID, FID, z, resolution=30.0)
+    assert crs is not None and grid.cell == 30.0 and math.isclose(grid.x0 % 30.0, 0.0)
+    with pytest.raises(ValueError, match="heights"):
+        write_ortho_geotiff(tmp_path / "o.tif", np.zeros(z.shape, np.uint8), GRID, FID)
+    with pytest.raises(ValueError, match="shape"):
+        write_dsm_geotiff(tmp_path / "d.tif", z[:-1], GRID, FID)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")
+def test_plain_tiff_has_no_georeference(tmp_path: Path) -> None:
+    d = np.linspace(-3.5, 12.25, 300 * 200, dtype=np.float32).reshape(300, 200)
+    d[5, 7] = np.nan
+    write_plain_tiff(tmp_path / "disp.tif", d, nodata=np.nan, description="disparity, px")
+    a, crs, t, tags = read(tmp_path / "disp.tif")
+    assert crs is None and t.is_identity and a.dtype == np.float32
+    np.testing.assert_array_equal(a, d)
+    assert tags["TIFFTAG_IMAGEDESCRIPTION"] == "disparity, px"
