@@ -93,7 +93,7 @@ def scenario_terrain(name: str) -> Surface | None:
 
 
 def enu_dem_surface(frame_id: str, dem: Callable[[FloatArray, FloatArray], FloatArray]) -> Surface:
-    """A DEM of ellipsoidal heights as a surface in a local tangent plane frame (``enu:...``).
+    """A DEM of ellipsoidal heights as a surface in a tangent-plane frame (``enu_wgs84:...``).
 
     The plane's Z of a ground point is not its ellipsoidal height (the Earth curves away from
     the plane): each (X, Y) is iterated to the point on the DEM that the plane's vertical

@@ -5,6 +5,7 @@ from __future__ import annotations
 from . import (
     batch,
     demo,
+    dsm,
     evaluate,
     import_images,
     paper,
@@ -27,4 +28,5 @@ COMMANDS = (
     ventoux_eval,
     segments,
     batch,
+    dsm,
 )

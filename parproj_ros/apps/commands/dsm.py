@@ -1,0 +1,88 @@
+"""``parproj dsm``: the DSMs of an output bag as GeoTIFF (UTM), ortho-images and plots."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from ...io.files import check_output, input_path, number, staged_output
+from .common import FORCE_HELP, report
+
+
+def run(args: argparse.Namespace) -> int:
+    """Export every DSM of the bag; print one line per pair (or JSON)."""
+    from ...eval.heights import enu_dem_surface, scenario_terrain
+    from ...io.dem import srtm_height
+    from ...io.geotiff import frame_of
+    from ..export import export_dsms
+
+    args.inputs = [args.output_bag, args.dem]
+    bag = input_path(args.output_bag, "bag")
+    out = check_output(args.output, inputs=[bag], force=args.force, kind="folder")
+    args.outputs = [out]
+    truth = scenario_terrain(args.scenario) if args.scenario else None
+    if args.scenario and truth is None:
+        from ...io.files import InputError
+        from ...sim.scenarios import SCENARIOS
+
+        raise InputError("--scenario", f"unknown; known: {', '.join(SCENARIOS)}")
+    with staged_output(out, force=args.force, kind="folder") as work:
+        if args.dem:
+            dem = srtm_height(input_path(args.dem, "file"), geoid_undulation=args.geoid_undulation)
+            frames = _frames(bag)
+            if not frames or frame_of(frames[0]) is None:
+                from ...io.files import InputError
+
+                raise InputError("--dem", "the bag's DSMs are not in a tangent-plane frame")
+            truth = enu_dem_surface(frames[0], dem)
+        rows = export_dsms(bag, work, target=args.target, truth=truth)
+        (work / "dsm.json").write_text(json.dumps(rows, indent=1, default=float))
+
+    def show(res: dict[str, Any]) -> None:
+        for r in res["pairs"]:
+            t = r.get("against_truth")
+            err = (
+                f"; against truth NMAD {t['nmad']:.3f} m, rms {t['rms']:.3f} m, "
+                f"{100 * t['completeness']:.1f} % complete"
+                if t
+                else ""
+            )
+            print(f"{r['pair_id']}: {r['cells'][0]} x {r['cells'][1]} cells, {r['crs']}{err}")
+        print(f"-> {out}")
+
+    report(args.json, {"pairs": rows, "output": str(out)}, show)
+    return 0 if rows else 1
+
+
+def _frames(bag: Path) -> list[str]:
+    from ...ros.bag import BagReader
+
+    return [i.msg.header.frame_id for i in BagReader(bag).messages(topics=["dsm"])]
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``parproj dsm`` to the sub-command parsers ``sub``."""
+    p = sub.add_parser(
+        "dsm", help="the DSMs of an output bag as GeoTIFF (UTM), ortho-images and plots"
+    )
+    p.add_argument("output_bag", help="output bag with a dsm topic (process --heights)")
+    p.add_argument("-o", "--output", required=True, help="folder to create")
+    p.add_argument(
+        "--target",
+        choices=["utm", "local"],
+        default="utm",
+        help="CRS of a real pair's DSM: its UTM zone, or a local transverse Mercator",
+    )
+    p.add_argument("--scenario", help="simulated bag: the scenario whose terrain is the truth")
+    p.add_argument("--dem", help="real pair: an SRTM .hgt tile as the (coarse) truth")
+    p.add_argument(
+        "--geoid-undulation",
+        type=number(-200.0, 200.0),
+        default=0.0,
+        help="metres added to the DEM heights (geoid -> WGS84 ellipsoid; about 50 at Ventoux)",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON document")
+    p.add_argument("--force", action="store_true", help=FORCE_HELP)
+    p.set_defaults(func=run)
