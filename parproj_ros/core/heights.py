@@ -15,6 +15,7 @@ an :class:`~.results.Issue` that says so; it never raises for image content.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -29,7 +30,8 @@ from ..imaging.dense import (
     refine_range,
 )
 from ..imaging.heights import GroundMapping, make_dsm, orthoimage
-from .results import HeightsResult, Issue, Level, PairResult
+from .config import PipelineConfig
+from .results import BlockResult, HeightsResult, Issue, Level, Outputs, PairResult
 
 Float32Array = NDArray[np.float32]
 
@@ -147,3 +149,80 @@ def measure_heights(
         f"({int(dsm.filled.sum())} filled)"
     )
     return out, [Issue(Level.OK, where, text)]
+
+
+def options_of(config: PipelineConfig) -> HeightsOptions:
+    """The heights options of a pipeline's settings (the ``heights_*`` parameters)."""
+    return HeightsOptions(
+        margin_px=config.heights_margin_px,
+        cell_m=config.heights_cell_m,
+        fill=config.heights_fill,
+        max_fill_cells=config.heights_max_fill_cells,
+        tile_px=config.heights_tile_px,
+        nodata=float(config.nodata),
+    )
+
+
+class HeightsStage:
+    """The heights step on the pipeline's outputs: every finished pair gets its heights.
+
+    A pair made whole carries its images; a streamed pair's images come as column blocks
+    before its :class:`PairResult` (which then has none): the stage keeps the blocks of the
+    pairs in progress (the whole normalized pair, as the unstreamed path holds it) and joins
+    them when the pair is complete. A pair whose images are incomplete gets a WARN, no
+    heights.
+
+    Args:
+        options: how heights are made.
+        z_range: the heights a pair may hold (lowest, highest), metres.
+    """
+
+    def __init__(
+        self, options: HeightsOptions, z_range: Callable[[PairResult], tuple[float, float]]
+    ) -> None:
+        self.options = options
+        self.z_range = z_range
+        self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
+
+    def __call__(self, out: Outputs) -> Outputs:
+        """Add the heights (and their issues) of the pairs ``out`` completes, in place."""
+        for blk in out.blocks:
+            self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
+        for pair in out.pairs:
+            images = self._images(pair)
+            if images is None:
+                out.issues.append(
+                    Issue(
+                        Level.WARN,
+                        f"pair {pair.pair_id}",
+                        "no heights: its normalized images are incomplete",
+                    )
+                )
+                continue
+            res, issues = measure_heights(pair, *images, self.z_range(pair), self.options)
+            out.heights.append(res)
+            out.issues += issues
+        return out
+
+    def _images(self, pair: PairResult) -> tuple[NDArray[np.generic], NDArray[np.generic]] | None:
+        if pair.left_image is not None and pair.right_image is not None:
+            return pair.left_image, pair.right_image
+        sides = []
+        for side, grid in (("left", pair.left_grid), ("right", pair.right_grid)):
+            blocks = self._blocks.pop((pair.pair_id, side), [])
+            if not blocks:
+                return None
+            img = np.zeros((grid.height, grid.width), dtype=blocks[0].image.dtype)
+            covered = 0
+            for b in blocks:
+                img[:, b.col0 : b.col0 + b.image.shape[1]] = b.image
+                covered += b.image.shape[1]
+            if covered < grid.width:
+                return None
+            sides.append(img)
+        return sides[0], sides[1]
+
+    def forget(self, pair_id: str) -> None:
+        """Drop the blocks of a pair that will not complete (its scenes were shed or failed)."""
+        for side in ("left", "right"):
+            self._blocks.pop((pair_id, side), None)
