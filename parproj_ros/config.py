@@ -400,6 +400,27 @@ PARAMS: tuple[Param, ...] = (
         high=86400.0,
     ),
     Param(
+        "memory_budget_mb",
+        "double",
+        4096.0,
+        "bounds what the node holds: a pair (both scenes) is admitted at its first strip only if "
+        "the node's start-up memory plus one raw pair for each pair in flight (admitted, not yet "
+        "published), the new one and one more (working set) fit, and the resident memory is "
+        "under it; otherwise every strip of both its scenes is shed, counted and reported on "
+        "/diagnostics (README, Overload); 4096 MB holds 3 IKONOS-size pairs in flight",
+        unit="MB",
+        low=64.0,
+        high=1e6,
+    ),
+    Param(
+        "stereo_pair_images",
+        "bool",
+        True,
+        "a whole-image pair's StereoPair carries both normalized images (as they also go out on "
+        "left/right/image_normalized); false: it carries none (empty images, as a streamed "
+        "pair's), so each image is serialized and sent once",
+    ),
+    Param(
         "stop_timeout_s",
         "double",
         60.0,

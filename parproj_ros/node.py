@@ -156,6 +156,161 @@ def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
     return rpy
 
 
+def _rss_bytes() -> int:
+    """The resident memory of the node's process, bytes (0 when /proc cannot be read)."""
+    import os
+
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+@dataclass
+class _ViewStream:
+    """Where a view's strip stream is: its current scene (frame_id), lines in it, ordinal."""
+
+    frame_id: str | None = None
+    lines: int = 0
+    ordinal: int = -1
+    max_lines: int = 0  # longest scene seen, lines (the size of a pair when scene_lines = 0)
+    row_bytes: int = 0
+
+
+class PairAdmission:
+    """Admission of whole pairs under ``memory_budget_mb`` (README, "Overload").
+
+    The decision is taken for a pair at the first strip of either of its scenes (scene k of each
+    view; scenes 2k and 2k+1 in single-camera mode) and holds for every strip of both: a pair is
+    processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
+    by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
+
+    A pair is admitted when the node's memory at start, plus one raw pair for each pair in
+    flight (admitted and not yet published), for the new one and for one more (the working
+    set: normalized images, messages being sent), is within the budget, and the resident memory
+    is within it too. Otherwise every strip of the pair is shed (dropped in the subscription
+    callback, before conversion or queueing) and one WARN says so. A pair leaves the flight
+    when its StereoPair is published (with every earlier one), or at the flush. With nothing in
+    flight a pair is always admitted (the node can hold no less).
+
+    Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
+    """
+
+    def __init__(
+        self, views: Sequence[str], budget_mb: float, scene_lines: int, base_bytes: int
+    ) -> None:
+        self.views = list(views)
+        self.single = len(self.views) == 1
+        self.budget = int(budget_mb * 2**20)
+        self.scene_lines = int(scene_lines)
+        self.base = int(base_bytes)
+        self._streams = {v: _ViewStream() for v in self.views}
+        self._decided: dict[int, bool] = {}
+        self._in_flight: set[int] = set()
+        self._scene_group: dict[tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+        self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
+
+    def pair_bytes(self) -> int:
+        """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
+        lines = self.scene_lines or max(s.max_lines for s in self._streams.values())
+        per_view = [lines * s.row_bytes for s in self._streams.values()]
+        return 2 * per_view[0] if self.single else sum(per_view)
+
+    def admit(self, view: str, frame_id: str, rows: int, nbytes: int) -> tuple[bool, list[Issue]]:
+        """Whether to take this strip; the WARN when it sheds a pair."""
+        issues: list[Issue] = []
+        with self._lock:
+            st = self._streams.get(view)
+            if st is None:  # not a configured view: the pipeline reports it
+                return True, issues
+            if rows > 0:
+                st.row_bytes = max(st.row_bytes, nbytes // rows)
+            new_scene = st.frame_id != frame_id or (
+                self.scene_lines > 0 and st.lines >= self.scene_lines
+            )
+            if new_scene:
+                st.frame_id, st.lines, st.ordinal = frame_id, 0, st.ordinal + 1
+            st.lines += rows
+            st.max_lines = max(st.max_lines, st.lines)
+            group = st.ordinal // 2 if self.single else st.ordinal
+            if new_scene:
+                self._scene_group[(view, frame_id)] = group
+            if group not in self._decided:
+                ok, why = self._decide()
+                self._decided[group] = ok
+                if ok:
+                    self._in_flight.add(group)
+                else:
+                    self.counts["pairs_shed"] += 1
+                    issues.append(
+                        Issue(
+                            "warn",
+                            f"{view}/{frame_id}",
+                            f"overload: pair {group} (this scene and the other scene of its "
+                            f"pair) shed whole: {why}; {self.counts['pairs_shed']} pairs shed "
+                            "so far",
+                        )
+                    )
+                self._prune()
+            ok = self._decided[group]
+            if not ok:
+                self.counts["strips_shed"] += 1
+                if new_scene:
+                    self.counts["scenes_shed"] += 1
+            return ok, issues
+
+    def _decide(self) -> tuple[bool, str]:
+        if not self._in_flight:
+            return True, ""
+        pair = self.pair_bytes()
+        need = self.base + (len(self._in_flight) + 2) * pair
+        mb = 2**20
+        if need > self.budget:
+            return False, (
+                f"{len(self._in_flight)} pairs in flight; with this one and a working set it "
+                f"would need {need / mb:.0f} MB (start-up {self.base / mb:.0f} MB + "
+                f"{len(self._in_flight) + 2} x {pair / mb:.0f} MB), over memory_budget_mb "
+                f"{self.budget / mb:.0f} MB"
+            )
+        rss = _rss_bytes()
+        if rss > self.budget:
+            return False, (
+                f"resident memory {rss / mb:.0f} MB is over memory_budget_mb "
+                f"{self.budget / mb:.0f} MB"
+            )
+        return True, ""
+
+    def _prune(self) -> None:
+        if len(self._decided) > 64:
+            for g in sorted(self._decided)[: len(self._decided) - 64]:
+                if g not in self._in_flight:
+                    del self._decided[g]
+        if len(self._scene_group) > 256:
+            for key in list(self._scene_group)[: len(self._scene_group) - 256]:
+                del self._scene_group[key]
+
+    def published(self, view: str, scene_id: str) -> None:
+        """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
+        with self._lock:
+            group = self._scene_group.get((view, scene_id))
+            if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
+                group = min(self._in_flight)  # come out in order, so it is the oldest one
+            if group is not None:
+                self._in_flight = {g for g in self._in_flight if g > group}
+
+    def release_all(self) -> None:
+        """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
+        with self._lock:
+            self._in_flight.clear()
+
+    @property
+    def in_flight(self) -> int:
+        """Pairs admitted and not yet published."""
+        return len(self._in_flight)
+
+
 class ParprojNode(Node):
     """ROS 2 node: strips + navigation (+ GCP) -> ParallelProjection, StereoPair, images."""
 
@@ -211,6 +366,10 @@ class ParprojNode(Node):
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
         self.stop_timeout_s = float(vals["stop_timeout_s"])
+        self.stereo_pair_images = bool(vals["stereo_pair_images"])
+        self.admission = PairAdmission(
+            vals["views"], float(vals["memory_budget_mb"]), config.scene_lines, _rss_bytes()
+        )
         self.counts = {
             "strips": 0,
             "strips_rejected": 0,
@@ -342,6 +501,18 @@ class ParprojNode(Node):
 
     def _on_strip(self, view: str, msg: Image) -> None:
         try:
+            ok, shed = self.admission.admit(
+                view, msg.header.frame_id, int(msg.height), len(msg.data)
+            )
+        except Exception as err:
+            self.internal_error(f"a strip of {view} (admission)", err)
+            ok, shed = True, []
+        if shed:
+            self._report(shed)
+        if not ok:
+            self._count("strips")
+            return
+        try:
             arr = conv.image_to_array(msg)
             item = (view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
         except conv.ConversionError as err:
@@ -430,6 +601,7 @@ class ParprojNode(Node):
             else:
                 out = Outputs(issues=self._open_at_stop())
                 out.extend(self.pipeline.flush())
+                self.admission.release_all()
             self._publish(out)
             if flush_req is not None:
                 flush_req.ok = True
@@ -550,9 +722,16 @@ class ParprojNode(Node):
         if self._closed:
             return
         now = self.get_clock().now().nanoseconds
-        for topic, msg, _ in conv.outputs_to_messages(out, frame_id=self.frame_id, stamp_ns=now):
+        for topic, msg, _ in conv.outputs_to_messages(
+            out,
+            frame_id=self.frame_id,
+            stamp_ns=now,
+            stereo_pair_images=self.stereo_pair_images,
+        ):
             if topic in self.pubs:
                 self.pubs[topic].publish(msg)
+        for pair in out.pairs:
+            self.admission.published(pair.left.scene.view, pair.left.scene.scene_id)
         for res in out.scenes:
             self._count("scenes")
             self._log(
@@ -655,6 +834,7 @@ class ParprojNode(Node):
                 name="parproj_node: summary",
                 message=message,
                 values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
+                + [KeyValue(key=k, value=str(v)) for k, v in self.admission.counts.items()]
                 + [
                     KeyValue(key=k, value=str(v))
                     for k, v in (
@@ -662,6 +842,9 @@ class ParprojNode(Node):
                         ("queue_max", max(self._queue_peak, self._queue.qsize())),
                         ("nav_samples", len(self.pipeline.nav)),
                         ("gcp_points", len(self.pipeline.gcp)),
+                        ("pairs_in_flight", self.admission.in_flight),
+                        ("rss_mb", f"{_rss_bytes() / 2**20:.0f}"),
+                        ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
                         ("worker", "dead" if not self._worker.is_alive() else "alive"),
                         ("busy_s", f"{time.monotonic() - busy[1]:.1f}" if busy else "0"),
                         ("busy_with", busy[0] if busy else ""),

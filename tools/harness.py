@@ -30,12 +30,12 @@ ROOT = Path(__file__).resolve().parent.parent
 #: The Fast DDS profile for large images shipped with the project (README, "Large images").
 SHM_PROFILE = ROOT / "config" / "fastdds_shm.xml"
 
-#: The variables that select the shared-memory profile (both names: Fast DDS 2 and 3 read one
-#: each) and the RMW it is for.
+#: The variables that select the shared-memory profile and the RMW it is for (Fast DDS 3, in
+#: the Kilted wheels, reads FASTDDS_DEFAULT_PROFILES_FILE; the former FASTRTPS_ name still works
+#: but logs a deprecation warning, so it is not set, and removed when not wanted).
 SHM_PROFILE_ENV = {
     "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
     "FASTDDS_DEFAULT_PROFILES_FILE": str(SHM_PROFILE),
-    "FASTRTPS_DEFAULT_PROFILES_FILE": str(SHM_PROFILE),
 }
 
 
@@ -65,6 +65,8 @@ def join_ros_domain(
         elif key != "RMW_IMPLEMENTATION":
             env.pop(key, None)
             os.environ.pop(key, None)
+    env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+    os.environ.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     return env
 
 
