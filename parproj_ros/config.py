@@ -405,9 +405,9 @@ PARAMS: tuple[Param, ...] = (
         4096.0,
         "bounds what the node holds: a pair (both scenes) is admitted at its first strip only if "
         "the node's start-up memory plus one raw pair for each pair in flight (admitted, not yet "
-        "published), the new one and one more (working set) fit, and the resident memory is "
+        "published), the new one and two more (working set) fit, and the resident memory is "
         "under it; otherwise every strip of both its scenes is shed, counted and reported on "
-        "/diagnostics (README, Overload); 4096 MB holds 3 IKONOS-size pairs in flight",
+        "/diagnostics (README, Overload); 4096 MB: 3 IKONOS-size pairs in flight",
         unit="MB",
         low=64.0,
         high=1e6,

@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -64,6 +65,7 @@ class InputKind(StrEnum):
     GCP = "gcp"  # a list of GroundPoint
     PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
     CLOSE = "close"  # the scene timeout: close the idle scenes
+    CLOSE_VIEW = "close_view"  # a view's next scene was shed: close its open (whole) scene
     FLUSH = "flush"  # the flush at stop (a _FlushRequest)
 
 
@@ -156,6 +158,27 @@ def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
     return rpy
 
 
+def _malloc_trim() -> None:
+    """Give the heap's free memory back to the system (glibc ``malloc_trim``; else nothing).
+
+    So that the resident memory the admission reads is what the node holds, not what glibc
+    kept after freeing strips and images.
+    """
+    global _LIBC
+    try:
+        if _LIBC is None:
+            import ctypes
+
+            _LIBC = ctypes.CDLL("libc.so.6")
+        if _LIBC:
+            _LIBC.malloc_trim(0)
+    except (OSError, AttributeError):
+        _LIBC = False
+
+
+_LIBC: Any = None
+
+
 def _rss_bytes() -> int:
     """The resident memory of the node's process, bytes (0 when /proc cannot be read)."""
     import os
@@ -165,6 +188,17 @@ def _rss_bytes() -> int:
             return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError, IndexError):
         return 0
+
+
+#: Raw pairs' worth of memory the node is first assumed to need besides the pairs in flight
+#: (the normalized images of the pair being finished, the messages being serialized); the
+#: admission then learns the working set from the resident memory (the benchmark, streaming:
+#: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
+#: 2048 x 2048: about 13).
+WORKING_SET_PAIRS = 2
+#: Resident memory samples (two per pair: at its decision and at its publication) over which
+#: the working set is the largest.
+WORKING_SET_SAMPLES = 4
 
 
 @dataclass
@@ -186,25 +220,32 @@ class PairAdmission:
     processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
     by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
 
-    A pair is admitted when the node's memory at start, plus one raw pair for each pair in
-    flight (admitted and not yet published), for the new one and for one more (the working
-    set: normalized images, messages being sent), is within the budget, and the resident memory
-    is within it too. Otherwise every strip of the pair is shed (dropped in the subscription
-    callback, before conversion or queueing) and one WARN says so. A pair leaves the flight
-    when its StereoPair is published (with every earlier one), or at the flush. With nothing in
-    flight a pair is always admitted (the node can hold no less).
+    A pair is admitted when the node's memory at its first strip, plus one raw pair for each
+    pair in flight (admitted and not yet published) and for the new one, plus the working set
+    (normalized images, messages being sent, DDS buffers: :data:`WORKING_SET_PAIRS` raw pairs
+    at first, then the largest resident memory beyond the start-up memory and the pairs in
+    flight over the last samples, taken at each decision and each pair published), is within
+    the budget, and
+    the resident memory is within it too. Otherwise every strip of the pair is shed (dropped
+    in the subscription callback, before conversion or queueing) and one WARN says so. A pair
+    leaves the flight when its StereoPair is published (with every earlier one), or at the
+    flush. With nothing in flight a pair is always admitted (the node can hold no less).
+
+    Not counted by the pairs: what DDS holds outside Python (the strip subscription's history,
+    up to its QoS depth of strips not yet taken, and the payload pools Fast DDS keeps after a
+    burst); the learned working set and the resident-memory check take it in.
 
     Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
     """
 
-    def __init__(
-        self, views: Sequence[str], budget_mb: float, scene_lines: int, base_bytes: int
-    ) -> None:
+    def __init__(self, views: Sequence[str], budget_mb: float, scene_lines: int) -> None:
         self.views = list(views)
         self.single = len(self.views) == 1
         self.budget = int(budget_mb * 2**20)
         self.scene_lines = int(scene_lines)
-        self.base = int(base_bytes)
+        self.base = 0  # resident memory at the first strip, bytes
+        self.working_set = 0  # largest seen beyond base and the pairs in flight, bytes
+        self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
         self._streams = {v: _ViewStream() for v in self.views}
         self._decided: dict[int, bool] = {}
         self._in_flight: set[int] = set()
@@ -218,23 +259,34 @@ class PairAdmission:
         per_view = [lines * s.row_bytes for s in self._streams.values()]
         return 2 * per_view[0] if self.single else sum(per_view)
 
-    def admit(self, view: str, frame_id: str, rows: int, nbytes: int) -> tuple[bool, list[Issue]]:
-        """Whether to take this strip; the WARN when it sheds a pair."""
+    def admit(
+        self, view: str, frame_id: str, rows: int, nbytes: int
+    ) -> tuple[bool, list[Issue], bool]:
+        """Whether to take this strip; the WARN when it sheds a pair; whether to close the view.
+
+        The last: this strip begins a shed scene right after an admitted one, which the pipeline
+        would otherwise close only at the view's next admitted strip.
+        """
         issues: list[Issue] = []
+        close = False
         with self._lock:
             st = self._streams.get(view)
             if st is None:  # not a configured view: the pipeline reports it
-                return True, issues
+                return True, issues, close
+            if not self.base:
+                _malloc_trim()
+                self.base = _rss_bytes()
             if rows > 0:
                 st.row_bytes = max(st.row_bytes, nbytes // rows)
             new_scene = st.frame_id != frame_id or (
                 self.scene_lines > 0 and st.lines >= self.scene_lines
             )
+            previous = self._group_of(st.ordinal) if st.ordinal >= 0 else None
             if new_scene:
                 st.frame_id, st.lines, st.ordinal = frame_id, 0, st.ordinal + 1
             st.lines += rows
             st.max_lines = max(st.max_lines, st.lines)
-            group = st.ordinal // 2 if self.single else st.ordinal
+            group = self._group_of(st.ordinal)
             if new_scene:
                 self._scene_group[(view, frame_id)] = group
             if group not in self._decided:
@@ -259,22 +311,42 @@ class PairAdmission:
                 self.counts["strips_shed"] += 1
                 if new_scene:
                     self.counts["scenes_shed"] += 1
-            return ok, issues
+                    close = previous is not None and self._decided.get(previous, False)
+            return ok, issues, close
+
+    def _group_of(self, ordinal: int) -> int:
+        return ordinal // 2 if self.single else ordinal
+
+    def _learn(self, rss: int) -> None:
+        """Update the working set from a resident memory sample (lock held).
+
+        The largest of the last :data:`WORKING_SET_SAMPLES` samples: a burst's transient
+        (DDS buffers, glibc) is forgotten once the load drops, so that the node catches up.
+        """
+        if self.base:
+            held = self.base + len(self._in_flight) * self.pair_bytes()
+            self._samples.append(max(0, rss - held))
+            self.working_set = max(self._samples)
 
     def _decide(self) -> tuple[bool, str]:
+        rss = _rss_bytes()
+        if rss > self.budget:
+            _malloc_trim()
+            rss = _rss_bytes()
+        self._learn(rss)
         if not self._in_flight:
             return True, ""
         pair = self.pair_bytes()
-        need = self.base + (len(self._in_flight) + 2) * pair
+        work = max(self.working_set, WORKING_SET_PAIRS * pair)
+        need = self.base + (len(self._in_flight) + 1) * pair + work
         mb = 2**20
         if need > self.budget:
             return False, (
-                f"{len(self._in_flight)} pairs in flight; with this one and a working set it "
-                f"would need {need / mb:.0f} MB (start-up {self.base / mb:.0f} MB + "
-                f"{len(self._in_flight) + 2} x {pair / mb:.0f} MB), over memory_budget_mb "
-                f"{self.budget / mb:.0f} MB"
+                f"{len(self._in_flight)} pairs in flight; with this one it would need "
+                f"{need / mb:.0f} MB (start-up {self.base / mb:.0f} MB + "
+                f"{len(self._in_flight) + 1} x {pair / mb:.0f} MB + working set "
+                f"{work / mb:.0f} MB), over memory_budget_mb {self.budget / mb:.0f} MB"
             )
-        rss = _rss_bytes()
         if rss > self.budget:
             return False, (
                 f"resident memory {rss / mb:.0f} MB is over memory_budget_mb "
@@ -293,17 +365,21 @@ class PairAdmission:
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
+        rss = _rss_bytes()  # the pair's working set is still held
         with self._lock:
+            self._learn(rss)
             group = self._scene_group.get((view, scene_id))
             if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
                 group = min(self._in_flight)  # come out in order, so it is the oldest one
             if group is not None:
                 self._in_flight = {g for g in self._in_flight if g > group}
+        _malloc_trim()  # the pair's freed images and messages: glibc keeps them otherwise
 
     def release_all(self) -> None:
         """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
         with self._lock:
             self._in_flight.clear()
+        _malloc_trim()
 
     @property
     def in_flight(self) -> int:
@@ -368,7 +444,7 @@ class ParprojNode(Node):
         self.stop_timeout_s = float(vals["stop_timeout_s"])
         self.stereo_pair_images = bool(vals["stereo_pair_images"])
         self.admission = PairAdmission(
-            vals["views"], float(vals["memory_budget_mb"]), config.scene_lines, _rss_bytes()
+            vals["views"], float(vals["memory_budget_mb"]), config.scene_lines
         )
         self.counts = {
             "strips": 0,
@@ -501,14 +577,16 @@ class ParprojNode(Node):
 
     def _on_strip(self, view: str, msg: Image) -> None:
         try:
-            ok, shed = self.admission.admit(
+            ok, shed, close = self.admission.admit(
                 view, msg.header.frame_id, int(msg.height), len(msg.data)
             )
         except Exception as err:
             self.internal_error(f"a strip of {view} (admission)", err)
-            ok, shed = True, []
+            ok, shed, close = True, [], False
         if shed:
             self._report(shed)
+        if close:
+            self._enqueue((InputKind.CLOSE_VIEW, view))
         if not ok:
             self._count("strips")
             return
@@ -598,6 +676,8 @@ class ParprojNode(Node):
                 out = self.pipeline.set_pairs(payload)
             elif kind == InputKind.CLOSE:
                 out = self.pipeline.close_idle_scenes()
+            elif kind == InputKind.CLOSE_VIEW:
+                out = self._close_view(payload)
             else:
                 out = Outputs(issues=self._open_at_stop())
                 out.extend(self.pipeline.flush())
@@ -610,6 +690,17 @@ class ParprojNode(Node):
         finally:
             if flush_req is not None:
                 flush_req.done.set()
+
+    def _close_view(self, view: str) -> Outputs:
+        """Close and process the open scene of ``view`` (its next scene was shed whole).
+
+        What ``Pipeline.close_scenes`` does, for one view: the scene is whole (its next one has
+        begun), and the other view's open scene is left as it is.
+        """
+        out = Outputs()
+        for scene in self.pipeline.assemblers[view].flush():
+            out.extend(self.pipeline._scene_closed(scene))
+        return out
 
     def internal_error(self, what: str, err: BaseException) -> None:
         """Count an exception caught in the node and report it. Never raises.
@@ -843,6 +934,7 @@ class ParprojNode(Node):
                         ("nav_samples", len(self.pipeline.nav)),
                         ("gcp_points", len(self.pipeline.gcp)),
                         ("pairs_in_flight", self.admission.in_flight),
+                        ("working_set_mb", f"{self.admission.working_set / 2**20:.0f}"),
                         ("rss_mb", f"{_rss_bytes() / 2**20:.0f}"),
                         ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
                         ("worker", "dead" if not self._worker.is_alive() else "alive"),
@@ -907,6 +999,8 @@ def _describe(kind: InputKind, payload: Any) -> str:
         return "a pair selection"
     if kind == InputKind.CLOSE:
         return "the scene timeout"
+    if kind == InputKind.CLOSE_VIEW:
+        return f"the close of {payload}'s scene (its next scene shed)"
     return "the flush at stop"
 
 
