@@ -46,6 +46,8 @@ class BenchConfig:
             ceiling) is measured, open-loop.
         shm: run every process with the shared-memory profile config/fastdds_shm.xml.
         memory_budget_mb: the node's memory_budget_mb (None: its default).
+        image_compression: chunk compression of the offline output bag's image topics
+            ("zstd", "lz4", "none"; None: the bag's zstd).
     """
 
     name: str
@@ -71,6 +73,7 @@ class BenchConfig:
     passthrough_rates: tuple[float, ...] = (1.0, 2.0)
     shm: bool = False
     memory_budget_mb: float | None = None
+    image_compression: str | None = None
 
 
 FULL = BenchConfig(

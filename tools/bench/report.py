@@ -353,7 +353,8 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
         yield ""
         lat = off.get("latency_s") or {}
         yield (
-            f"{off['pairs']} pairs from a zstd bag written by BagWriter "
+            f"{off['pairs']} pairs from a zstd bag written by BagWriter (output image topics: "
+            f"{off.get('image_compression', 'zstd')}) "
             f"({off['input_bag_write_s']:.1f} s to write); {off['pairs_out']} pairs out, "
             f"{off['output_bag_mb']:.0f} MB output bag. Real-time factor "
             f"{off['realtime_factor']:.3f} ({off['sensor_s']:.2f} s of sensor data in "

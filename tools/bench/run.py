@@ -109,6 +109,7 @@ def run_and_report(
     paced: bool = False,
     shm: bool = False,
     memory_budget_mb: float | None = None,
+    image_compression: str | None = None,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -116,7 +117,13 @@ def run_and_report(
         cfg = replace(cfg, pairs=pairs)
     if check_fields:
         cfg = replace(cfg, check_fields=True)
-    cfg = replace(cfg, paced=paced, shm=shm, memory_budget_mb=memory_budget_mb)
+    cfg = replace(
+        cfg,
+        paced=paced,
+        shm=shm,
+        memory_budget_mb=memory_budget_mb,
+        image_compression=image_compression,
+    )
     res = run_bench(
         cfg,
         workdir=workdir,
@@ -192,6 +199,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="the node's memory_budget_mb (default: the node's default)",
     )
+    p.add_argument(
+        "--image-compression",
+        choices=("zstd", "lz4", "none"),
+        default=None,
+        help="chunk compression of the offline output bag's image topics (default: zstd)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -218,5 +231,6 @@ def main(argv: list[str] | None = None) -> int:
         paced=args.paced,
         shm=args.shm,
         memory_budget_mb=args.memory_budget_mb,
+        image_compression=args.image_compression,
     )
     return 1 if (res.get("live") or {}).get("error") else 0
