@@ -421,6 +421,13 @@ PARAMS: tuple[Param, ...] = (
         "pair's), so each image is serialized and sent once",
     ),
     Param(
+        "anaglyph",
+        "bool",
+        True,
+        "publish the red/cyan anaglyph of each whole-image pair (a preview: a third copy of "
+        "the pixels, and a fifth of the worker's time in a profile of the live node)",
+    ),
+    Param(
         "stop_timeout_s",
         "double",
         60.0,

@@ -338,18 +338,24 @@ def issues_to_diagnostics(issues: list[Any], *, stamp_ns: int, hardware_id: str)
 
 
 def outputs_to_messages(
-    out: Any, *, frame_id: str, stamp_ns: int, stereo_pair_images: bool = True
+    out: Any,
+    *,
+    frame_id: str,
+    stamp_ns: int,
+    stereo_pair_images: bool = True,
+    anaglyph: bool = True,
 ) -> list[tuple[str, Any, int]]:
     """Pipeline outputs -> [(topic, message, stamp_ns)] on the node's published topics.
 
     ``stamp_ns`` stamps the diagnostics (the node uses its clock; ``process`` the input time).
     ``stereo_pair_images`` false: a whole-image pair's StereoPair carries no pixels (they go
-    out once, on ``left/image_normalized`` and ``right/image_normalized``).
+    out once, on ``left/image_normalized`` and ``right/image_normalized``). ``anaglyph``
+    false: no ``anaglyph`` message is made.
     """
     from parproj_msgs.msg import ParallelProjection
     from sensor_msgs.msg import Image
 
-    from .preview import anaglyph
+    from .preview import anaglyph as make_anaglyph
 
     msgs: list[tuple[str, Any, int]] = []
     for res in out.scenes:
@@ -369,18 +375,19 @@ def outputs_to_messages(
             pair, frame_id=frame_id, stereo_pair_images=stereo_pair_images
         )
         if pair.left_image is not None and pair.right_image is not None:
-            ana = array_to_image(
-                anaglyph(pair.left_image, pair.right_image),
-                Image(),
-                frame_id=left.header.frame_id,
-                stamp_ns=pair.stamp_ns,
-                encoding="rgb8",
-            )
             msgs += [
                 ("left/image_normalized", left, pair.stamp_ns),
                 ("right/image_normalized", right, pair.stamp_ns),
-                ("anaglyph", ana, pair.stamp_ns),
             ]
+            if anaglyph:
+                ana = array_to_image(
+                    make_anaglyph(pair.left_image, pair.right_image),
+                    Image(),
+                    frame_id=left.header.frame_id,
+                    stamp_ns=pair.stamp_ns,
+                    encoding="rgb8",
+                )
+                msgs.append(("anaglyph", ana, pair.stamp_ns))
         msgs.append(("stereo_pair", sp, pair.stamp_ns))
     if out.issues:
         msgs.append(

@@ -443,6 +443,7 @@ class ParprojNode(Node):
         self.error_hold_s = float(vals["error_hold_s"])
         self.stop_timeout_s = float(vals["stop_timeout_s"])
         self.stereo_pair_images = bool(vals["stereo_pair_images"])
+        self.anaglyph = bool(vals["anaglyph"])
         self.admission = PairAdmission(
             vals["views"], float(vals["memory_budget_mb"]), config.scene_lines
         )
@@ -818,6 +819,7 @@ class ParprojNode(Node):
             frame_id=self.frame_id,
             stamp_ns=now,
             stereo_pair_images=self.stereo_pair_images,
+            anaglyph=self.anaglyph,
         ):
             if topic in self.pubs:
                 self.pubs[topic].publish(msg)
