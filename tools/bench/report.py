@@ -343,6 +343,16 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             ["RSS slope, MB per pair", _f(rss.get("slope_mb_per_pair"), 1)],
         ]  # fmt: skip
         yield from _table(["figure", "value"], rows2, markdown)
+        yield ""
+        pt = _passthrough_at(res, 1.0) or {}
+        yield (
+            f"Gap to the transport ceiling: the pass-through node keeps up at "
+            f"{_f(pt.get('realtime_factor'), 2)} x with "
+            f"{_f(100 * (pt.get('passthrough_cpu') or 0), 0)} % of a core and a latency p50 "
+            f"of {_f(pt.get('latency_p50_s'), 3)} s; the node "
+            f"reaches {_f(lv.get('realtime_factor'), 3)} with a latency median of "
+            f"{_f((lv.get('latency_s') or {}).get('median'), 3)} s. " + " ".join(GAP_NOTES)
+        )
         if lv.get("error"):
             yield ""
             yield f"Run ended early: {lv['error']}"
@@ -428,6 +438,17 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
     for line in DEFINITIONS:
         yield f"- {line}" if markdown else f"  {line}"
 
+
+#: Where the node's time goes beyond the transport (issue 11's profile; README "Keeping up").
+GAP_NOTES = (
+    "What the node adds (profile of issue 11, offline at full size): scene assembly copies each "
+    "strip once more into its scene buffer (SceneAssembler.add, 3.8 s of 26.6 s for 3 pairs), "
+    "the resampling itself (warpAffine, render_block: 4.3 s), message building (0.8 s since "
+    "array_to_image fills the message in place; it was 2.4 s), and in the live node the GIL "
+    "shared by the executor (taking strips) and the worker, the anaglyph of whole-image pairs "
+    "(a fifth of the worker's samples; anaglyph=false drops it) and the whole images sent twice "
+    "(stereo_pair_images=false sends them once).",
+)
 
 DEFINITIONS = (
     "Mpx/s: output pixels per second. 'time / warpAffine': the operation's time over that of "
