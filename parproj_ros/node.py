@@ -577,13 +577,16 @@ class ParprojNode(Node):
         self._count("nav")
 
     def _on_strip(self, view: str, msg: Image) -> None:
+        ok, shed, close = True, [], False
         try:
-            ok, shed, close = self.admission.admit(
-                view, msg.header.frame_id, int(msg.height), len(msg.data)
-            )
-        except Exception as err:
-            self.internal_error(f"a strip of {view} (admission)", err)
-            ok, shed, close = True, [], False
+            fields = (str(msg.header.frame_id), int(msg.height), len(msg.data))
+        except Exception:  # not an Image at all: the conversion below reports it
+            fields = None
+        if fields is not None:
+            try:
+                ok, shed, close = self.admission.admit(view, *fields)
+            except Exception as err:
+                self.internal_error(f"a strip of {view} (admission)", err)
         if shed:
             self._report(shed)
         if close:
