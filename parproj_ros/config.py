@@ -402,12 +402,13 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "memory_budget_mb",
         "double",
-        4096.0,
+        6144.0,
         "bounds what the node holds: a pair (both scenes) is admitted at its first strip only if "
-        "the node's start-up memory plus one raw pair for each pair in flight (admitted, not yet "
-        "published), the new one and two more (working set) fit, and the resident memory is "
-        "under it; otherwise every strip of both its scenes is shed, counted and reported on "
-        "/diagnostics (README, Overload); 4096 MB: 3 IKONOS-size pairs in flight",
+        "the node's start-up memory, one raw pair for each pair in flight (admitted, not yet "
+        "published) and the new one, and the working set (learnt from the resident memory) fit, "
+        "and the resident memory is under it; otherwise every strip of both its scenes is shed, "
+        "counted and reported on /diagnostics (README, Overload); 6144 MB: 3 IKONOS-size pairs "
+        "(737 MB each) in flight with the 3.3 GB peak measured at that size",
         unit="MB",
         low=64.0,
         high=1e6,
