@@ -27,19 +27,46 @@ from parproj_ros.ros.live import ros_environment
 ROOT = Path(__file__).resolve().parent.parent
 
 
+#: The Fast DDS profile for large images shipped with the project (README, "Large images").
+SHM_PROFILE = ROOT / "config" / "fastdds_shm.xml"
+
+#: The variables that select the shared-memory profile and the RMW it is for (Fast DDS 3, in
+#: the Kilted wheels, reads FASTDDS_DEFAULT_PROFILES_FILE; the former FASTRTPS_ name still works
+#: but logs a deprecation warning, so it is not set, and removed when not wanted).
+SHM_PROFILE_ENV = {
+    "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
+    "FASTDDS_DEFAULT_PROFILES_FILE": str(SHM_PROFILE),
+}
+
+
 def join_ros_domain(
-    domain_id: int | None = None, log_dir: Path | None = None, *, check_fields: bool = True
+    domain_id: int | None = None,
+    log_dir: Path | None = None,
+    *,
+    check_fields: bool = True,
+    shm: bool = False,
 ) -> dict[str, str]:
     """The node's environment (:func:`parproj_ros.ros.live.ros_environment`); we join it.
 
     ``check_fields`` sets the node's ROS_PYTHON_CHECK_FIELDS (the tests' 1, or 0 as deployed).
-    The discovery range, domain and log folder are also set in ``os.environ``, so that the rclpy
-    context this process opens afterwards is on the node's domain.
+    ``shm`` selects the shared-memory profile (config/fastdds_shm.xml) for the node and this
+    process; without it a profile file set in the environment is removed. Fast DDS loads the
+    profile once per process (at its first participant), so a process keeps what it had then.
+    The discovery range, domain, log folder and profile are also set in ``os.environ``, so that
+    the rclpy context this process opens afterwards is on the node's domain.
     """
     env = ros_environment(domain_id, log_dir)
     env["ROS_PYTHON_CHECK_FIELDS"] = "1" if check_fields else "0"
     for key in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR"):
         os.environ[key] = env[key]
+    for key, value in SHM_PROFILE_ENV.items():
+        if shm:
+            env[key] = os.environ[key] = value
+        elif key != "RMW_IMPLEMENTATION":
+            env.pop(key, None)
+            os.environ.pop(key, None)
+    env.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+    os.environ.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
     return env
 
 

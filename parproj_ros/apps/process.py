@@ -69,6 +69,17 @@ def _bag_issues(reader: BagReader, name: str) -> Outputs:
     return out
 
 
+#: Output topics that carry images (``image_compression``).
+IMAGE_TOPICS = (
+    "stereo_pair",
+    "left/image_normalized",
+    "right/image_normalized",
+    "anaglyph",
+    "left/normalized_block",
+    "right/normalized_block",
+)
+
+
 def process_bag(
     src: Path,
     dst: Path,
@@ -78,8 +89,16 @@ def process_bag(
     progress: bool = True,
     overrides: dict[str, Any] | None = None,
     on_outputs: Callable[[Outputs], None] | None = None,
+    compression: str = "zstd",
+    image_compression: str | None = None,
 ) -> ProcessSummary:
-    """Run the pipeline over the bag ``src`` and write its outputs to the bag ``dst``."""
+    """Run the pipeline over the bag ``src`` and write its outputs to the bag ``dst``.
+
+    ``compression`` is the output bag's chunk compression ("zstd", "lz4", "none");
+    ``image_compression``, when given, that of the topics carrying images (normalized images,
+    anaglyph, column blocks, StereoPair): zstd spends most of the writing time on them
+    (BagWriter's ``topic_compression``; README, "Recording large images").
+    """
     from tqdm import tqdm
 
     reader = BagReader(src)
@@ -87,7 +106,12 @@ def process_bag(
     pipe = Pipeline(cfg)
     summary = ProcessSummary()
     strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}
-    with BagWriter(dst, compression="zstd", overwrite=True) as bw:
+    per_topic = (
+        {t: image_compression for t in IMAGE_TOPICS} if image_compression is not None else None
+    )
+    with BagWriter(
+        dst, compression=compression, topic_compression=per_topic, overwrite=True
+    ) as bw:
         for topic, msgtype in conv.OUTPUT_TOPICS.items():
             bw.add_topic(topic, msgtype, "reliable")
 

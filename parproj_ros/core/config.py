@@ -457,6 +457,35 @@ PARAMS: tuple[Param, ...] = (
         high=86400.0,
     ),
     Param(
+        "memory_budget_mb",
+        "double",
+        6144.0,
+        "bounds what the node holds: a pair (both scenes) is admitted at its first strip only if "
+        "the node's start-up memory, one raw pair for each pair in flight (admitted, not yet "
+        "published) and the new one, and the working set (learnt from the resident memory) fit, "
+        "and the resident memory is under it; otherwise every strip of both its scenes is shed, "
+        "counted and reported on /diagnostics (README, Overload); 6144 MB: 3 IKONOS-size pairs "
+        "(737 MB each) in flight with the 3.3 GB peak measured at that size",
+        unit="MB",
+        low=64.0,
+        high=1e6,
+    ),
+    Param(
+        "stereo_pair_images",
+        "bool",
+        True,
+        "a whole-image pair's StereoPair carries both normalized images (as they also go out on "
+        "left/right/image_normalized); false: it carries none (empty images, as a streamed "
+        "pair's), so each image is serialized and sent once",
+    ),
+    Param(
+        "anaglyph",
+        "bool",
+        True,
+        "publish the red/cyan anaglyph of each whole-image pair (a preview: a third copy of "
+        "the pixels, and a fifth of the worker's time in a profile of the live node)",
+    ),
+    Param(
         "stop_timeout_s",
         "double",
         60.0,

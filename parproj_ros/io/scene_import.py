@@ -21,7 +21,7 @@ Topics written (relative names, as ``parproj_node`` subscribes to them):
 | truth/points | parproj_msgs/msg/GroundControlPoints | other virtual points, for evaluation |
 | pairs | parproj_msgs/msg/PairSelection | the selected pairs, once (only with a selection) |
 
-Images and RPC are read through GDAL (parproj_ros/raster.py: any raster GDAL reads, RPC
+Images and RPC are read through GDAL (parproj_ros/io/raster.py: any raster GDAL reads, RPC
 from every source GDAL reads, OSSIM ``.geom`` and loose DIMAP XML by parproj_ros/rpc/), pixels
 by windows of :data:`STRIP_LINES` rows. Image coordinates of every observation are those of the
 *crops* (0, 0 = centre of the crop's first pixel): the RPC is shifted by the crop origin
@@ -117,7 +117,7 @@ MODEL_TRANSFORMATION_TAG = 34264
 
 
 # ---------------------------------------------------------------------------------------------
-# Reading images, offsets and RPC (through GDAL: parproj_ros/raster.py)
+# Reading images, offsets and RPC (through GDAL: parproj_ros/io/raster.py)
 
 
 def read_image(path: str | Path, band: int = 1) -> NDArray[np.generic]:

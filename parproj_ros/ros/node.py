@@ -17,6 +17,7 @@ import sys
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -27,6 +28,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from parproj_msgs.msg import (
+    ElevationGrid,
     GroundControlPoints,
     NormalizedBlock,
     ParallelProjection,
@@ -49,6 +51,7 @@ from rclpy.qos import (
 )
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
+from stereo_msgs.msg import DisparityImage
 
 from ..core.config import PARAMS, VIEW_PARAMS, Param, config_from_values
 from ..core.pipeline import Issue, Outputs, Pipeline
@@ -64,6 +67,7 @@ class InputKind(StrEnum):
     GCP = "gcp"  # a list of GroundPoint
     PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
     CLOSE = "close"  # the scene timeout: close the idle scenes
+    CLOSE_VIEW = "close_view"  # a view's next scene was shed: close its open (whole) scene
     FLUSH = "flush"  # the flush at stop (a _FlushRequest)
 
 
@@ -156,6 +160,235 @@ def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
     return rpy
 
 
+def _malloc_trim() -> None:
+    """Give the heap's free memory back to the system (glibc ``malloc_trim``; else nothing).
+
+    So that the resident memory the admission reads is what the node holds, not what glibc
+    kept after freeing strips and images.
+    """
+    global _LIBC
+    try:
+        if _LIBC is None:
+            import ctypes
+
+            _LIBC = ctypes.CDLL("libc.so.6")
+        if _LIBC:
+            _LIBC.malloc_trim(0)
+    except (OSError, AttributeError):
+        _LIBC = False
+
+
+_LIBC: Any = None
+
+
+def _rss_bytes() -> int:
+    """The resident memory of the node's process, bytes (0 when /proc cannot be read)."""
+    import os
+
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+#: Raw pairs' worth of memory the node is first assumed to need besides the pairs in flight
+#: (the normalized images of the pair being finished, the messages being serialized); the
+#: admission then learns the working set from the resident memory (the benchmark, streaming:
+#: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
+#: 2048 x 2048: about 13).
+WORKING_SET_PAIRS = 2
+#: Resident memory samples (two per pair: at its decision and at its publication) over which
+#: the working set is the largest.
+WORKING_SET_SAMPLES = 4
+
+
+@dataclass
+class _ViewStream:
+    """Where a view's strip stream is: its current scene (frame_id), lines in it, ordinal."""
+
+    frame_id: str | None = None
+    lines: int = 0
+    ordinal: int = -1
+    max_lines: int = 0  # longest scene seen, lines (the size of a pair when scene_lines = 0)
+    row_bytes: int = 0
+
+
+class PairAdmission:
+    """Admission of whole pairs under ``memory_budget_mb`` (README, "Overload").
+
+    The decision is taken for a pair at the first strip of either of its scenes (scene k of each
+    view; scenes 2k and 2k+1 in single-camera mode) and holds for every strip of both: a pair is
+    processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
+    by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
+
+    A pair is admitted when the node's memory at its first strip, plus one raw pair for each
+    pair in flight (admitted and not yet published) and for the new one, plus the working set
+    (normalized images, messages being sent, DDS buffers: :data:`WORKING_SET_PAIRS` raw pairs
+    at first, then the largest resident memory beyond the start-up memory and the pairs in
+    flight over the last samples, taken at each decision and each pair published), is within
+    the budget, and
+    the resident memory is within it too. Otherwise every strip of the pair is shed (dropped
+    in the subscription callback, before conversion or queueing) and one WARN says so. A pair
+    leaves the flight when its StereoPair is published (with every earlier one), or at the
+    flush. With nothing in flight a pair is always admitted (the node can hold no less).
+
+    Not counted by the pairs: what DDS holds outside Python (the strip subscription's history,
+    up to its QoS depth of strips not yet taken, and the payload pools Fast DDS keeps after a
+    burst); the learned working set and the resident-memory check take it in.
+
+    Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
+    """
+
+    def __init__(self, views: Sequence[str], budget_mb: float, scene_lines: int) -> None:
+        self.views = list(views)
+        self.single = len(self.views) == 1
+        self.budget = int(budget_mb * 2**20)
+        self.scene_lines = int(scene_lines)
+        self.base = 0  # resident memory at the first strip, bytes
+        self.working_set = 0  # largest seen beyond base and the pairs in flight, bytes
+        self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
+        self._streams = {v: _ViewStream() for v in self.views}
+        self._decided: dict[int, bool] = {}
+        self._in_flight: set[int] = set()
+        self._scene_group: dict[tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+        self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
+
+    def pair_bytes(self) -> int:
+        """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
+        lines = self.scene_lines or max(s.max_lines for s in self._streams.values())
+        per_view = [lines * s.row_bytes for s in self._streams.values()]
+        return 2 * per_view[0] if self.single else sum(per_view)
+
+    def admit(
+        self, view: str, frame_id: str, rows: int, nbytes: int
+    ) -> tuple[bool, list[Issue], bool]:
+        """Whether to take this strip; the WARN when it sheds a pair; whether to close the view.
+
+        The last: this strip begins a shed scene right after an admitted one, which the pipeline
+        would otherwise close only at the view's next admitted strip.
+        """
+        issues: list[Issue] = []
+        close = False
+        with self._lock:
+            st = self._streams.get(view)
+            if st is None:  # not a configured view: the pipeline reports it
+                return True, issues, close
+            if not self.base:
+                _malloc_trim()
+                self.base = _rss_bytes()
+            if rows > 0:
+                st.row_bytes = max(st.row_bytes, nbytes // rows)
+            new_scene = st.frame_id != frame_id or (
+                self.scene_lines > 0 and st.lines >= self.scene_lines
+            )
+            previous = self._group_of(st.ordinal) if st.ordinal >= 0 else None
+            if new_scene:
+                st.frame_id, st.lines, st.ordinal = frame_id, 0, st.ordinal + 1
+            st.lines += rows
+            st.max_lines = max(st.max_lines, st.lines)
+            group = self._group_of(st.ordinal)
+            if new_scene:
+                self._scene_group[(view, frame_id)] = group
+            if group not in self._decided:
+                ok, why = self._decide()
+                self._decided[group] = ok
+                if ok:
+                    self._in_flight.add(group)
+                else:
+                    self.counts["pairs_shed"] += 1
+                    issues.append(
+                        Issue(
+                            "warn",
+                            f"{view}/{frame_id}",
+                            f"overload: pair {group} (this scene and the other scene of its "
+                            f"pair) shed whole: {why}; {self.counts['pairs_shed']} pairs shed "
+                            "so far",
+                        )
+                    )
+                self._prune()
+            ok = self._decided[group]
+            if not ok:
+                self.counts["strips_shed"] += 1
+                if new_scene:
+                    self.counts["scenes_shed"] += 1
+                    close = previous is not None and self._decided.get(previous, False)
+            return ok, issues, close
+
+    def _group_of(self, ordinal: int) -> int:
+        return ordinal // 2 if self.single else ordinal
+
+    def _learn(self, rss: int) -> None:
+        """Update the working set from a resident memory sample (lock held).
+
+        The largest of the last :data:`WORKING_SET_SAMPLES` samples: a burst's transient
+        (DDS buffers, glibc) is forgotten once the load drops, so that the node catches up.
+        """
+        if self.base:
+            held = self.base + len(self._in_flight) * self.pair_bytes()
+            self._samples.append(max(0, rss - held))
+            self.working_set = max(self._samples)
+
+    def _decide(self) -> tuple[bool, str]:
+        rss = _rss_bytes()
+        if rss > self.budget:
+            _malloc_trim()
+            rss = _rss_bytes()
+        self._learn(rss)
+        if not self._in_flight:
+            return True, ""
+        pair = self.pair_bytes()
+        work = max(self.working_set, WORKING_SET_PAIRS * pair)
+        need = self.base + (len(self._in_flight) + 1) * pair + work
+        mb = 2**20
+        if need > self.budget:
+            return False, (
+                f"{len(self._in_flight)} pairs in flight; with this one it would need "
+                f"{need / mb:.0f} MB (start-up {self.base / mb:.0f} MB + "
+                f"{len(self._in_flight) + 1} x {pair / mb:.0f} MB + working set "
+                f"{work / mb:.0f} MB), over memory_budget_mb {self.budget / mb:.0f} MB"
+            )
+        if rss > self.budget:
+            return False, (
+                f"resident memory {rss / mb:.0f} MB is over memory_budget_mb "
+                f"{self.budget / mb:.0f} MB"
+            )
+        return True, ""
+
+    def _prune(self) -> None:
+        if len(self._decided) > 64:
+            for g in sorted(self._decided)[: len(self._decided) - 64]:
+                if g not in self._in_flight:
+                    del self._decided[g]
+        if len(self._scene_group) > 256:
+            for key in list(self._scene_group)[: len(self._scene_group) - 256]:
+                del self._scene_group[key]
+
+    def published(self, view: str, scene_id: str) -> None:
+        """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
+        rss = _rss_bytes()  # the pair's working set is still held
+        with self._lock:
+            self._learn(rss)
+            group = self._scene_group.get((view, scene_id))
+            if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
+                group = min(self._in_flight)  # come out in order, so it is the oldest one
+            if group is not None:
+                self._in_flight = {g for g in self._in_flight if g > group}
+        _malloc_trim()  # the pair's freed images and messages: glibc keeps them otherwise
+
+    def release_all(self) -> None:
+        """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
+        with self._lock:
+            self._in_flight.clear()
+        _malloc_trim()
+
+    @property
+    def in_flight(self) -> int:
+        """Pairs admitted and not yet published."""
+        return len(self._in_flight)
+
+
 class ParprojNode(Node):
     """ROS 2 node: strips + navigation (+ GCP) -> ParallelProjection, StereoPair, images."""
 
@@ -211,6 +444,11 @@ class ParprojNode(Node):
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
         self.stop_timeout_s = float(vals["stop_timeout_s"])
+        self.stereo_pair_images = bool(vals["stereo_pair_images"])
+        self.anaglyph = bool(vals["anaglyph"])
+        self.admission = PairAdmission(
+            vals["views"], float(vals["memory_budget_mb"]), config.scene_lines
+        )
         self.counts = {
             "strips": 0,
             "strips_rejected": 0,
@@ -279,6 +517,8 @@ class ParprojNode(Node):
             "parproj_msgs/msg/StereoPair": StereoPair,
             "sensor_msgs/msg/Image": Image,
             "parproj_msgs/msg/NormalizedBlock": NormalizedBlock,
+            "stereo_msgs/msg/DisparityImage": DisparityImage,
+            "parproj_msgs/msg/ElevationGrid": ElevationGrid,
         }
         types = {t: classes[m] for t, m in conv.OUTPUT_TOPICS.items() if t != "/diagnostics"}
         self.pubs = {t: self.create_publisher(cls, t, out_qos) for t, cls in types.items()}
@@ -341,6 +581,23 @@ class ParprojNode(Node):
         self._count("nav")
 
     def _on_strip(self, view: str, msg: Image) -> None:
+        ok, shed, close = True, [], False
+        try:
+            fields = (str(msg.header.frame_id), int(msg.height), len(msg.data))
+        except Exception:  # not an Image at all: the conversion below reports it
+            fields = None
+        if fields is not None:
+            try:
+                ok, shed, close = self.admission.admit(view, *fields)
+            except Exception as err:
+                self.internal_error(f"a strip of {view} (admission)", err)
+        if shed:
+            self._report(shed)
+        if close:
+            self._enqueue((InputKind.CLOSE_VIEW, view))
+        if not ok:
+            self._count("strips")
+            return
         try:
             arr = conv.image_to_array(msg)
             item = (view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
@@ -427,9 +684,12 @@ class ParprojNode(Node):
                 out = self.pipeline.set_pairs(payload)
             elif kind == InputKind.CLOSE:
                 out = self.pipeline.close_idle_scenes()
+            elif kind == InputKind.CLOSE_VIEW:
+                out = self._close_view(payload)
             else:
                 out = Outputs(issues=self._open_at_stop())
                 out.extend(self.pipeline.flush())
+                self.admission.release_all()
             self._publish(out)
             if flush_req is not None:
                 flush_req.ok = True
@@ -438,6 +698,17 @@ class ParprojNode(Node):
         finally:
             if flush_req is not None:
                 flush_req.done.set()
+
+    def _close_view(self, view: str) -> Outputs:
+        """Close and process the open scene of ``view`` (its next scene was shed whole).
+
+        What ``Pipeline.close_scenes`` does, for one view: the scene is whole (its next one has
+        begun), and the other view's open scene is left as it is.
+        """
+        out = Outputs()
+        for scene in self.pipeline.assemblers[view].flush():
+            out.extend(self.pipeline._scene_closed(scene))
+        return out
 
     def internal_error(self, what: str, err: BaseException) -> None:
         """Count an exception caught in the node and report it. Never raises.
@@ -550,9 +821,17 @@ class ParprojNode(Node):
         if self._closed:
             return
         now = self.get_clock().now().nanoseconds
-        for topic, msg, _ in conv.outputs_to_messages(out, frame_id=self.frame_id, stamp_ns=now):
+        for topic, msg, _ in conv.outputs_to_messages(
+            out,
+            frame_id=self.frame_id,
+            stamp_ns=now,
+            stereo_pair_images=self.stereo_pair_images,
+            anaglyph=self.anaglyph,
+        ):
             if topic in self.pubs:
                 self.pubs[topic].publish(msg)
+        for pair in out.pairs:
+            self.admission.published(pair.left.scene.view, pair.left.scene.scene_id)
         for res in out.scenes:
             self._count("scenes")
             self._log(
@@ -655,6 +934,7 @@ class ParprojNode(Node):
                 name="parproj_node: summary",
                 message=message,
                 values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
+                + [KeyValue(key=k, value=str(v)) for k, v in self.admission.counts.items()]
                 + [
                     KeyValue(key=k, value=str(v))
                     for k, v in (
@@ -662,6 +942,10 @@ class ParprojNode(Node):
                         ("queue_max", max(self._queue_peak, self._queue.qsize())),
                         ("nav_samples", len(self.pipeline.nav)),
                         ("gcp_points", len(self.pipeline.gcp)),
+                        ("pairs_in_flight", self.admission.in_flight),
+                        ("working_set_mb", f"{self.admission.working_set / 2**20:.0f}"),
+                        ("rss_mb", f"{_rss_bytes() / 2**20:.0f}"),
+                        ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
                         ("worker", "dead" if not self._worker.is_alive() else "alive"),
                         ("busy_s", f"{time.monotonic() - busy[1]:.1f}" if busy else "0"),
                         ("busy_with", busy[0] if busy else ""),
@@ -724,6 +1008,8 @@ def _describe(kind: InputKind, payload: Any) -> str:
         return "a pair selection"
     if kind == InputKind.CLOSE:
         return "the scene timeout"
+    if kind == InputKind.CLOSE_VIEW:
+        return f"the close of {payload}'s scene (its next scene shed)"
     return "the flush at stop"
 
 

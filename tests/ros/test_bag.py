@@ -582,3 +582,26 @@ def test_writer_refuses_misuse(tmp_path: Path) -> None:
     with BagWriter(path, overwrite=True) as bag:
         bag.write("/odom", make_odom(1), T0)
     assert BagReader(path).message_counts() == {"/odom": 1}
+
+
+def test_chunk_compression_per_topic(tmp_path: Path) -> None:
+    """Issue 11: image topics may be written with lz4 or none while the rest stays zstd."""
+    from std_msgs.msg import String
+
+    path = tmp_path / "mixed"
+    with BagWriter(path, topic_compression={"a": "none"}) as bw:
+        bw.add_topic("a", "std_msgs/msg/String")
+        bw.add_topic("b", "std_msgs/msg/String")
+        bw.add_topic("c", "std_msgs/msg/String", compression="lz4")
+        for i in range(5):
+            for t in "abc":
+                m = String()
+                m.data = f"{t}{i}" * 100
+                bw.write(t, m, 10 + i)
+    with open(next(path.glob("*.mcap")), "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes  # type: ignore[union-attr]
+    assert {c.compression for c in chunks} == {"", "zstd", "lz4"}
+    got = [(m.topic, m.msg.data) for m in BagReader(path).messages()]
+    assert got == [(t, f"{t}{i}" * 100) for i in range(5) for t in "abc"]
+    with pytest.raises(ValueError):
+        BagWriter(tmp_path / "bad", topic_compression={"a": "gzip"})

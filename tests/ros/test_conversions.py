@@ -333,3 +333,59 @@ def test_scene_to_msg_nan_crab_becomes_zero(airborne) -> None:
     gcp_only = SceneResult(**{**res.__dict__, "crab_angle": float("nan")})
     msg = conv.scene_to_msg(gcp_only, ParallelProjection(), frame_id="world")
     assert msg.crab_angle == 0.0 and msg.header.frame_id == "world"
+
+
+def test_whole_images_once_and_no_anaglyph() -> None:
+    """Issue 11: stereo_pair_images=false and anaglyph=false leave out the duplicate pixels."""
+    from parproj_ros.core.pipeline import Pipeline, PipelineConfig
+    from parproj_ros.core.results import Outputs
+    from parproj_ros.sim.synthetic import (
+        VIEWS,
+        StripMessages,
+        acquisition,
+        make_platform,
+        nav_message,
+    )
+
+    plat = make_platform(2048, 320)  # a shorter scene has too small a base
+    pipe = Pipeline(
+        PipelineConfig(
+            views=plat.views,
+            scene_lines=2048,
+            z_avg=0.0,
+            height_range=500.0,
+            streaming=False,
+            tie_points=False,
+        )
+    )
+    strips = StripMessages(plat, 256)
+    out = Outputs()
+    for ev in acquisition(plat, 1, 256, 50.0):
+        if ev.kind == "nav":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(nav_message(plat, ev.t_s))))
+        else:
+            arr = conv.image_to_array(strips.get(ev))
+            out.extend(pipe.add_strip(VIEWS[ev.view], ev.stamp_ns, ev.scene_id, arr))
+    out.extend(pipe.flush())
+    assert len(out.pairs) == 1 and out.pairs[0].left_image is not None
+    full = {t: m for t, m, _ in conv.outputs_to_messages(out, frame_id="map", stamp_ns=0)}
+    lean = {
+        t: m
+        for t, m, _ in conv.outputs_to_messages(
+            out, frame_id="map", stamp_ns=0, stereo_pair_images=False, anaglyph=False
+        )
+    }
+    assert "anaglyph" in full and "anaglyph" not in lean
+    sp_full, sp_lean = full["stereo_pair"], lean["stereo_pair"]
+    assert len(sp_full.left.data) > 0 and len(sp_lean.left.data) == len(sp_lean.right.data) == 0
+    assert not sp_lean.streamed and sp_lean.width == sp_full.width > 0
+    assert sp_lean.left.header.stamp == lean["left/image_normalized"].header.stamp
+    for side in ("left", "right"):
+        a = conv.image_to_array(full[f"{side}/image_normalized"])
+        b = conv.image_to_array(lean[f"{side}/image_normalized"])
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, conv.image_to_array(getattr(sp_full, side)))
+    # The rest of the StereoPair is the same (repr: NaN fields compare unequal).
+    for name in sp_full.get_fields_and_field_types():
+        if name not in ("left", "right"):
+            assert repr(getattr(sp_full, name)) == repr(getattr(sp_lean, name)), name

@@ -132,8 +132,13 @@ def bench_live(
 
     workdir.mkdir(parents=True, exist_ok=True)
     plat = make_platform(cfg.lines, cfg.detectors)
-    env = join_ros_domain(domain_id, workdir / "ros_log", check_fields=cfg.check_fields)
+    env = join_ros_domain(
+        domain_id, workdir / "ros_log", check_fields=cfg.check_fields, shm=cfg.shm
+    )
     inputs = ["/navigation"] + [f"/{v}/image_strip" for v in VIEWS]
+    extra = dict(node_params or {})
+    if cfg.memory_budget_mb is not None:
+        extra.setdefault("memory_budget_mb", float(cfg.memory_budget_mb))
     pfile = node_params_yaml(
         node_parameters(
             plat.views,
@@ -141,7 +146,7 @@ def bench_live(
             scene_timeout=0.0,
             z_avg=0.0,
             height_range=500.0,
-            **(node_params or {}),
+            **extra,
         ),
         workdir / "params.yaml",
         reliable_inputs=inputs,
@@ -161,12 +166,17 @@ def bench_live(
         "camera_pitch_deg": math.degrees(plat.theta),
         "node_check_fields": cfg.check_fields,
         "pairs_ahead": cfg.pairs_ahead,
-        "node_params": dict(node_params or {}),
+        "paced": cfg.paced,
+        "shm": cfg.shm,
+        "latency_limit_s": cfg.latency_limit_s,
+        "node_params": extra,
         "error": None,
     }
     log(
         f"live: {cfg.pairs} pairs of {cfg.lines} x {cfg.detectors} uint16, {cfg.strip_lines}-line "
-        f"strips, {sensor_s:.2f} s of sensor data at {res['input_mb_s']:.0f} MB/s"
+        f"strips, {sensor_s:.2f} s of sensor data at {res['input_mb_s']:.0f} MB/s, "
+        f"{'paced by the node' if cfg.paced else 'open-loop'}"
+        f"{', shared-memory profile' if cfg.shm else ''}"
     )
     node = NodeProcess(pfile, env, workdir / "node.log")
     mon = RssMonitor(node.proc.pid, kill_above_mb=cfg.kill_above_mb)
@@ -203,6 +213,7 @@ def bench_live(
     spin = threading.Thread(target=spin_loop, name="bench_spin", daemon=True)
     spin.start()
     sent_strips = 0
+    publish_errors = 0
     sent_nav = 0
     ack_wait = 0.0
     t_sent = math.nan
@@ -297,12 +308,14 @@ def bench_live(
         for ev in events:
             due = start + ev.due_s + offset
             w = 0.0
-            if ev.kind == "strip" and ev.slot > slot_seen:
+            if cfg.paced and ev.kind == "strip" and ev.slot > slot_seen:
                 slot_seen = ev.slot
                 need = ev.slot - 1 - cfg.pairs_ahead
                 w += wait_until(pairs_at_least(need), "waiting for pairs")
-            if ev.kind == "strip" and not memory_ok():
+            if cfg.paced and ev.kind == "strip" and not memory_ok():
                 w += wait_until(memory_ok, "waiting for memory")
+            if not cfg.paced and (node.proc.poll() is not None or mon.killed):
+                raise BenchAbortError(mon.killed or "node exited while sending")
             if w > 0:
                 late = max(0.0, time.time() - due)
                 throttled += w
@@ -318,12 +331,14 @@ def bench_live(
                 sent_nav += 1
             else:
                 pub = pubs[VIEWS[ev.view]]
-                pub.publish(strips.get(ev))
+                try:
+                    pub.publish(strips.get(ev))
+                except Exception:  # rclpy RCLError: an overloaded writer (ROS2_WHEELS.md)
+                    publish_errors += 1
                 sent_strips += 1
-                # Bounded in-flight window: a free-running reliable KEEP_LAST publisher loses
-                # messages when the transport falls behind (shared/ROS2_WHEELS.md).
+                # Paced only: a bounded in-flight window (a sensor does not wait for acks).
                 unacked[ev.view] += 1
-                if unacked[ev.view] >= cfg.inflight_strips:
+                if cfg.paced and unacked[ev.view] >= cfg.inflight_strips:
                     t_ack = time.time()
                     if not pub.wait_for_all_acked(Duration(seconds=cfg.stall_s)):
                         raise BenchAbortError(f"strips not acknowledged in {cfg.stall_s:.0f} s")
@@ -333,7 +348,30 @@ def bench_live(
                     last_sent[ev.scene] = time.time()
         t_sent = time.time()
         log(f"live: all sent after {t_sent - start:.1f} s (held back {throttled:.1f} s)")
-        wait_until(lambda: len(obs.pairs) >= cfg.pairs, "waiting for the last pairs", idle_s=20.0)
+        if cfg.paced:
+            wait_until(
+                lambda: len(obs.pairs) >= cfg.pairs, "waiting for the last pairs", idle_s=20.0
+            )
+        else:
+            # Open loop: pairs the node shed (memory_budget_mb) never come; stop when every
+            # pair is accounted for, or when the node has taken everything and gone idle.
+            def accounted() -> bool:
+                with obs.lock:
+                    shed = int(obs.summary.get("pairs_shed", 0))
+                return len(obs.pairs) + shed >= cfg.pairs
+
+            idle_since: list[float] = []
+
+            def finished() -> bool:
+                if accounted():
+                    return True
+                if node_idle():
+                    idle_since.append(time.time())
+                    return time.time() - idle_since[0] > 3.0
+                idle_since.clear()
+                return False
+
+            wait_until(finished, "waiting for the last pairs")
     except BenchAbortError as err:
         res["error"] = str(err)
         log(f"live: aborted: {err}")
@@ -381,6 +419,10 @@ def bench_live(
             "streamed": bool(obs.streamed_pairs),
             "pairs_streamed": len(obs.streamed_pairs),
             "strips_sent": sent_strips,
+            "publish_errors": publish_errors,
+            "pairs_shed": int(obs.summary.get("pairs_shed", 0)),
+            "scenes_shed": int(obs.summary.get("scenes_shed", 0)),
+            "strips_shed": int(obs.summary.get("strips_shed", 0)),
             "nav_sent": sent_nav,
             "strips_received_by_node": got,
             "dropped_strips": sent_strips - got if obs.summary else None,
@@ -395,14 +437,23 @@ def bench_live(
     if rx and len(rx) == cfg.pairs and math.isfinite(start):
         wall = max(rx.values()) - start
         res["wall_s"] = wall
-        res["realtime_factor"] = sensor_s / wall
+        res["end_to_end_realtime_factor"] = sensor_s / wall
     else:
         res["wall_s"] = None
-        res["realtime_factor"] = None
+        res["end_to_end_realtime_factor"] = None
     ordered = [rx[k] for k in sorted(rx)]
     res["sustained_realtime_factor"] = (
         (len(ordered) - 1) * plat.scene_s / (ordered[-1] - ordered[0])
         if len(ordered) >= 2 and ordered[-1] > ordered[0]
+        else None
+    )
+    # The real-time factor: sensor time between the first and the last pair's last strip (as
+    # sent) over the time between their StereoPairs; every pair must have come. A node that
+    # keeps up scores 1 (within timing jitter), whatever its constant latency.
+    ks = sorted(k for k in rx if k in last_sent)
+    res["realtime_factor"] = (
+        (last_sent[ks[-1]] - last_sent[ks[0]]) / (rx[ks[-1]] - rx[ks[0]])
+        if len(rx) == cfg.pairs and len(ks) >= 2 and rx[ks[-1]] > rx[ks[0]]
         else None
     )
     res["latency_s"] = latency_stats(lat)
@@ -433,39 +484,45 @@ def bench_live(
     return res
 
 
-def sink_main() -> None:
-    """A subscriber that only counts the strips it takes; prints ``{"strips": n}`` at SIGINT.
+#: Where the pass-through node republishes each view's strips.
+PASSTHROUGH_SUFFIX = "image_strip_passthrough"
 
-    The peer of :func:`bench_transport`: the same QoS as the node's inputs, no processing.
+
+def passthrough_main() -> None:
+    """The pass-through node: receives the strips and republishes them, nothing else.
+
+    The transport's own ceiling for the node: the same input QoS as parproj_node's (made
+    reliable, as the bench makes the node's), the same Image messages out (reliable, depth 10,
+    as the node's outputs) on ``<view>/image_strip_passthrough``. Prints ``{"strips": n}`` at
+    SIGINT.
     """
     import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image
 
-    from parproj_ros.ros.conversions import image_to_array
-
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
-    node = rclpy.create_node("parproj_bench_sink")
+    node = rclpy.create_node("parproj_bench_passthrough")
     count = [0]
-
-    def on_strip(msg: Any) -> None:
-        image_to_array(msg)
-        count[0] += 1
-
-    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    in_qos = QoSProfile(
+        depth=200, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+    )
+    out_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
     for v in VIEWS:
-        node.create_subscription(Image, f"{v}/image_strip", on_strip, qos)
+        pub = node.create_publisher(Image, f"{v}/{PASSTHROUGH_SUFFIX}", out_qos)
+
+        def on_strip(msg: Any, pub: Any = pub) -> None:
+            count[0] += 1
+            try:
+                pub.publish(msg)
+            except Exception:  # an overloaded writer: the strip is lost (counted by the bench)
+                pass
+
+        node.create_subscription(Image, f"{v}/image_strip", on_strip, in_qos)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     while not stop.is_set():
         rclpy.spin_once(node, timeout_sec=0.05)
-    # Take what the reader has acknowledged but not yet handed over.
-    last = (count[0], time.monotonic())
-    while time.monotonic() - last[1] < 0.5:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        if count[0] != last[0]:
-            last = (count[0], time.monotonic())
     print(json.dumps({"strips": count[0]}), flush=True)
     node.destroy_node()
     rclpy.try_shutdown()
@@ -479,27 +536,53 @@ def bench_transport(
     domain_id: int | None = None,
     log: Log = log_stderr,
 ) -> dict[str, Any]:
-    """The DDS ceiling: ``scenes`` scenes per view of strips, unpaced, into a counting sink.
+    """The transport ceiling: a pass-through node fed open-loop at each of ``passthrough_rates``.
 
-    Same messages, QoS and in-flight window as the live run, but the subscriber (its own
-    process) does nothing with the strips. Returns strips/s and the real-time factor the
-    transport alone allows (strips/s over the 2 x 6500 / strip_lines the sensor sends).
+    ``scenes`` scenes per view of the live run's strips, published at their sensor times (divided
+    by the rate multiple) without waiting for anything, into a node process that republishes
+    them (:func:`passthrough_main`); this process receives them back. Per rate: strips sent,
+    received back and lost, latency (publish -> received back) p50 / p95 / max, the pass-through
+    node's CPU share, and the real-time factor (sensor span / wall span of the strips received
+    back, times the multiple).
     """
+    workdir.mkdir(parents=True, exist_ok=True)
+    return {
+        "rates": [
+            _passthrough_at(cfg, workdir, rate, scenes=scenes, domain_id=domain_id, log=log)
+            for rate in cfg.passthrough_rates
+        ],
+        "shm": cfg.shm,
+    }
+
+
+def _passthrough_at(
+    cfg: BenchConfig,
+    workdir: Path,
+    rate: float,
+    *,
+    scenes: int,
+    domain_id: int | None,
+    log: Log,
+) -> dict[str, Any]:
+    """One open-loop run of the pass-through node at ``rate`` x the sensor rate."""
     import rclpy
     from rclpy.context import Context
-    from rclpy.duration import Duration
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
-    workdir.mkdir(parents=True, exist_ok=True)
+    from tools.harness import proc_cpu_s
+
     plat = make_platform(cfg.lines, cfg.detectors)
-    env = join_ros_domain(domain_id, workdir / "ros_log", check_fields=cfg.check_fields)
+    env = join_ros_domain(
+        domain_id, workdir / "ros_log", check_fields=cfg.check_fields, shm=cfg.shm
+    )
     strips = StripMessages(plat, cfg.strip_lines)
     events = [e for e in acquisition(plat, scenes, cfg.strip_lines, 1.0) if e.kind == "strip"]
-    # The sink runs this module: the repository goes on its path (tools/ is not installed).
+    # The node runs this module: the repository goes on its path (tools/ is not installed).
     path = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
-    sink = subprocess.Popen(
-        [sys.executable, "-m", "tools.bench.dds"],
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tools.bench.dds", "passthrough"],
         env={**env, "PYTHONPATH": path},
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
@@ -512,61 +595,127 @@ def bench_transport(
         depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
     )
     pubs = [rnode.create_publisher(Image, f"{v}/image_strip", qos) for v in VIEWS]
-    res: dict[str, Any] = {"strips_sent": 0, "error": None}
+    sent: dict[tuple[int, int], float] = {}
+    back: dict[tuple[int, int], float] = {}
+    lock = threading.Lock()
+
+    def on_back(msg: Any, view: int) -> None:
+        now = time.time()
+        key = (view, msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec)
+        with lock:
+            back[key] = now
+
+    subs = [
+        rnode.create_subscription(
+            Image,
+            f"{v}/{PASSTHROUGH_SUFFIX}",
+            lambda m, i=i: on_back(m, i),
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
+        )
+        for i, v in enumerate(VIEWS)
+    ]
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(rnode)
+    spinning = threading.Event()
+    spinning.set()
+
+    def spin_loop() -> None:
+        while spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    spin = threading.Thread(target=spin_loop, name="bench_passthrough_spin", daemon=True)
+    res: dict[str, Any] = {"rate": rate, "strips_sent": 0, "publish_errors": 0, "error": None}
+    cpu0 = cpu1 = None
+    t0 = t1 = math.nan
     try:
+        spin.start()
         deadline = time.monotonic() + 60.0
-        while any(p.get_subscription_count() == 0 for p in pubs):
-            if time.monotonic() > deadline or sink.poll() is not None:
-                raise BenchAbortError("transport sink not discovered within 60 s")
+        while any(p.get_subscription_count() == 0 for p in pubs) or any(
+            s.get_publisher_count() == 0 for s in subs
+        ):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise BenchAbortError("pass-through node not discovered within 60 s")
             time.sleep(0.05)
         time.sleep(0.5)
-        unacked = [0, 0]
-        cpu0 = time.process_time()
-        t0 = time.perf_counter()
+        cpu0 = proc_cpu_s(proc.pid)
+        t0 = time.time()
         for ev in events:
-            pubs[ev.view].publish(strips.get(ev))
+            due = t0 + ev.due_s / rate
+            now = time.time()
+            if due > now:
+                time.sleep(due - now)
+            try:
+                pubs[ev.view].publish(strips.get(ev))
+            except Exception:
+                res["publish_errors"] += 1
+            sent[(ev.view, ev.stamp_ns)] = time.time()
             res["strips_sent"] += 1
-            unacked[ev.view] += 1
-            if unacked[ev.view] >= cfg.inflight_strips:
-                pubs[ev.view].wait_for_all_acked(Duration(seconds=cfg.stall_s))
-                unacked[ev.view] = 0
-        for p in pubs:
-            p.wait_for_all_acked(Duration(seconds=cfg.stall_s))
-        wall = time.perf_counter() - t0
-        res["publisher_cpu_s"] = time.process_time() - cpu0
+        t1 = time.time()
+        # Until everything came back, or nothing came for a second.
+        last = (0, time.monotonic())
+        while len(back) < len(sent) and time.monotonic() - last[1] < 1.0:
+            if len(back) != last[0]:
+                last = (len(back), time.monotonic())
+            time.sleep(0.02)
+        cpu1 = proc_cpu_s(proc.pid)
     except BenchAbortError as err:
         res["error"] = str(err)
-        wall = math.nan
     finally:
-        sink.send_signal(signal.SIGINT)
+        spinning.clear()
+        spin.join(timeout=5)
+        proc.send_signal(signal.SIGINT)
         try:
-            out, _ = sink.communicate(timeout=30)
+            out, _ = proc.communicate(timeout=30)
         except subprocess.TimeoutExpired:
-            sink.kill()
-            out, _ = sink.communicate()
+            proc.kill()
+            out, _ = proc.communicate()
+        executor.shutdown()
         rnode.destroy_node()
         rclpy.shutdown(context=ctx)
     try:
         got = int(json.loads(out.strip().splitlines()[-1])["strips"])
     except (ValueError, IndexError, KeyError):
         got = None
-    need = 2 * LINE_RATE_HZ / cfg.strip_lines
-    rate = res["strips_sent"] / wall if wall > 0 else math.nan
+    lat = [back[k] - sent[k] for k in sent if k in back]
+    times = sorted(back.values())
+    span_sensor = (events[-1].due_s - events[0].due_s) / rate if events else 0.0
+    n = res["strips_sent"]
     res.update(
         {
-            "strips_received": got,
-            "wall_s": wall,
-            "strips_per_s": rate,
-            "mb_per_s": rate * cfg.strip_lines * cfg.detectors * 2 / 2**20,
-            "needed_strips_per_s": need,
-            "realtime_factor": rate / need,
+            "strips_received_by_passthrough": got,
+            "strips_back": len(back),
+            "lost": n - len(back),
+            "loss": (n - len(back)) / n if n else None,
+            "latency_p50_s": float(np.percentile(lat, 50)) if lat else None,
+            "latency_p95_s": float(np.percentile(lat, 95)) if lat else None,
+            "latency_max_s": float(np.max(lat)) if lat else None,
+            "send_s": t1 - t0,
+            "mb_per_s": len(back) * cfg.strip_lines * cfg.detectors * 2 / 2**20 / span_sensor
+            if span_sensor > 0 and len(back) == n
+            else None,
+            "passthrough_cpu": (cpu1 - cpu0) / (t1 - t0)
+            if cpu0 is not None and cpu1 is not None and t1 > t0
+            else None,
+            # Sustained factor of what came back (x the multiple): 1.0 x rate when it keeps up.
+            "realtime_factor": rate * span_sensor / (times[-1] - times[0])
+            if len(times) == n and n >= 2 and times[-1] > times[0]
+            else None,
         }
     )
     log(
-        f"transport: {res['strips_sent']} strips in {wall:.1f} s = {rate:.1f} strips/s "
-        f"({res['mb_per_s']:.0f} MB/s; the sensor sends {need:.1f}/s)"
+        f"pass-through at {rate:g} x the sensor rate: {len(back)}/{n} strips back, latency p50 "
+        f"{_ms(res['latency_p50_s'])} p95 {_ms(res['latency_p95_s'])} ms, node CPU "
+        f"{_pct(res['passthrough_cpu'])}"
     )
     return res
+
+
+def _ms(v: float | None) -> str:
+    return "n/a" if v is None else f"{1000 * v:.0f}"
+
+
+def _pct(v: float | None) -> str:
+    return "n/a" if v is None else f"{100 * v:.0f} %"
 
 
 def summarize_collapsed(path: Path, top: int = 25) -> dict[str, Any]:
@@ -598,4 +747,4 @@ def summarize_collapsed(path: Path, top: int = 25) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    sink_main()
+    passthrough_main()

@@ -157,6 +157,7 @@ def bench_offline(
             },
         },
         on_outputs=on_outputs,
+        image_compression=cfg.image_compression,
     )
     prof.disable()
     wall = time.perf_counter() - t0
@@ -166,6 +167,7 @@ def bench_offline(
     size = sum(f.stat().st_size for f in dst.iterdir()) / 2**20 if dst.exists() else 0.0
     res = {
         "pairs": pairs,
+        "image_compression": cfg.image_compression or "zstd",
         "pairs_out": summary.pairs,
         "messages_in": summary.messages_in,
         "issues": [f"{i.level} {i.where}: {i.message}" for i in summary.issues][:20],

@@ -106,6 +106,10 @@ def run_and_report(
     pairs: int | None = None,
     check_fields: bool = False,
     node_params: dict[str, Any] | None = None,
+    paced: bool = False,
+    shm: bool = False,
+    memory_budget_mb: float | None = None,
+    image_compression: str | None = None,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -113,6 +117,13 @@ def run_and_report(
         cfg = replace(cfg, pairs=pairs)
     if check_fields:
         cfg = replace(cfg, check_fields=True)
+    cfg = replace(
+        cfg,
+        paced=paced,
+        shm=shm,
+        memory_budget_mb=memory_budget_mb,
+        image_compression=image_compression,
+    )
     res = run_bench(
         cfg,
         workdir=workdir,
@@ -170,6 +181,30 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="KEY=VALUE",
         help="extra node parameter (YAML value), e.g. streaming=false; repeatable",
     )
+    p.add_argument(
+        "--paced",
+        action="store_true",
+        help="the publisher waits for the node (former flow control; labelled PACED in the "
+        "report); default: open-loop at the sensor rate, as a real sensor",
+    )
+    p.add_argument(
+        "--shm",
+        action="store_true",
+        help="run the node, the pass-through node and the publisher with the Fast DDS "
+        "shared-memory profile config/fastdds_shm.xml",
+    )
+    p.add_argument(
+        "--memory-budget-mb",
+        type=float,
+        default=None,
+        help="the node's memory_budget_mb (default: the node's default)",
+    )
+    p.add_argument(
+        "--image-compression",
+        choices=("zstd", "lz4", "none"),
+        default=None,
+        help="chunk compression of the offline output bag's image topics (default: zstd)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -193,5 +228,9 @@ def main(argv: list[str] | None = None) -> int:
         pairs=args.pairs,
         check_fields=args.check_fields,
         node_params=params,
+        paced=args.paced,
+        shm=args.shm,
+        memory_budget_mb=args.memory_budget_mb,
+        image_compression=args.image_compression,
     )
     return 1 if (res.get("live") or {}).get("error") else 0

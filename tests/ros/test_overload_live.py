@@ -1,0 +1,347 @@
+"""Overload through the real node over real DDS (issue 11): whole pairs shed, counts add up.
+
+parproj_node runs in its own process with a small ``memory_budget_mb``; the synthetic fore/aft
+acquisition of the benchmark (parproj_ros.sim.synthetic, 2048 x 2048 scenes, whole-image pairs,
+no tie points) is published open-loop: 2 pairs at the sensor rate (warm-up), 7 at 6 times the
+sensor rate (the overload: 2-4 times what the node sustains here, on the shared machine),
+then 5 at half the sensor rate (the load drops). 13-20 s. Checked:
+
+- it shed whole pairs, each reported by a WARN on /diagnostics naming the scene and the reason,
+  and counted in the 1 Hz summary (pairs_shed, scenes_shed, strips_shed);
+- every pair it published is whole and correct: both scenes of the same index and complete,
+  both normalized images whole (or every column block when streamed), y-parallax within the
+  tolerance of the other tests;
+- the counts add up: strips sent = strips counted by the node; every pair either published or
+  shed, never both; shed strips = the strips of the shed scenes;
+- it catches up: the last pairs, sent after the load dropped, are all published (xfail:
+  not reliable yet, see the test);
+- the resident memory stays under the budget (xfail: not yet, see the test).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+import time
+from collections import defaultdict
+from typing import Any
+
+import pytest
+
+from parproj_ros.sim.synthetic import VIEWS, StripMessages, acquisition, make_platform, nav_message
+
+pytestmark = pytest.mark.ros  # live node over DDS
+
+LINES, DETECTORS, STRIP_LINES = 2048, 2048, 256
+PAIRS = 14
+#: (first pair, rate x the sensor's) of each phase: a warm-up at the sensor rate (the node
+#: learns its working set), the overload, then the load drops: the node must publish all of
+#: the last phase's pairs.
+PHASES = ((0, 1.0), (2, 6.0), (9, 0.5))
+#: Pairs after the load drops that the node may still shed.
+CATCH_UP_PAIRS = 2
+#: Start-up memory (about 90 MB) + a working set (first assumed 2 raw pairs, then learned:
+#: whole images, and what Fast DDS keeps of the outputs) + raw pairs of 16 MB in flight: tight
+#: enough that the node sheds during the overload.
+BUDGET_MB = 250.0
+#: y-parallax tolerance of the pair checks elsewhere (tests/apps/test_import.py), px.
+Y_PARALLAX_MAX_PX = 0.05
+
+
+class _Seen:
+    """What the test receives from the node."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.pairs: dict[str, Any] = {}
+        self.blocks: dict[tuple[str, str], list[Any]] = defaultdict(list)
+        self.scenes: dict[str, Any] = {}
+        self.images: dict[tuple[str, int], tuple[int, int, int, int]] = {}
+        self.summary: dict[str, str] = {}
+        self.summary_t = 0.0
+        self.statuses: list[tuple[str, str]] = []
+
+    def on_pair(self, msg: Any) -> None:
+        with self.lock:
+            self.pairs[msg.pair_id] = msg
+
+    def on_block(self, msg: Any) -> None:
+        with self.lock:
+            self.blocks[(msg.pair_id, msg.side)].append(
+                (int(msg.col0), int(msg.image.width), int(msg.image.height), bool(msg.last))
+            )
+
+    def on_image(self, msg: Any, side: str) -> None:
+        stamp = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        with self.lock:
+            self.images[(side, stamp)] = (msg.width, msg.height, msg.step, len(msg.data))
+
+    def on_scene(self, msg: Any) -> None:
+        with self.lock:
+            self.scenes[msg.scene_id] = int(msg.lines)
+
+    def on_diag(self, msg: Any) -> None:
+        with self.lock:
+            for st in msg.status:
+                if st.name == "parproj_node: summary":
+                    self.summary = {kv.key: kv.value for kv in st.values}
+                    self.summary_t = time.time()
+                else:
+                    self.statuses.append((st.name, st.message))
+
+
+@pytest.fixture(scope="module")
+def overload(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The run (once for the module): what the node published and reported, its VmHWM."""
+    tmp_path = tmp_path_factory.mktemp("overload")
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from nav_msgs.msg import Odometry
+    from parproj_msgs.msg import NormalizedBlock, ParallelProjection, StereoPair
+    from rclpy.context import Context
+    from rclpy.duration import Duration
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+    from sensor_msgs.msg import Image
+
+    from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
+    from parproj_ros.sim.recording import node_parameters
+    from tools.harness import RssMonitor, proc_status
+
+    plat = make_platform(LINES, DETECTORS)
+    env = ros_environment(None, tmp_path / "ros_log")
+    for key in ("ROS_AUTOMATIC_DISCOVERY_RANGE", "ROS_DOMAIN_ID", "ROS_LOG_DIR"):
+        os.environ[key] = env[key]
+    inputs = ["/navigation"] + [f"/{v}/image_strip" for v in VIEWS]
+    pfile = node_params_yaml(
+        node_parameters(
+            plat.views,
+            scene_lines=LINES,
+            scene_timeout=0.0,
+            z_avg=0.0,
+            height_range=500.0,
+            tie_points=False,  # image matching (seconds per pair) is not what is tested here
+            # Whole images: under overload navigation waits behind the strips and the pipeline
+            # falls back to them anyway; so the warm-up learns the working set of the burst.
+            streaming=False,
+            # What a memory-bounded deployment sets: each whole image sent once, no preview
+            # (Fast DDS keeps the last 10 messages of each output topic).
+            stereo_pair_images=False,
+            anaglyph=False,
+            memory_budget_mb=BUDGET_MB,
+        ),
+        tmp_path / "params.yaml",
+        reliable_inputs=inputs,
+    )
+    events = acquisition(plat, PAIRS, STRIP_LINES, 50.0)
+    strips = StripMessages(plat, STRIP_LINES)
+    # Wall time of each event: each phase from the sensor time its first pair's fore scene
+    # begins, at its rate; a 1 s pause between phases.
+    starts = [plat.scene_start_s(0, k) for k, _ in PHASES]
+
+    def wall(due_s: float) -> float:
+        t = 0.0
+        for i, (_, rate) in enumerate(PHASES):
+            end = starts[i + 1] if i + 1 < len(PHASES) else float("inf")
+            if due_s <= end:
+                return t + (due_s - starts[i]) / rate if i else t + due_s / rate
+            t += (end - (starts[i] if i else 0.0)) / rate + 1.0
+        return t
+
+    node = NodeProcess(pfile, env, tmp_path / "node.log")
+    mon = RssMonitor(node.proc.pid, period_s=0.05)
+    ctx = Context()
+    rclpy.init(context=ctx)
+    rnode = rclpy.create_node("overload_test", context=ctx)
+    seen = _Seen()
+    rel = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    strip_qos = QoSProfile(
+        depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
+    )
+    pubs = {v: rnode.create_publisher(Image, f"{v}/image_strip", strip_qos) for v in VIEWS}
+    nav_pub = rnode.create_publisher(
+        Odometry, "navigation", QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE)
+    )
+    pair_sub = rnode.create_subscription(StereoPair, "stereo_pair", seen.on_pair, rel)
+    for side in ("left", "right"):
+        rnode.create_subscription(
+            NormalizedBlock, f"{side}/normalized_block", seen.on_block, QoSProfile(
+                depth=200, reliability=ReliabilityPolicy.RELIABLE
+            )
+        )  # fmt: skip
+    rnode.create_subscription(ParallelProjection, "parallel_projection", seen.on_scene, rel)
+    for side in ("left", "right"):
+        rnode.create_subscription(
+            Image,
+            f"{side}/image_normalized",
+            lambda m, side=side: seen.on_image(m, side),
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
+        )
+    rnode.create_subscription(DiagnosticArray, "/diagnostics", seen.on_diag, 200)
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(rnode)
+    spinning = threading.Event()
+    spinning.set()
+
+    def spin() -> None:
+        while spinning.is_set():
+            executor.spin_once(timeout_sec=0.05)
+
+    th = threading.Thread(target=spin, daemon=True)
+    th.start()
+    sent_strips = 0
+    sent_nav = 0
+    try:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            assert node.proc.poll() is None, node.output()[-3000:]
+            ready = all(p.get_subscription_count() > 0 for p in pubs.values())
+            ready &= nav_pub.get_subscription_count() > 0 and pair_sub.get_publisher_count() > 0
+            if ready and seen.summary:
+                break
+            time.sleep(0.05)
+        else:
+            pytest.fail("node not discovered within 30 s")
+        t0 = time.time()
+        unacked = dict.fromkeys(VIEWS, 0)
+        for ev in events:
+            due = t0 + wall(ev.due_s)
+            now = time.time()
+            if due > now:
+                time.sleep(due - now)
+            if ev.kind == "nav":
+                nav_pub.publish(nav_message(plat, ev.t_s))
+                sent_nav += 1
+                continue
+            view = VIEWS[ev.view]
+            pubs[view].publish(strips.get(ev))
+            sent_strips += 1
+            # Lossless transport (the test is about the node, not DDS): a short ack window.
+            unacked[view] += 1
+            if unacked[view] >= 8:
+                assert pubs[view].wait_for_all_acked(Duration(seconds=30))
+                unacked[view] = 0
+        for p in pubs.values():
+            assert p.wait_for_all_acked(Duration(seconds=30))
+
+        def settled() -> bool:
+            with seen.lock:
+                s = seen.summary
+                fresh = seen.summary_t > time.time() - 1.2
+                return (
+                    fresh
+                    and int(s.get("strips", 0)) >= sent_strips
+                    and int(s.get("nav", 0)) >= sent_nav
+                    and int(s.get("pairs", 0)) + int(s.get("pairs_shed", 0)) >= PAIRS
+                    and s.get("queue") == "0"
+                    and int(s.get("pairs_in_flight", 9)) <= 1
+                    and s.get("busy_with", "x") == ""
+                )
+
+        deadline = time.monotonic() + 30.0
+        while not settled() and time.monotonic() < deadline:
+            assert node.proc.poll() is None, node.output()[-3000:]
+            time.sleep(0.1)
+        time.sleep(1.5)  # the last blocks and a summary after them
+        hwm = max(mon.hwm_mb, proc_status(node.proc.pid).get("VmHWM", 0.0))
+    finally:
+        mon.stop()
+        code = node.stop(timeout=60.0)
+        spinning.clear()
+        th.join(timeout=5)
+        executor.shutdown()
+        rnode.destroy_node()
+        rclpy.shutdown(context=ctx)
+    log = node.output()
+    assert code == 0, log[-3000:]
+
+    rss = [round(r) for _, r in mon.samples[:: max(1, len(mon.samples) // 60)]]
+    print(f"\noverload: VmHWM {hwm:.0f} MB (budget {BUDGET_MB:.0f}); RSS {rss}; {seen.summary}")
+    return {"seen": seen, "hwm": hwm, "rss": rss, "sent_strips": sent_strips}
+
+
+def test_overload_sheds_whole_pairs_and_counts_add_up(
+    overload: dict[str, Any],
+) -> None:
+    seen, sent_strips = overload["seen"], overload["sent_strips"]
+    # Shedding happened, whole pairs, each reported with its reason.
+    shed_warns = [(n, m) for n, m in seen.statuses if "overload: pair" in m]
+    shed_groups: set[int] = set()
+    for _name, message in shed_warns:
+        assert "memory_budget_mb" in message, message
+        shed_groups.add(int(re.search(r"overload: pair (\d+) ", message).group(1)))  # type: ignore[union-attr]
+    s = seen.summary
+    assert int(s["pairs_shed"]) == len(shed_groups) >= 1, (s, shed_warns)
+
+    # Every published pair: whole and correct.
+    published: set[int] = set()
+    for pid, sp in seen.pairs.items():
+        m = re.fullmatch(r"left_(\d{4})\+right_(\d{4})", pid)
+        assert m and m.group(1) == m.group(2), pid  # both scenes of the same index
+        k = int(m.group(1))
+        published.add(k)
+        assert (
+            seen.scenes.get(f"left_{k:04d}") == LINES
+            and seen.scenes.get(f"right_{k:04d}") == LINES
+        ), pid
+        assert sp.y_parallax_points >= 20, pid
+        assert abs(sp.y_parallax_max_px) < Y_PARALLAX_MAX_PX, (pid, sp.y_parallax_max_px)
+        # The normalized images: whole (in the StereoPair, or as column blocks when streamed).
+        stamp = sp.header.stamp.sec * 1_000_000_000 + sp.header.stamp.nanosec
+        for side in ("left", "right"):
+            if not sp.streamed:  # on <side>/image_normalized, stamped as the StereoPair
+                w, h, step, size = seen.images[(side, stamp)]
+                assert (w, h) == (sp.width, sp.height), (pid, side)
+                assert size == step * h > 0, (pid, side)
+                continue
+            blocks = sorted(seen.blocks[(pid, side)])
+            assert blocks, (pid, side)
+            cols = 0
+            for col0, width, height, _ in blocks:
+                assert col0 == cols and height == sp.height, (pid, side, blocks)
+                cols += width
+            assert cols == sp.width and blocks[-1][3], (pid, side, cols, sp.width)
+
+    # The counts add up.
+    assert int(s["strips"]) + int(s["strips_rejected"]) == sent_strips
+    assert not (published & shed_groups)
+    assert published | shed_groups >= set(range(PAIRS)), (published, shed_groups)
+    assert int(s["pairs"]) == len(published)
+    strips_per_scene = LINES // STRIP_LINES
+    # The fore view's tail scene (index PAIRS, no aft partner sent) is in group PAIRS.
+    scenes_shed = sum(2 if g < PAIRS else 1 for g in shed_groups)
+    assert int(s["scenes_shed"]) == scenes_shed
+    assert int(s["strips_shed"]) == scenes_shed * strips_per_scene
+    assert int(s["internal_errors"]) == 0 and int(s["errors"]) == 0, s
+
+    overload["published"], overload["shed_groups"] = published, shed_groups
+
+
+@pytest.mark.xfail(
+    reason="issue 11, not done: the budget is exceeded transiently. Under a burst the node's "
+    "Python executor takes strips more slowly than they come, and the backlog waits in the DDS "
+    "reader's history (reliable, depth 1000), outside what the admission sees; and one "
+    "whole-image pair at 2048 x 2048 needs 150-250 MB (about 12 raw pairs) of working set "
+    "(RELIABILITY.md, Overload)",
+    strict=False,
+)
+def test_overload_node_memory_stays_under_budget(overload: dict[str, Any]) -> None:
+    hwm = overload["hwm"]
+    assert 0 < hwm < BUDGET_MB, (
+        f"node VmHWM {hwm:.0f} MB, budget {BUDGET_MB:.0f} MB; RSS {overload['rss']}"
+    )
+
+
+@pytest.mark.xfail(
+    reason="issue 11, not done: after the burst the node keeps what Fast DDS holds for its "
+    "reliable outputs (whole images, depth 10) and the burst's buffers, so its resident memory "
+    "can stay near the budget and the admission (resident memory over the budget, or the "
+    "working set learnt in the burst) still sheds pairs sent after the load dropped",
+    strict=False,
+)
+def test_overload_catches_up_when_the_load_drops(overload: dict[str, Any]) -> None:
+    if "published" not in overload:
+        pytest.skip("the shedding test did not get that far")
+    published, shed = overload["published"], overload["shed_groups"]
+    assert set(range(PHASES[-1][0] + CATCH_UP_PAIRS, PAIRS)) <= published, (published, shed)
