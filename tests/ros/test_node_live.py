@@ -1,7 +1,8 @@
 """Every bag in bags/ replayed through the real node (own process, real DDS on localhost).
 
 The numbers asserted are the published ones, read back from an MCAP bag that the test recorded
-from the live graph and decoded both by our reader and by an independent one (rosbags).
+from the live graph and decoded both by our reader and by an independent one (rosbags). The node
+runs with heights on: every pair also gets its disparity, height image and DSM (issue 12).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from testkit.paths import BAGS
+from testkit.paths import BAGS, DATA
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.eval.evaluate import evaluate_bag
@@ -31,8 +32,14 @@ def run_live(
     """Replay ``bag`` into parproj_node (child process); record its outputs into ``out``."""
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     views = views_from_bag(BagReader(bag))
+    also = ("disparity", "height") if params.get("heights") else ()
     run = run_through_node(
-        bag, out, params=node_parameters(views, **params), rate=rate, log=lambda s: None
+        bag,
+        out,
+        params=node_parameters(views, **params),
+        rate=rate,
+        log=lambda s: None,
+        also=also,
     )
     assert run.discovered, "node outputs not discovered"
     assert run.code == 0, run.log
@@ -43,7 +50,9 @@ def run_live(
 def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> dict:
     bag = BAGS / request.param
     assert bag.is_dir(), f"{bag} missing: run `parproj simulate all`"
-    out, counts, log = run_live(bag, tmp_path_factory.mktemp(request.param) / "output")
+    out, counts, log = run_live(
+        bag, tmp_path_factory.mktemp(request.param) / "output", heights=True
+    )
     return {"name": request.param, "bag": bag, "out": out, "counts": counts, "log": log}
 
 
@@ -144,3 +153,78 @@ def test_streaming_through_the_live_node(tmp_path: Path) -> None:
     assert pair["streamed"]
     assert pair["geometric"]["y_parallax_px"]["rms"] <= 0.1
     assert pair["matching"]["y_parallax_px"]["median_abs"] <= 0.2
+
+
+# ---- heights (issue 12) -------------------------------------------------------------------------
+
+
+def ventoux_srtm() -> object:
+    """The SRTM crop of tests/data/ventoux as WGS84 ellipsoidal heights (geoid + 50 m)."""
+    from parproj_ros.io.dem import grid_height
+
+    return grid_height(
+        np.loadtxt(DATA / "srtm_N44E005_crop.txt"),
+        lat_max=45 - 927 / 1200,
+        lon_min=5 + 206 / 1200,
+        step_deg=1 / 1200,
+        geoid_undulation=50.0,
+    )
+
+
+def test_heights_published_and_read_by_independent_reader(live: dict) -> None:
+    from rosbags.highlevel import AnyReader
+
+    c = live["counts"]
+    assert c["disparity"] == 1 and c["height"] == 1 and c["dsm"] == 1, live["log"]
+    with AnyReader([live["out"]]) as reader:
+        conns = {x.topic: x for x in reader.connections}
+        assert conns["disparity"].msgtype == "stereo_msgs/msg/DisparityImage"
+        assert conns["dsm"].msgtype == "parproj_msgs/msg/ElevationGrid"
+        got = {}
+        for topic in ("disparity", "dsm"):
+            ((conn, _stamp, raw),) = list(reader.messages(connections=[conns[topic]]))
+            got[topic] = reader.deserialize(raw, conn.msgtype)
+    disp, dsm = got["disparity"], got["dsm"]
+    ours = {m.topic: m.msg for m in BagReader(live["out"]).messages(topics=["disparity", "dsm"])}
+    a = image_to_array(ours["disparity"].image)
+    b = np.frombuffer(bytes(disp.image.data), dtype=np.float32).reshape(a.shape)
+    assert np.array_equal(a, b)
+    assert disp.min_disparity == ours["disparity"].min_disparity
+    assert dsm.pair_id == ours["dsm"].pair_id and dsm.cell_size == ours["dsm"].cell_size
+    h = image_to_array(ours["dsm"].heights)
+    hb = np.frombuffer(bytes(dsm.heights.data), dtype=np.float32).reshape(h.shape)
+    assert np.array_equal(h, hb, equal_nan=True)
+
+
+def test_dsm_accuracy(live: dict) -> None:
+    """Simulated bags against their terrain: NMAD within one pixel of x-parallax, >= 95 %
+    complete. Ventoux against SRTM (3", coarse): within SRTM's own 16 m (90 %) accuracy."""
+    from parproj_ros.eval.heights import dsm_accuracy, enu_dem_surface, scenario_terrain
+    from parproj_ros.ros.conversions import elevation_grid_from_msg
+
+    (m,) = [x.msg for x in BagReader(live["out"]).messages(topics=["dsm"])]
+    heights, grid, ortho = elevation_grid_from_msg(m)
+    assert ortho is not None and ortho.shape == heights.shape
+    a = abs(m.height_per_disparity_px)
+    if live["name"] == "ventoux":
+        truth = enu_dem_surface(m.header.frame_id, ventoux_srtm())
+    else:
+        truth = scenario_terrain(live["name"])
+    acc = dsm_accuracy(heights, grid, truth)
+    print(f"{live['name']}: |a| {a:.3f} m/px, {acc}")
+    if live["name"] == "ventoux":
+        assert acc["nmad"] < 16.0 and acc["completeness"] > 0.5, acc
+    else:
+        assert acc["nmad"] <= a, acc
+        assert acc["completeness"] >= 0.95, acc
+
+
+def test_offline_heights_equal_live(live: dict, tmp_path: Path) -> None:
+    process_bag(live["bag"], tmp_path / "offline", progress=False, overrides={"heights": True})
+    off = {m.topic: m.msg for m in BagReader(tmp_path / "offline").messages(topics=["dsm"])}
+    on = {m.topic: m.msg for m in BagReader(live["out"]).messages(topics=["dsm"])}
+    for k in ("x0", "y0", "cell_size", "disparity_min", "disparity_max", "filled_cells"):
+        assert getattr(off["dsm"], k) == getattr(on["dsm"], k), k
+    assert np.array_equal(
+        image_to_array(off["dsm"].heights), image_to_array(on["dsm"].heights), equal_nan=True
+    )
