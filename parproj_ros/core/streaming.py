@@ -16,6 +16,7 @@ navigation of the scene.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -23,11 +24,31 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..imaging.assembly import Scene
+from ..geometry import GeometryError, PushbroomModel, parameters_from_navigation
+from ..geometry.navigation import virtual_points
+from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd
 from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles
-from .results import PairGeometry, SceneResult
+from .config import PipelineConfig
+from .gcp_store import GcpStore
+from .navigation import NavigationFeed
+from .normalization import interpolation_flag, pair_geometry
+from .orientation import start_seen
+from .pairing import Pairing
+from .results import BlockResult, Issue, Outputs, PairGeometry, PairResult, SceneResult
+from .trajectory import NavigationError
 
 FloatArray = NDArray[np.float64]
+#: Makes the :class:`PairResult` of a pair: (left, right, geometry, images or None, stamp ns).
+PublishPair = Callable[
+    [
+        SceneResult,
+        SceneResult,
+        PairGeometry,
+        tuple[NDArray[np.generic] | None, NDArray[np.generic] | None],
+        int,
+    ],
+    PairResult,
+]
 
 #: Columns per streamed block (the tile size of the resampler, so blocks hold whole tiles).
 BLOCK_COLS = 256
@@ -133,3 +154,500 @@ def render_block(
             )
         )
     return out
+
+
+class Streamer:
+    """The streaming of two-view pairs: its state and every decision that changes it.
+
+    It shares the pipeline's components (passed in, not owned): the assemblers (scenes under
+    way and their retained lines), the navigation feed (samples, scenes waiting for
+    navigation), the GCP store (a scene with GCP is processed whole), and the pairing's
+    ``ready`` scenes. ``whole(scene)`` processes a complete scene that is not streamed, and
+    ``publish_pair(left, right, geometry, images, stamp_ns)`` makes the :class:`PairResult` of a
+    pair (the pipeline's bookkeeping: GCP forgotten, pairs counted). Times are nanoseconds.
+    """
+
+    def __init__(
+        self,
+        config: PipelineConfig,
+        assemblers: Mapping[str, SceneAssembler],
+        feed: NavigationFeed,
+        gcps: GcpStore,
+        pairing: Pairing,
+        *,
+        whole: Callable[[Scene], Outputs],
+        publish_pair: PublishPair,
+    ) -> None:
+        self.config = config
+        self.views = {v.name: v for v in config.views}
+        self.assemblers = assemblers
+        self.feed = feed
+        self.nav = feed.buffer
+        self.gcps = gcps
+        self.pairing = pairing
+        self.whole = whole
+        self.publish_pair = publish_pair
+        #: Streamed pairs under way, by pair index k.
+        self.streams: dict[int, StreamPair] = {}
+        #: Pairs decided not to stream (processed whole).
+        self.no_stream: set[int] = set()
+        #: Pairs whose streaming decision waits for navigation (it lagged behind their first
+        #: strips): pair index -> the scene start it must reach (see :meth:`_predict_scene`).
+        self.wait: dict[int, int] = {}
+
+    def first_lines(self) -> list[int]:
+        """First line times (ns) of the streamed pairs' scenes (navigation they still need)."""
+        return [
+            side.result.scene.first_line_ns
+            for stream in self.streams.values()
+            for side in stream.sides.values()
+        ]
+
+    def _start_seen(self, first_line_ns: int) -> bool:
+        return start_seen(first_line_ns, self.feed.first_ns, self.config.start_margin_s)
+
+    def undecided(self, scene: Scene) -> bool:
+        """Whether ``scene``'s pair waits for navigation to decide streaming (:attr:`wait`).
+
+        Only a scene still arriving at the decision time counts: one complete before it would
+        have been processed whole anyway.
+        """
+        t = self.wait.get(scene.index)
+        return (
+            t is not None
+            and scene.index not in self.streams
+            and scene.index not in self.no_stream
+            and scene.last_line_ns >= t
+        )
+
+    def held(self, scene: Scene) -> bool:
+        """Whether a complete scene is held for its pair's streaming decision.
+
+        Undecided (:meth:`undecided`), and navigation has not passed the scene yet (the bound).
+        """
+        last = self.nav.last_ns
+        return self.undecided(scene) and (last is None or last <= scene.last_line_ns)
+
+    @property
+    def can_stream(self) -> bool:
+        """Whether streaming applies: enabled, two views, a configured scene length."""
+        c = self.config
+        return c.streaming and not c.single_camera and c.scene_lines > 0
+
+    def scene_closed(self, scene: Scene) -> Outputs:
+        """A scene is complete: the end of its stream, or (not streamed) ``whole(scene)``."""
+        stream = self.streams.get(scene.index)
+        if stream is None or scene.view not in [s.view for s in stream.sides.values()]:
+            return self.whole(scene)
+        return self._close(stream, scene)
+
+    def start(self) -> Outputs:
+        """Start streaming pair k once the scenes of both sides have begun (or one is done).
+
+        A side whose scene is still arriving gets parameters extrapolated from the latest
+        navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
+        sees the same ground later) keeps its parameters and has all its blocks emitted at once.
+        When navigation lags behind the strips (separate topics, no ordering between them), the
+        decision is held (:attr:`wait`: pair -> the decision time, the first line of the
+        later scene) until navigation reaches that time; a scene still arriving then but
+        completed in the meantime is held too (it waits for navigation anyway) and streamed at
+        once, and a scene completed before it is processed whole first, as it would have been.
+        So the outputs do not depend on the order in which the topics were delivered.
+        """
+        out = Outputs()
+        for k in list(self.wait):
+            if k in self.streams or k in self.no_stream:
+                del self.wait[k]
+        names = [v.name for v in self.config.views]
+        opened = {n: self.assemblers[n].open_scene() for n in names}
+        pending = {o.index for o in opened.values() if o is not None} | set(self.wait)
+        for k in sorted(pending):
+            if k in self.streams or k in self.no_stream:
+                continue
+            parts: list[tuple[str, OpenScene | SceneResult]] = []
+            held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
+            waiting = False  # a complete scene of the pair waits for navigation
+            for n in names:
+                o = opened[n]
+                sc = next((w for w in self.feed.waiting if w.view == n and w.index == k), None)
+                if o is not None and o.index == k:
+                    parts.append((n, o))
+                elif k in self.pairing.ready[n]:
+                    parts.append((n, self.pairing.ready[n][k]))
+                elif sc is not None and self.held(sc):
+                    held[n] = sc
+                    parts.append((n, OpenScene(sc.scene_id, k, sc.first_line_ns, sc.lines)))
+                elif sc is not None:
+                    waiting = True
+            if len(parts) < 2:
+                opens = [p.first_line_ns for _, p in parts if not isinstance(p, SceneResult)]
+                last = self.nav.last_ns
+                if (
+                    waiting
+                    and opens
+                    and k not in self.wait
+                    and (last is None or last < max(opens) - self.nav.max_gap_s * 1e9)
+                ):
+                    # The other scene, complete, waits for navigation, which lags far behind
+                    # this one's start: the decision waits for navigation (see above).
+                    self.wait[k] = max(opens)
+                continue
+            short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
+            if short:
+                self.no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"pair {k}",
+                        "not streamed: navigation lagged behind the strips until "
+                        + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
+                        + f" ended short ({short[0].lines} of {self.config.scene_lines} "
+                        "lines): processed whole",
+                    )
+                )
+                continue
+            if k == 0 and any(
+                not isinstance(part, SceneResult) and not self._start_seen(part.first_line_ns)
+                for _, part in parts
+            ):
+                # Perhaps the rest of a scene under way when the pipeline started: it will be
+                # skipped when complete (_start_unseen), not streamed.
+                self.no_stream.add(k)
+                continue
+            # Time of the line after the last one received, per open scene.
+            ends = {
+                o.scene_id: o.first_line_ns + o.lines * self._period(o)
+                for o in opened.values()
+                if o is not None
+            }
+            newest = max(ends.values(), default=0)
+            duration = self.config.scene_lines * max(
+                v.camera.line_period for v in self.config.views
+            )
+            stale_ns = max(1.0, 0.5 * duration) * 1e9
+            overdue = [
+                part
+                for _, part in parts
+                if not isinstance(part, SceneResult)
+                and part.scene_id in ends
+                and newest - ends[part.scene_id] > stale_ns
+            ]
+            if overdue:
+                # Strips of a scene stopped coming while the other view went on (by more than
+                # half a scene, at least 1 s): it is short (end of a pass) and its length is
+                # unknown, so it is processed whole. A view merely delivered late is not stale.
+                self.no_stream.add(k)
+                out.issues.append(
+                    Issue(
+                        "ok",
+                        f"pair {k}",
+                        (
+                            "not streamed: the strips of "
+                            + ", ".join(p[0] for p in overdue)
+                            + " stopped arriving (a short scene): processed whole"
+                        ),
+                    )
+                )
+                continue
+            results: list[SceneResult] = []
+            for name, part in parts:
+                if isinstance(part, SceneResult):
+                    results.append(part)
+                    continue
+                sc = held.get(name)
+                res = self._predict_scene(
+                    name,
+                    part,
+                    out,
+                    max(p[2] for _, p in parts if not isinstance(p, SceneResult)),
+                    None if sc is None else sc.image.dtype,
+                )
+                if res is None:
+                    return out
+                results.append(res)
+            if k in self.no_stream:
+                continue
+            out.extend(self._open_stream(k, results))
+            stream = self.streams.get(k)
+            if stream is not None:
+                if k in self.wait:
+                    out.issues.append(
+                        Issue(
+                            "ok",
+                            f"pair {stream.geometry.pair_id}",
+                            "navigation reached the scenes' start after their first strips: "
+                            "streaming decision held until then",
+                        )
+                    )
+                for sc in held.values():
+                    self.feed.waiting.remove(sc)
+                    out.extend(self._close(stream, sc))
+        return out
+
+    def _period(self, opened: OpenScene) -> float:
+        """Line period (ns) of the view whose open scene is ``opened``."""
+        for name, asm in self.assemblers.items():
+            if asm.open_scene() == opened:
+                return self.views[name].camera.line_period * 1e9
+        return 0.0
+
+    def _predict_scene(
+        self,
+        name: str,
+        opened: OpenScene,
+        out: Outputs,
+        decide_ns: int,
+        dtype: np.dtype | None = None,
+    ) -> SceneResult | None:
+        """Parameters of a scene that has just started, from the latest navigation.
+
+        ``decide_ns``: the decision time (the first line of the pair's later scene). When
+        navigation has not reached within ``max_gap_s`` of the scene start then (it lags:
+        separate topics), the pair waits (:attr:`wait`) until navigation reaches the
+        decision time, and the motion is then fitted on the navigation up to that time only,
+        as an on-time decision would have been. None: not (yet) possible.
+        """
+        sid, k, t0, _ = opened
+        if self.gcps.count(sid) >= self.config.min_gcp:
+            self.no_stream.add(k)  # GCP-based parameters need the whole scene
+            return None
+        view = self.views[name]
+        lines = self.config.scene_lines
+        until = self.wait.get(k)
+        last = self.nav.last_ns
+        if until is not None and (last is None or last < until):
+            return None  # navigation has not reached the decision time yet: keep waiting
+        try:
+            fit = self.nav.fit_recent(t0, view.mounting, until_ns=until)
+        except NavigationError as err:
+            if until is None:
+                self.wait[k] = decide_ns  # navigation lags: wait for it (see above)
+                return None
+            self.no_stream.add(k)
+            out.issues.append(
+                Issue(
+                    "warn",
+                    f"{name}/{sid}",
+                    f"not streamed (navigation at the scene start: {err}): processed whole",
+                )
+            )
+            return None
+        model = PushbroomModel(view.camera, fit.motion)
+        try:
+            nav = parameters_from_navigation(
+                model,
+                line_mid=(lines - 1) / 2.0,
+                z_avg=self.config.z_avg,
+                scene_lines=lines,
+                height_range=self.config.height_range,
+                crab_tolerance_px=self.config.crab_tolerance_px,
+            )
+        except GeometryError as err:
+            self.no_stream.add(k)
+            out.issues.append(
+                Issue("warn", f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing")
+            )
+            return None
+        if dtype is None:
+            dtype = self.assemblers[name].retained()[1].dtype
+        placeholder = Scene(
+            name,
+            sid,
+            k,
+            t0,
+            view.camera.line_period,
+            np.empty((0, view.camera.detectors), dtype=dtype),
+            0,
+            SceneEnd.STREAMING,
+            lines,
+        )
+        return SceneResult.from_navigation(
+            placeholder,
+            nav,
+            model,
+            view.camera,
+            note_suffix="; extrapolated from the navigation at the scene start (streaming)",
+        )
+
+    def _open_stream(self, k: int, results: list[SceneResult]) -> Outputs:
+        out = Outputs()
+        lines = (results[0].scene.lines, results[1].scene.lines)
+        geo = pair_geometry(results[0], results[1], lines, self.config, self.gcps)
+        if isinstance(geo, Issue):
+            self.no_stream.add(k)
+            out.issues.append(geo)
+            return out
+        sides = {}
+        for side, res, geom, grid in (
+            ("left", results[0], geo.left_geom, geo.left_grid),
+            ("right", results[1], geo.right_geom, geo.right_grid),
+        ):
+            sides[side] = SideStream(
+                side,
+                res.scene.view,
+                res,
+                geom,
+                grid,
+                res.scene.lines,
+                plan_blocks(geom, grid, res.scene.lines),
+            )
+        stamp = max(r.scene.last_line_ns for r in results)
+        stream = StreamPair(k, geo, sides, stamp)
+        self.streams[k] = stream
+        out.issues.append(
+            Issue(
+                "ok",
+                f"pair {geo.pair_id}",
+                f"streaming: {geo.left_grid.width} x {geo.left_grid.height} px in "
+                f"{len(sides['left'].blocks)} + {len(sides['right'].blocks)} column blocks",
+            )
+        )
+        for side in sides.values():
+            if side.result.scene.image.shape[0] > 0:  # a side that was already complete
+                self.pairing.ready[side.view].pop(k, None)
+                out.extend(self._close(stream, side.result.scene, prefetched=True))
+        return out
+
+    def _emit_blocks(
+        self,
+        stream: StreamPair,
+        side: SideStream,
+        received: int,
+        data: NDArray[np.generic],
+        first: int,
+        complete: bool,
+    ) -> Outputs:
+        out = Outputs()
+        while side.next_block < len(side.blocks):
+            b = side.blocks[side.next_block]
+            if not complete and b.max_line >= received:
+                break
+            img = render_block(
+                b,
+                data,
+                first,
+                side.grid,
+                nodata=self.config.nodata,
+                interpolation=interpolation_flag(self.config),
+            )
+            side.next_block += 1
+            out.blocks.append(
+                BlockResult(
+                    stream.geometry.pair_id,
+                    side.side,
+                    side.next_block - 1,
+                    b.col0,
+                    img,
+                    side.grid,
+                    stream.stamp_ns,
+                    side.next_block == len(side.blocks),
+                )
+            )
+        return out
+
+    def advance(self, view: str) -> Outputs:
+        """Emit the blocks of ``view``'s streamed scene that its lines received so far complete.
+
+        Lines no later block needs are released from the assembler.
+        """
+        out = Outputs()
+        asm = self.assemblers[view]
+        opened = asm.open_scene()
+        if opened is None:
+            return out
+        stream = self.streams.get(opened.index)
+        if stream is None:
+            return out
+        for side in stream.sides.values():
+            if side.view != view or side.done:
+                continue
+            first, data = asm.retained()
+            out.extend(self._emit_blocks(stream, side, opened.lines, data, first, False))
+            if side.next_block > 0:  # keep every line until the stream has really begun
+                asm.release(side.needed_from())
+        return out
+
+    def _close(self, stream: StreamPair, scene: Scene, prefetched: bool = False) -> Outputs:
+        """A streamed side's scene is complete: its last blocks, and the pair if both are.
+
+        ``prefetched``: the scene was complete before the stream started (its result is known;
+        no parameters are published for it again).
+        """
+        out = Outputs()
+        side = next(s for s in stream.sides.values() if s.view == scene.view)
+        where = f"{scene.view}/{scene.scene_id}"
+        if scene.lines != side.lines:
+            self.streams.pop(stream.index, None)
+            self.no_stream.add(stream.index)
+            if all(s.next_block == 0 for s in stream.sides.values()) and scene.released == 0:
+                # Nothing was published or released yet: fall back to whole scenes, unseen.
+                for s in stream.sides.values():
+                    if s.prefetched or (s.done and s.result.scene.image.shape[0] > 0):
+                        self.pairing.ready[s.view][stream.index] = s.result
+                return self.whole(scene)
+            out.issues.append(
+                Issue(
+                    "error",
+                    where,
+                    f"scene ended after {scene.lines} of {side.lines} lines ({scene.reason}): "
+                    f"streamed pair {stream.geometry.pair_id} abandoned after "
+                    f"{side.next_block} of {len(side.blocks)} blocks; the blocks published "
+                    "so far stay valid, the pair is not completed",
+                )
+            )
+            return out
+        out.extend(self._emit_blocks(stream, side, scene.lines, scene.image, scene.released, True))
+        side.done = True
+        side.prefetched = prefetched
+        stream.scenes[side.side] = scene
+        if not all(s.done for s in stream.sides.values()):
+            return out
+        self.streams.pop(stream.index, None)
+        results = []
+        for s in (stream.sides["left"], stream.sides["right"]):
+            results.append(s.result)
+            if s.prefetched:
+                continue  # published when its scene completed
+            check = self._check_extrapolation(s)
+            if check is not None:
+                out.issues.append(check)
+            out.scenes.append(s.result)
+            self.pairing.done_with(s.result.scene, s.result.method)
+        out.pairs.append(
+            self.publish_pair(
+                results[0], results[1], stream.geometry, (None, None), stream.stamp_ns
+            )
+        )
+        return out
+
+    def _check_extrapolation(self, side: SideStream) -> Issue | None:
+        """Compare the extrapolated motion with a fit on the scene's own navigation."""
+        res = side.result
+        sc = res.scene
+        if res.model is None or not self.nav.covers(sc.first_line_ns, sc.last_line_ns):
+            return None
+        try:
+            fit = self.nav.fit(sc.first_line_ns, sc.last_line_ns, self.views[sc.view].mounting)
+        except NavigationError:
+            return None
+        actual = PushbroomModel(res.camera, fit.motion)
+        pts = virtual_points(
+            res.model,
+            (0.0, sc.lines - 1.0),
+            [
+                self.config.z_avg - self.config.height_range,
+                self.config.z_avg + self.config.height_range,
+            ],
+            grid=5,
+        )
+        diff = float(np.abs(actual.project(pts) - res.model.project(pts)).max())
+        if diff > 0.1:
+            return Issue(
+                "warn",
+                f"{sc.view}/{sc.scene_id}",
+                (
+                    f"the motion extrapolated at the scene start differs from the scene's "
+                    f"navigation by up to {diff:.3f} px: the streamed pair carries that error"
+                ),
+            )
+        return None

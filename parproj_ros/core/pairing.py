@@ -1,0 +1,234 @@
+"""Which scenes make a stereo pair (paper 2 section 2: two scenes of one ground, two looks).
+
+Two views: the k-th scenes of the two views pair up. One view (single-camera mode, e.g. an agile
+satellite looking forward then back): acquisitions 2k and 2k+1 pair up, or the pairs selected by
+scene ids (:meth:`Pairing.set_pairs`, the node's ``pairs`` topic). Oriented scenes wait here for
+their partner; scenes done with are remembered so that late inputs naming them are reported.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+from ..imaging.assembly import Scene
+from .config import PipelineConfig
+from .gcp_store import GcpStore
+from .results import Issue, Outputs, SceneResult
+
+#: Makes (normalizes, refines, publishes) one pair of oriented scenes (left, right).
+MakePair = Callable[[SceneResult, SceneResult], Outputs]
+
+
+class Pairing:
+    """Oriented scenes waiting for their partner, the pair selection, the pairs made."""
+
+    def __init__(self, config: PipelineConfig) -> None:
+        self.config = config
+        #: Oriented scenes waiting for their partner: view -> scene index (single camera: the
+        #: acquisition) -> result.
+        self.ready: dict[str, dict[int, SceneResult]] = {v.name: {} for v in config.views}
+        # The latest scenes done with (processed or skipped): scene id -> (view, method), so
+        # that GCP arriving after their scene are reported, not kept.
+        self.done: dict[str, tuple[str, str]] = {}
+        # Single-camera pair selection (the `pairs` topic): the (left, right) scene ids of the
+        # pairs still to make, in order; None: acquisitions 2k and 2k+1 pair up.
+        self.selection: list[tuple[str, str]] | None = None
+        # single-camera pairs made (their two scene ids; an ordered set of the latest 1024)
+        self.made: dict[frozenset[str], None] = {}
+
+    def done_with(self, scene: Scene, method: str) -> None:
+        """Remember that a scene is done with (``method``, or "skipped"); the latest 256 kept."""
+        self.done[scene.scene_id] = (scene.view, method)
+        while len(self.done) > 256:
+            del self.done[next(iter(self.done))]
+
+    def _done_how(self, scene_id: str) -> str:
+        method = self.done[scene_id][1]
+        return "skipped" if method == "skipped" else f"processed ({method})"
+
+    def add(self, result: SceneResult) -> list[Issue]:
+        """An oriented scene waits for its partner; the issues (none, or one WARN).
+
+        Single camera: only an acquisition's first part waits; the others are not paired.
+        """
+        scene = result.scene
+        if not self.config.single_camera:
+            self.ready[scene.view][scene.index] = result
+        elif scene.part == 0:
+            # Single camera: pairs are acquisitions 2k and 2k+1 (a look forward, then back),
+            # whatever parts a gap or scene_lines cut them into; each is paired by its first
+            # part, so that one split does not shift every later pair.
+            self.ready[scene.view][scene.acquisition] = result
+        else:
+            return [
+                Issue(
+                    "warn",
+                    f"{scene.view}/{scene.scene_id}",
+                    f"part {scene.part} of an acquisition that was split: its parameters are "
+                    "published, but single-camera pairs are made of the first parts of two "
+                    "acquisitions: not paired",
+                )
+            ]
+        return []
+
+    def selected_scene_ids(self) -> set[str]:
+        """Scene ids that a selected pair not made yet still needs."""
+        return {s for pair in self.selection or () for s in pair}
+
+    def _mark_made(self, left: str, right: str) -> None:
+        """Remember a single-camera pair as made (the latest 1024), for later selections."""
+        self.made[frozenset((left, right))] = None
+        while len(self.made) > 1024:
+            del self.made[next(iter(self.made))]
+
+    def make_pairs(self, make: MakePair, gcps: GcpStore) -> Outputs:
+        """Make (``make``) every pair whose two scenes are ready."""
+        out = Outputs()
+        names = [v.name for v in self.config.views]
+        if self.config.single_camera and self.selection is not None:
+            out.extend(self.make_selected(make, gcps))
+        elif self.config.single_camera:
+            ready = self.ready[names[0]]
+            for i in sorted(ready):
+                if i % 2 == 0 and i + 1 in ready:
+                    left, right = ready.pop(i), ready.pop(i + 1)
+                    self._mark_made(left.scene.scene_id, right.scene.scene_id)
+                    out.extend(make(left, right))
+        else:
+            left_ready, right_ready = self.ready[names[0]], self.ready[names[1]]
+            for i in sorted(set(left_ready) & set(right_ready)):
+                out.extend(make(left_ready.pop(i), right_ready.pop(i)))
+        return out
+
+    def set_pairs(
+        self, pairs: Sequence[tuple[str, str]], make: MakePair, gcps: GcpStore
+    ) -> Outputs:
+        """Select which acquisitions pair up (single-camera mode; the node's ``pairs`` topic).
+
+        ``pairs`` are (left scene id, right scene id): acquisitions (strip frame_ids, their
+        first parts). A scene may be in several pairs: it is kept until every selected pair
+        that needs it is made, then released. The selection replaces any earlier one for the
+        pairs not made yet; scenes held that it no longer needs are released (WARN). Bad
+        entries are reported and left out, the others kept: an empty id, a scene paired with
+        itself, a pair listed twice (in either order), a scene already done with and released
+        (processed under an earlier rule, or skipped). Scene ids that never arrive are
+        reported when the data end (:meth:`unmade`). Two-view mode ignores the selection.
+        """
+        out = Outputs()
+        if not self.config.single_camera:
+            out.issues.append(
+                Issue(
+                    "warn",
+                    "pairs",
+                    "pair selection ignored: with two views the k-th scenes of the views pair "
+                    "up (it is for single-camera mode)",
+                )
+            )
+            return out
+        held = {r.scene.scene_id for r in self.ready[self.config.views[0].name].values()}
+        chosen: list[tuple[str, str]] = []
+        seen: set[frozenset[str]] = set()
+        for left, right in pairs:
+            name = f"{left}:{right}"
+            key = frozenset((left, right))
+            why = ""
+            if not left or not right:
+                why = "an empty scene id"
+            elif left == right:
+                why = f"scene {left} paired with itself (no base)"
+            elif key in seen:
+                why = "listed twice (in this or the reverse order): the first one kept"
+            elif key in self.made:
+                seen.add(key)
+                out.issues.append(Issue("ok", f"pair {name}", "already made: not made again"))
+                continue
+            else:
+                gone = [s for s in (left, right) if s in self.done and s not in held]
+                if gone:
+                    why = "scene " + ", ".join(
+                        f"{s} was already {self._done_how(s)} and released" for s in gone
+                    )
+            if why:
+                out.issues.append(Issue("error", f"pair {name}", f"{why}: pair left out"))
+                continue
+            seen.add(key)
+            chosen.append((left, right))
+        self.selection = chosen
+        out.issues.append(
+            Issue(
+                "ok" if chosen else "warn",
+                "pairs",
+                f"pair selection: {len(chosen)} pairs to make"
+                + (": " + ", ".join(f"{a}:{b}" for a, b in chosen[:20]) if chosen else "")
+                + (" ..." if len(chosen) > 20 else ""),
+            )
+        )
+        out.extend(self.make_selected(make, gcps))
+        return out
+
+    def make_selected(self, make: MakePair, gcps: GcpStore, warn_unpaired: bool = True) -> Outputs:
+        """Make the selected pairs whose scenes are both ready; release scenes no pair needs.
+
+        A released scene's GCP observations are forgotten (``gcps``). ``warn_unpaired``: a WARN
+        for each released scene that no pair used.
+        """
+        out = Outputs()
+        ready = self.ready[self.config.views[0].name]
+        by_id = {r.scene.scene_id: r for r in ready.values()}
+        remaining: list[tuple[str, str]] = []
+        for left, right in self.selection or ():
+            if left in by_id and right in by_id:
+                self._mark_made(left, right)
+                out.extend(make(by_id[left], by_id[right]))
+                continue
+            gone = [s for s in (left, right) if s in self.done and s not in by_id]
+            if gone:
+                out.issues.append(
+                    Issue(
+                        "error",
+                        f"pair {left}:{right}",
+                        "scene "
+                        + ", ".join(f"{s} was {self._done_how(s)}" for s in gone)
+                        + ": pair not made",
+                    )
+                )
+                continue
+            remaining.append((left, right))
+        self.selection = remaining
+        needed = self.selected_scene_ids()
+        for acq, res in list(ready.items()):
+            sid = res.scene.scene_id
+            if sid in needed:
+                continue
+            del ready[acq]  # every pair that needed it is made: its pixels are released
+            if warn_unpaired and not any(sid in pair for pair in self.made):
+                out.issues.append(
+                    Issue(
+                        "warn",
+                        f"{res.scene.view}/{sid}",
+                        "in no selected pair (pairs topic): parameters published, not paired",
+                    )
+                )
+            gcps.forget((sid,), keep=self.selected_scene_ids())
+        return out
+
+    def unmade(self, make: MakePair, gcps: GcpStore) -> Outputs:
+        """End of data: an ERROR per selected pair not made (a scene never arrived)."""
+        out = Outputs()
+        ready = self.ready[self.config.views[0].name] if self.config.single_camera else {}
+        have = {r.scene.scene_id for r in ready.values()}
+        for left, right in self.selection or ():
+            missing = [s for s in (left, right) if s not in have]
+            out.issues.append(
+                Issue(
+                    "error",
+                    f"pair {left}:{right}",
+                    "scene "
+                    + ", ".join(missing)
+                    + " never received (unknown scene id?): selected pair not made",
+                )
+            )
+        if self.selection:
+            self.selection = []
+            out.extend(self.make_selected(make, gcps, warn_unpaired=False))  # release them
+        return out
