@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..imaging.assembly import Scene
-from .results import GroundPoint, Issue, Outputs
+from .results import GroundPoint, Issue, Level, Outputs
 
 FloatArray = NDArray[np.float64]
 
@@ -38,7 +38,9 @@ class GcpStore:
         for p in points:
             xyz = np.asarray(p.xyz, dtype=float)
             if xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
-                out.issues.append(Issue("warn", f"gcp {p.id}", "non-finite coordinates: ignored"))
+                out.issues.append(
+                    Issue(Level.WARN, f"gcp {p.id}", "non-finite coordinates: ignored")
+                )
                 continue
             seen = [s for s in p.observations if s in done]
             if seen:
@@ -54,7 +56,7 @@ class GcpStore:
             view, method = done[sid]
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{view}/{sid}",
                     f"{n} GCP and check points observed in this scene arrived after it was "
                     + ("skipped" if method == "skipped" else f"processed ({method})")
@@ -106,7 +108,7 @@ class GcpStore:
             obs = self.points[pid].observations[scene.scene_id]
             issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"gcp {pid}",
                     (
                         f"observation in {scene.scene_id} at line {obs[0]}, sample {obs[1]} "

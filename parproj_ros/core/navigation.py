@@ -12,7 +12,7 @@ from collections.abc import Iterable, Mapping
 
 from ..imaging.assembly import Scene, SceneAssembler
 from .config import PipelineConfig
-from .results import Issue
+from .results import Issue, Level
 from .trajectory import NavSample, TrajectoryBuffer
 
 
@@ -46,7 +46,7 @@ class NavigationFeed:
             else:
                 issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         "navigation",
                         (
                             f"a sample stamped {(pending.t_ns - (last or 0)) / 1e9:+.3f} s "
@@ -61,7 +61,7 @@ class NavigationFeed:
         if last is not None and sample.t_ns < last - jump:
             issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     "navigation",
                     (
                         f"sample stamped {(sample.t_ns - last) / 1e9:+.3f} s from the newest one "

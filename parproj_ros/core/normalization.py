@@ -26,7 +26,7 @@ from ..imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixe
 from .config import PipelineConfig
 from .gcp_store import GcpStore
 from .orientation import scene_from_gcp
-from .results import Issue, Method, Outputs, PairGeometry, SceneResult
+from .results import Issue, Level, Method, Outputs, PairGeometry, SceneResult, YParallaxSource
 
 FloatArray = NDArray[np.float64]
 
@@ -63,7 +63,7 @@ def pair_geometry(
             left.affine, right.affine, left_params=left.params, right_params=right.params
         )
     except DegenerateGeometryError as err:
-        return Issue("error", f"pair {pair_id}", f"{err}: pair skipped")
+        return Issue(Level.ERROR, f"pair {pair_id}", f"{err}: pair skipped")
     gl = left.geometry(norm.left)
     gr = right.geometry(norm.right)
     fl = footprint(gl, lines[0], left.scene.detectors)
@@ -73,7 +73,7 @@ def pair_geometry(
     y1 = min(fl[:, 1].max(), fr[:, 1].max())
     if y1 <= y0:
         return Issue(
-            "error",
+            Level.ERROR,
             f"pair {pair_id}",
             "the scenes do not overlap across the epipolar lines: pair skipped",
         )
@@ -85,7 +85,7 @@ def pair_geometry(
         span = overlap_columns(norm, fl, fr, shift, heights, config.z_avg)
         if span is None:
             return Issue(
-                "error",
+                Level.ERROR,
                 f"pair {pair_id}",
                 "the scenes do not overlap along the epipolar lines at any height of the "
                 "pair (output_extent overlap): pair skipped",
@@ -95,7 +95,7 @@ def pair_geometry(
     height = int(np.floor((y1 - y0) / pix)) + 1
     if width * height > config.max_output_pixels:
         return Issue(
-            "error",
+            Level.ERROR,
             f"pair {pair_id}",
             f"normalized images would be {width} x {height} px (> max_output_pixels "
             f"{config.max_output_pixels}): pair skipped",
@@ -179,17 +179,17 @@ def y_parallax(
     gr: SceneGeometry,
     gcps: GcpStore,
     config: PipelineConfig,
-) -> tuple[FloatArray, str]:
+) -> tuple[FloatArray, YParallaxSource]:
     """Geometric y-parallax (px): GCP/check points, else virtual points of the models.
 
-    Returns the y-parallaxes and their source ("gcp", "virtual", "none").
+    Returns the y-parallaxes and their source.
     """
     ls_l, ls_r = gcps.common(left.scene.scene_id, right.scene.scene_id)
     pixel = left.camera.pixel_size
     if len(ls_l) >= 1:
         nl = gl.image_to_normalized(np.array(ls_l)[:, 0], np.array(ls_l)[:, 1])
         nr = gr.image_to_normalized(np.array(ls_r)[:, 0], np.array(ls_r)[:, 1])
-        return (nl[:, 1] - nr[:, 1]) / pixel, "gcp"
+        return (nl[:, 1] - nr[:, 1]) / pixel, YParallaxSource.GCP
     if left.model is not None and right.model is not None:
         z = config.z_avg
         h = config.height_range
@@ -205,8 +205,8 @@ def y_parallax(
             ll = left.model.project(obj[inside])
             nl = gl.image_to_normalized(ll[:, 0], ll[:, 1])
             nr = gr.image_to_normalized(lr[inside, 0], lr[inside, 1])
-            return (nl[:, 1] - nr[:, 1]) / pixel, "virtual"
-    return np.zeros(0), "none"
+            return (nl[:, 1] - nr[:, 1]) / pixel, YParallaxSource.VIRTUAL
+    return np.zeros(0), YParallaxSource.NONE
 
 
 def cut_into_segments(
@@ -270,7 +270,7 @@ def cut_into_segments(
         why = seg.note if seg is not None else why
         out.issues.append(
             Issue(
-                "warn",
+                Level.WARN,
                 pair_id,
                 f"model error {whole:.3f} px > bound {bound:g} px "
                 f"(segment_max_error_px), but cutting the scenes does not help: {why}; "
@@ -280,7 +280,7 @@ def cut_into_segments(
         return out, False
     out.issues.append(
         Issue(
-            "ok" if seg.reached else "warn",
+            Level.OK if seg.reached else Level.WARN,
             pair_id,
             f"model error {seg.whole_error_px[0]:.3f} / {seg.whole_error_px[1]:.3f} px "
             f"(left / right) > bound {bound:g} px: cut into {seg.count} segment pairs "
@@ -314,7 +314,7 @@ def cut_into_segments(
                     reference=whole_res.params,
                 )
             except GeometryError as err:  # the segmentation fitted it: not expected
-                out.issues.append(Issue("error", pair_id, f"segment {k}: {err}: skipped"))
+                out.issues.append(Issue(Level.ERROR, pair_id, f"segment {k}: {err}: skipped"))
                 break
             res = replace(
                 res,

@@ -25,7 +25,7 @@ from ..geometry.pushbroom import LineCamera
 from ..imaging.assembly import Scene
 from .config import PipelineConfig, ViewConfig
 from .gcp_store import GcpStore
-from .results import Issue, Method, SceneResult
+from .results import Issue, Level, Method, SceneResult
 from .trajectory import NavigationError, TrajectoryBuffer
 
 FloatArray = NDArray[np.float64]
@@ -52,7 +52,7 @@ def start_unseen(scene: Scene, nav_first_ns: int | None, margin_s: float) -> Iss
     lead = (scene.first_line_ns - (nav_first_ns or 0)) / 1e9
     when = f"{lead:.3f} s before" if lead >= 0 else f"{-lead:.3f} s after"
     return Issue(
-        "error",
+        Level.ERROR,
         f"{scene.view}/{scene.scene_id}",
         f"first scene received on view {scene.view} ({scene.lines} lines), and navigation "
         f"starts only {when} its first line (less than {margin_s} s "
@@ -86,7 +86,7 @@ def orient_scene(
         if fit.position_rms_m > config.nav_position_tolerance_m:
             issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     where,
                     (
                         f"navigation positions scatter by {fit.position_rms_m:.3f} m rms "
@@ -100,7 +100,7 @@ def orient_scene(
         if fit.attitude_spread_rad > 1e-3:
             issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     where,
                     (
                         f"attitude varies by {np.degrees(fit.attitude_spread_rad):.3f} deg "
@@ -117,7 +117,7 @@ def orient_scene(
             crab_tolerance_px=config.crab_tolerance_px,
         )
     except (NavigationError, GeometryError) as err:
-        issues.append(Issue("warn", where, f"no navigation-derived parameters: {err}"))
+        issues.append(Issue(Level.WARN, where, f"no navigation-derived parameters: {err}"))
     issues += gcps.bad_observation_issues(scene)
     gxyz, gls, cxyz, cls = gcps.for_scene(scene)
     result: SceneResult | None = None
@@ -134,7 +134,7 @@ def orient_scene(
         except GeometryError as err:
             issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     where,
                     f"GCP estimation failed ({err}); "
                     + ("using navigation" if nav_result else ""),
@@ -143,18 +143,18 @@ def orient_scene(
     elif len(gxyz) > 0:
         issues.append(
             Issue(
-                "warn",
+                Level.WARN,
                 where,
                 (f"only {len(gxyz)} GCP observed (need {config.min_gcp}): GCP not used"),
             )
         )
     if result is None and nav_result is not None and model is not None:
         result = SceneResult.from_navigation(scene, nav_result, model, cam)
-        if nav_result.method != Method.NAVIGATION:
-            issues.append(Issue("warn", where, nav_result.note))
+        if nav_result.method != Method.NAVIGATION.value:
+            issues.append(Issue(Level.WARN, where, nav_result.note))
     if result is None:
         issues.append(
-            Issue("error", where, "no parameters (no usable navigation or GCP): scene skipped")
+            Issue(Level.ERROR, where, "no parameters (no usable navigation or GCP): scene skipped")
         )
     return result, issues
 

@@ -13,7 +13,7 @@ from collections.abc import Callable, Sequence
 from ..imaging.assembly import Scene
 from .config import PipelineConfig
 from .gcp_store import GcpStore
-from .results import Issue, Outputs, SceneResult
+from .results import Issue, Level, Outputs, SceneResult
 
 #: Makes (normalizes, refines, publishes) one pair of oriented scenes (left, right).
 MakePair = Callable[[SceneResult, SceneResult], Outputs]
@@ -62,7 +62,7 @@ class Pairing:
         else:
             return [
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{scene.view}/{scene.scene_id}",
                     f"part {scene.part} of an acquisition that was split: its parameters are "
                     "published, but single-camera pairs are made of the first parts of two "
@@ -118,7 +118,7 @@ class Pairing:
         if not self.config.single_camera:
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     "pairs",
                     "pair selection ignored: with two views the k-th scenes of the views pair "
                     "up (it is for single-camera mode)",
@@ -140,7 +140,7 @@ class Pairing:
                 why = "listed twice (in this or the reverse order): the first one kept"
             elif key in self.made:
                 seen.add(key)
-                out.issues.append(Issue("ok", f"pair {name}", "already made: not made again"))
+                out.issues.append(Issue(Level.OK, f"pair {name}", "already made: not made again"))
                 continue
             else:
                 gone = [s for s in (left, right) if s in self.done and s not in held]
@@ -149,14 +149,14 @@ class Pairing:
                         f"{s} was already {self._done_how(s)} and released" for s in gone
                     )
             if why:
-                out.issues.append(Issue("error", f"pair {name}", f"{why}: pair left out"))
+                out.issues.append(Issue(Level.ERROR, f"pair {name}", f"{why}: pair left out"))
                 continue
             seen.add(key)
             chosen.append((left, right))
         self.selection = chosen
         out.issues.append(
             Issue(
-                "ok" if chosen else "warn",
+                Level.OK if chosen else Level.WARN,
                 "pairs",
                 f"pair selection: {len(chosen)} pairs to make"
                 + (": " + ", ".join(f"{a}:{b}" for a, b in chosen[:20]) if chosen else "")
@@ -185,7 +185,7 @@ class Pairing:
             if gone:
                 out.issues.append(
                     Issue(
-                        "error",
+                        Level.ERROR,
                         f"pair {left}:{right}",
                         "scene "
                         + ", ".join(f"{s} was {self._done_how(s)}" for s in gone)
@@ -204,7 +204,7 @@ class Pairing:
             if warn_unpaired and not any(sid in pair for pair in self.made):
                 out.issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         f"{res.scene.view}/{sid}",
                         "in no selected pair (pairs topic): parameters published, not paired",
                     )
@@ -221,7 +221,7 @@ class Pairing:
             missing = [s for s in (left, right) if s not in have]
             out.issues.append(
                 Issue(
-                    "error",
+                    Level.ERROR,
                     f"pair {left}:{right}",
                     "scene "
                     + ", ".join(missing)

@@ -42,7 +42,16 @@ from .normalization import (
 )
 from .orientation import orient_scene, start_unseen
 from .pairing import Pairing
-from .results import GroundPoint, Issue, Outputs, PairGeometry, PairResult, SceneResult
+from .results import (
+    GroundPoint,
+    Issue,
+    Level,
+    Outputs,
+    PairGeometry,
+    PairResult,
+    SceneResult,
+    YParallaxSource,
+)
 from .streaming import Streamer
 from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavSample, TrajectoryBuffer
@@ -148,7 +157,7 @@ class Pipeline:
                 self.streamer.no_stream.add(k)
                 out.issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         f"{scene.view}/{scene.scene_id}",
                         "not streamed: navigation lagged behind the strips and its pair could "
                         "not be decided before navigation passed the scene: processed whole",
@@ -184,14 +193,14 @@ class Pipeline:
         """
         out = Outputs()
         if view not in self.assemblers:
-            out.issues.append(Issue("error", f"view {view}", "unknown view: strip dropped"))
+            out.issues.append(Issue(Level.ERROR, f"view {view}", "unknown view: strip dropped"))
             return out
         detectors = self.views[view].camera.detectors
         want = self.views[view].dtype
         if want is not None and strip.dtype != np.dtype(want):
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{view}/{scene_id}",
                     (f"strip is {strip.dtype}, the camera delivers {want}: dropped"),
                 )
@@ -200,7 +209,7 @@ class Pipeline:
         if strip.ndim == 2 and strip.shape[1] != detectors:
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{view}/{scene_id}",
                     (
                         f"strip is {strip.shape[1]} px wide, the camera has {detectors} "
@@ -213,7 +222,7 @@ class Pipeline:
         try:
             scenes = self.assemblers[view].add(stamp_ns, scene_id, strip)
         except StripRejectedError as err:
-            out.issues.append(Issue("warn", f"{view}/{scene_id}", str(err)))
+            out.issues.append(Issue(Level.WARN, f"{view}/{scene_id}", str(err)))
             return out
         for scene in scenes:
             if scene.reason == SceneEnd.GAP:
@@ -230,7 +239,7 @@ class Pipeline:
         opened = self.assemblers[scene.view].open_scene()
         rest = f" ({opened.scene_id})" if opened is not None else ""
         return Issue(
-            "warn",
+            Level.WARN,
             f"{scene.view}/{scene.scene_id}",
             f"{jump} lines missing after line {scene.lines - 1} (more than max_gap_lines, "
             f"{self.config.max_gap_lines}): scene split; it ends there, with {scene.lines} "
@@ -278,7 +287,7 @@ class Pipeline:
             self.pairing.done_with(scene, "skipped")
             out.issues.append(
                 Issue(
-                    "error",
+                    Level.ERROR,
                     f"{scene.view}/{scene.scene_id}",
                     "navigation never covered this scene and it has no GCP: scene skipped",
                 )
@@ -295,7 +304,7 @@ class Pipeline:
         if scene.gaps:
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{scene.view}/{scene.scene_id}",
                     f"{scene.gaps} missing lines filled with no-data ({self.config.nodata})",
                 )
@@ -311,7 +320,7 @@ class Pipeline:
                 self.pairing.done_with(scene, "skipped")
                 out.issues.append(
                     Issue(
-                        "error",
+                        Level.ERROR,
                         f"{scene.view}/{scene.scene_id}",
                         "navigation starts after the scene's first line and there are no GCP: "
                         "scene skipped",
@@ -382,16 +391,18 @@ class Pipeline:
                 threshold_px=self.config.tie_threshold_px,
             )
             if isinstance(refined, str):
-                out.issues.append(Issue("warn", f"pair {geo.pair_id}", refined))
+                out.issues.append(Issue(Level.WARN, f"pair {geo.pair_id}", refined))
             else:
                 tie = refined
                 geo = tie.geometry
                 img_r = resample_scene(right, geo.right_geom, geo.right_grid, self.config)
-                out.issues.append(Issue("ok", f"pair {geo.pair_id}", tie.summary))
+                out.issues.append(Issue(Level.OK, f"pair {geo.pair_id}", tie.summary))
         # 6. publish: the pair result, with its y-parallax.
         pair = self._publish_pair(left, right, geo, (img_l, img_r), stamp)
         if tie is not None:
-            pair = replace(pair, y_parallax_px=tie.residual_px, y_parallax_source="tie_points")
+            pair = replace(
+                pair, y_parallax_px=tie.residual_px, y_parallax_source=YParallaxSource.TIE_POINTS
+            )
         out.pairs.append(pair)
         return out
 

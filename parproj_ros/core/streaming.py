@@ -34,7 +34,7 @@ from .navigation import NavigationFeed
 from .normalization import interpolation_flag, pair_geometry
 from .orientation import start_seen
 from .pairing import Pairing
-from .results import BlockResult, Issue, Outputs, PairGeometry, PairResult, SceneResult
+from .results import BlockResult, Issue, Level, Outputs, PairGeometry, PairResult, SceneResult
 from .trajectory import NavigationError
 
 FloatArray = NDArray[np.float64]
@@ -297,7 +297,7 @@ class Streamer:
                 self.no_stream.add(k)
                 out.issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         f"pair {k}",
                         "not streamed: navigation lagged behind the strips until "
                         + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
@@ -339,7 +339,7 @@ class Streamer:
                 self.no_stream.add(k)
                 out.issues.append(
                     Issue(
-                        "ok",
+                        Level.OK,
                         f"pair {k}",
                         (
                             "not streamed: the strips of "
@@ -373,7 +373,7 @@ class Streamer:
                 if k in self.wait:
                     out.issues.append(
                         Issue(
-                            "ok",
+                            Level.OK,
                             f"pair {stream.geometry.pair_id}",
                             "navigation reached the scenes' start after their first strips: "
                             "streaming decision held until then",
@@ -426,7 +426,7 @@ class Streamer:
             self.no_stream.add(k)
             out.issues.append(
                 Issue(
-                    "warn",
+                    Level.WARN,
                     f"{name}/{sid}",
                     f"not streamed (navigation at the scene start: {err}): processed whole",
                 )
@@ -445,7 +445,9 @@ class Streamer:
         except GeometryError as err:
             self.no_stream.add(k)
             out.issues.append(
-                Issue("warn", f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing")
+                Issue(
+                    Level.WARN, f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing"
+                )
             )
             return None
         if dtype is None:
@@ -477,13 +479,13 @@ class Streamer:
             self.no_stream.add(k)
             out.issues.append(geo)
             return out
-        sides = {}
-        for side, res, geom, grid in (
+        sides: dict[str, SideStream] = {}
+        for name, res, geom, grid in (
             ("left", results[0], geo.left_geom, geo.left_grid),
             ("right", results[1], geo.right_geom, geo.right_grid),
         ):
-            sides[side] = SideStream(
-                side,
+            sides[name] = SideStream(
+                name,
                 res.scene.view,
                 res,
                 geom,
@@ -496,7 +498,7 @@ class Streamer:
         self.streams[k] = stream
         out.issues.append(
             Issue(
-                "ok",
+                Level.OK,
                 f"pair {geo.pair_id}",
                 f"streaming: {geo.left_grid.width} x {geo.left_grid.height} px in "
                 f"{len(sides['left'].blocks)} + {len(sides['right'].blocks)} column blocks",
@@ -587,7 +589,7 @@ class Streamer:
                 return self.whole(scene)
             out.issues.append(
                 Issue(
-                    "error",
+                    Level.ERROR,
                     where,
                     f"scene ended after {scene.lines} of {side.lines} lines ({scene.reason}): "
                     f"streamed pair {stream.geometry.pair_id} abandoned after "
@@ -643,7 +645,7 @@ class Streamer:
         diff = float(np.abs(actual.project(pts) - res.model.project(pts)).max())
         if diff > 0.1:
             return Issue(
-                "warn",
+                Level.WARN,
                 f"{sc.view}/{sc.scene_id}",
                 (
                     f"the motion extrapolated at the scene start differs from the scene's "
