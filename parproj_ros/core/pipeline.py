@@ -154,7 +154,7 @@ class Pipeline:
             if self.streamer.undecided(scene):
                 # Navigation has passed the whole scene and its pair could still not be
                 # decided (its other scene cannot be processed): give up streaming.
-                self.streamer.no_stream.add(k)
+                self.streamer.give_up(k)
                 out.issues.append(
                     Issue(
                         Level.WARN,
@@ -293,7 +293,7 @@ class Pipeline:
                 )
             )
         self.feed.waiting.clear()
-        self.streamer.wait.clear()
+        self.streamer.end_of_data()
         out.extend(self.pairing.unmade(self._make_pair, self.gcps))
         return out
 
@@ -422,7 +422,7 @@ class Pipeline:
         self.pairs_done += 1
         ids = (left.scene.scene_id, right.scene.scene_id)
         self.gcps.forget(ids, keep=self.pairing.selected_scene_ids())
-        self.streamer.no_stream.discard(left.scene.index)
+        self.streamer.pair_done(left.scene.index)
         return PairResult(
             geo.pair_id,
             stamp_ns,

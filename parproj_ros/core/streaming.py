@@ -1,4 +1,4 @@
-"""Streaming normalization: normalized output published while the scenes are still arriving.
+"""Streaming normalization (paper 2 section 4 by column blocks) while the scenes still arrive.
 
 Applies to two-view configurations (fore/aft cameras with one line clock) with a configured scene
 length and navigation-derived parameters: when both views have started scene k and navigation
@@ -12,6 +12,9 @@ line has arrived, and lines no later block needs are released, so memory and lat
 grow with the scene length. When both scenes are complete, the scene parameters and the pair
 (without pixels) are emitted, and the extrapolated motion is checked against a fit on all the
 navigation of the scene.
+
+:class:`Streamer` owns that state (pairs streamed, not streamed, waiting for navigation) and
+the decisions that change it; :func:`plan_blocks` and :func:`render_block` do the pixel work.
 """
 
 from __future__ import annotations
@@ -203,6 +206,18 @@ class Streamer:
             for side in stream.sides.values()
         ]
 
+    def give_up(self, index: int) -> None:
+        """Pair ``index`` is not streamed: its scenes are processed whole."""
+        self.no_stream.add(index)
+
+    def pair_done(self, index: int) -> None:
+        """Pair ``index`` is made: nothing about it needs remembering."""
+        self.no_stream.discard(index)
+
+    def end_of_data(self) -> None:
+        """No more data: no streaming decision waits for navigation any more."""
+        self.wait.clear()
+
     def _start_seen(self, first_line_ns: int) -> bool:
         return start_seen(first_line_ns, self.feed.first_ns, self.config.start_margin_s)
 
@@ -311,7 +326,7 @@ class Streamer:
                 for _, part in parts
             ):
                 # Perhaps the rest of a scene under way when the pipeline started: it will be
-                # skipped when complete (_start_unseen), not streamed.
+                # skipped when complete (orientation.start_unseen), not streamed.
                 self.no_stream.add(k)
                 continue
             # Time of the line after the last one received, per open scene.
