@@ -227,7 +227,7 @@ class Pipeline:
         for scene in scenes:
             if scene.reason == SceneEnd.GAP:
                 out.issues.append(self._split(scene, stamp_ns))
-            out.extend(self.streamer.scene_closed(scene))
+            out.extend(self._scene_closed(scene))
         if self.streamer.can_stream:
             out.extend(self.streamer.start())
             out.extend(self.streamer.advance(view))
@@ -246,12 +246,19 @@ class Pipeline:
             f"lines, and the strips after the hole make a new scene{rest}",
         )
 
+    def _scene_closed(self, scene: Scene) -> Outputs:
+        """A scene is complete: the end of its stream, or processed whole (:meth:`_scene_done`).
+
+        Also called by the node (``ParprojNode._close_view``) for a scene it closes itself.
+        """
+        return self.streamer.scene_closed(scene)
+
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""
         out = Outputs()
         for asm in self.assemblers.values():
             for scene in asm.flush():
-                out.extend(self.streamer.scene_closed(scene))
+                out.extend(self._scene_closed(scene))
         return out
 
     def close_idle_scenes(self) -> Outputs:
@@ -274,7 +281,7 @@ class Pipeline:
             if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
                 continue
             for scene in asm.flush():
-                out.extend(self.streamer.scene_closed(scene))
+                out.extend(self._scene_closed(scene))
         return out
 
     def flush(self) -> Outputs:
