@@ -12,7 +12,9 @@ call into a focused module, and :meth:`Pipeline._process_scene` reads as those s
 4. normalize: paper 2 Eq 8 and the output grids, both scenes resampled, a GCP pair over the model
    error bound first cut into segments (:mod:`parproj_ros.core.normalization`);
 5. refine: tie points remove the y-parallax left (:mod:`parproj_ros.core.tiepoints`);
-6. publish: the :class:`Outputs` returned.
+6. publish: the :class:`Outputs` returned;
+7. heights (``heights`` on): disparity, heights, DSM and ortho-image of every finished pair
+   (:class:`~parproj_ros.core.heights.HeightsStage`, applied to what each public call returns).
 
 Navigation (its holds and pruning) is :class:`~parproj_ros.core.navigation.NavigationFeed`, GCP
 memory :class:`~parproj_ros.core.gcp_store.GcpStore`; streaming (two views, normalized blocks
@@ -32,11 +34,13 @@ from ..imaging.assembly import Scene, SceneAssembler, SceneEnd, StripRejectedErr
 from .config import PipelineConfig as PipelineConfig
 from .config import ViewConfig as ViewConfig
 from .gcp_store import GcpStore
+from .heights import HeightsStage, options_of
 from .navigation import NavigationFeed
 from .normalization import (
     cut_into_segments,
     interpolation_flag,
     normalize_pair,
+    pair_heights,
     resample_scene,
     y_parallax,
 )
@@ -88,6 +92,19 @@ class Pipeline:
             publish_pair=self._publish_pair,
         )
         self.pairs_done = 0
+        #: The height range (m) of each published pair, kept for step 7 (its GCP are gone).
+        self._z_ranges: dict[str, tuple[float, float]] = {}
+        self.heights = HeightsStage(options_of(config), self._z_range) if config.heights else None
+
+    def _z_range(self, pair: PairResult) -> tuple[float, float]:
+        c = self.config
+        return self._z_ranges.pop(
+            pair.pair_id, (c.z_avg - c.height_range, c.z_avg + c.height_range)
+        )
+
+    def _step7(self, out: Outputs) -> Outputs:
+        """7. heights of the pairs ``out`` finishes (``heights`` on); ``out`` itself."""
+        return out if self.heights is None else self.heights(out)
 
     @property
     def nav(self) -> TrajectoryBuffer:
@@ -126,7 +143,7 @@ class Pipeline:
         accepted, issues = self.feed.add(sample)
         out.issues += issues
         if not accepted:
-            return out
+            return self._step7(out)
         out.extend(self._process_waiting())
         if self.streamer.wait and self.streamer.can_stream:
             # A streaming decision held for navigation may be taken now; then the scenes it
@@ -136,7 +153,7 @@ class Pipeline:
                 out.extend(self.streamer.advance(view))
             out.extend(self._process_waiting())
         self.feed.prune(self.assemblers, self.streamer.first_lines())
-        return out
+        return self._step7(out)
 
     def _process_waiting(self) -> Outputs:
         """Process the waiting scenes that navigation now covers, except held ones.
@@ -173,14 +190,14 @@ class Pipeline:
         Observations in a scene already done with (processed without them, or skipped) are
         dropped and reported, one warning per scene: they come too late to be used.
         """
-        return self.gcps.add(points, self.pairing.done)
+        return self._step7(self.gcps.add(points, self.pairing.done))
 
     def set_pairs(self, pairs: Sequence[tuple[str, str]]) -> Outputs:
         """Select which acquisitions pair up (single-camera mode; the node's ``pairs`` topic).
 
         See :meth:`Pairing.set_pairs`; two-view mode ignores the selection (a WARN).
         """
-        return self.pairing.set_pairs(pairs, self._make_pair, self.gcps)
+        return self._step7(self.pairing.set_pairs(pairs, self._make_pair, self.gcps))
 
     def add_strip(
         self, view: str, stamp_ns: int, scene_id: str, strip: NDArray[np.generic]
@@ -194,7 +211,7 @@ class Pipeline:
         out = Outputs()
         if view not in self.assemblers:
             out.issues.append(Issue(Level.ERROR, f"view {view}", "unknown view: strip dropped"))
-            return out
+            return self._step7(out)
         detectors = self.views[view].camera.detectors
         want = self.views[view].dtype
         if want is not None and strip.dtype != np.dtype(want):
@@ -205,7 +222,7 @@ class Pipeline:
                     (f"strip is {strip.dtype}, the camera delivers {want}: dropped"),
                 )
             )
-            return out
+            return self._step7(out)
         if strip.ndim == 2 and strip.shape[1] != detectors:
             out.issues.append(
                 Issue(
@@ -218,12 +235,12 @@ class Pipeline:
                     ),
                 )
             )
-            return out
+            return self._step7(out)
         try:
             scenes = self.assemblers[view].add(stamp_ns, scene_id, strip)
         except StripRejectedError as err:
             out.issues.append(Issue(Level.WARN, f"{view}/{scene_id}", str(err)))
-            return out
+            return self._step7(out)
         for scene in scenes:
             if scene.reason == SceneEnd.GAP:
                 out.issues.append(self._split(scene, stamp_ns))
@@ -231,7 +248,7 @@ class Pipeline:
         if self.streamer.can_stream:
             out.extend(self.streamer.start())
             out.extend(self.streamer.advance(view))
-        return out
+        return self._step7(out)
 
     def _split(self, scene: Scene, next_ns: int) -> Issue:
         """The WARN for a scene ended by a jump of more than ``max_gap_lines`` lines."""
@@ -251,7 +268,7 @@ class Pipeline:
 
         Also called by the node (``ParprojNode._close_view``) for a scene it closes itself.
         """
-        return self.streamer.scene_closed(scene)
+        return self._step7(self.streamer.scene_closed(scene))
 
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""
@@ -259,7 +276,7 @@ class Pipeline:
         for asm in self.assemblers.values():
             for scene in asm.flush():
                 out.extend(self._scene_closed(scene))
-        return out
+        return self._step7(out)
 
     def close_idle_scenes(self) -> Outputs:
         """Close the open scenes whose strips stopped coming (the node's ``scene_timeout``).
@@ -282,7 +299,7 @@ class Pipeline:
                 continue
             for scene in asm.flush():
                 out.extend(self._scene_closed(scene))
-        return out
+        return self._step7(out)
 
     def flush(self) -> Outputs:
         """End of data: close open scenes, process what can be, report what cannot."""
@@ -302,7 +319,7 @@ class Pipeline:
         self.feed.waiting.clear()
         self.streamer.end_of_data()
         out.extend(self.pairing.unmade(self._make_pair, self.gcps))
-        return out
+        return self._step7(out)
 
     # ---- scenes -------------------------------------------------------------------------
     def _scene_done(self, scene: Scene) -> Outputs:
@@ -427,6 +444,8 @@ class Pipeline:
         )
         k = geo.normalization.parallax_per_height
         self.pairs_done += 1
+        if self.heights is not None:
+            self._z_ranges[geo.pair_id] = pair_heights(left, right, self.config, self.gcps)
         ids = (left.scene.scene_id, right.scene.scene_id)
         self.gcps.forget(ids, keep=self.pairing.selected_scene_ids())
         self.streamer.pair_done(left.scene.index)
