@@ -16,7 +16,9 @@ from types import FrameType
 from typing import Any, NoReturn
 
 from ..io.files import (
+    STOP_REQUESTED,
     InputError,
+    Terminated,
 )
 from .commands import COMMANDS
 
@@ -58,11 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised like SIGINT's KeyboardInterrupt so that outputs in progress are undone."""
-
-
 def _on_sigterm(signum: int, frame: FrameType | None) -> None:
+    STOP_REQUESTED.set()
     raise Terminated
 
 

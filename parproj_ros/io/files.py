@@ -21,6 +21,7 @@ import os
 import shutil
 import stat
 import tempfile
+import threading
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Literal
@@ -40,6 +41,16 @@ __all__ = [
 MARKER = ".parproj_output"
 
 OutputKind = Literal["bag", "folder", "file"]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised like SIGINT's KeyboardInterrupt so that outputs in progress are undone."""
+
+
+#: Set by the ``parproj`` SIGTERM handler. An exception raised by a signal handler can be lost
+#: (one that fires inside a callback from C is printed and ignored): :func:`staged_output`
+#: checks this too before it makes an output final.
+STOP_REQUESTED = threading.Event()
 
 
 class InputError(ValueError):
@@ -297,6 +308,8 @@ def staged_output(
             work.mkdir()
             (work / MARKER).write_text("written by parproj; --force may replace this folder\n")
         yield work
+        if STOP_REQUESTED.is_set():
+            raise Terminated
         if not (work.exists() or work.is_symlink()):
             return  # the command wrote nothing
         if out.exists() or out.is_symlink():

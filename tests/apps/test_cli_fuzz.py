@@ -450,7 +450,7 @@ def test_killed_process_leaves_no_output(sig: signal.Signals, tmp_path: Path) ->
     assert proc.poll() is None, proc.communicate()
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=30)
-    assert not out.exists()
+    assert not out.exists(), (proc.returncode, err)
     if sig == signal.SIGTERM:
         assert proc.returncode == 143 and "stopped by SIGTERM" in err and "Traceback" not in err
         assert not list(tmp_path.iterdir())
