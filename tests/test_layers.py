@@ -331,13 +331,12 @@ WITHOUT_ROS = textwrap.dedent(
 
     from parproj_ros.core.pipeline import Pipeline, PipelineConfig
     from parproj_ros.core.results import Level, Method
-    from parproj_ros.sim.synthetic import acquisition, make_platform, texture_blocks
+    from parproj_ros.sim.synthetic import acquisition, stereo_platform, texture_blocks
     from parproj_ros.core.trajectory import NavSample
 
     lines, dets, strip = 512, 256, 64
-    plat = make_platform(lines, dets)
     # the aft camera sees the fore camera's ground some scenes later: base-to-height >= 0.005
-    plat = make_platform(lines, dets, lag_scenes=int(np.ceil(0.005 / (2 * np.tan(plat.theta)))))
+    plat = stereo_platform(lines, dets)
     pipe = Pipeline(PipelineConfig(plat.views, scene_lines=lines, tie_points=False))
     (block,) = texture_blocks(1, lines, dets, seed=1)
     out = None

@@ -14,12 +14,18 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-
-from ..eval.heights import Surface, dsm_accuracy, save_height_plots
-from ..io.geotiff import write_dsm_geotiff, write_ortho_geotiff, write_plain_tiff
+from ..eval.heights import (
+    Surface,
+    disparities_by_stamp,
+    dsm_accuracy,
+    enu_dem_surface,
+    save_height_plots,
+)
+from ..io.files import InputError
+from ..io.geotiff import frame_of, write_dsm_geotiff, write_ortho_geotiff, write_plain_tiff
 from ..ros.bag import BagError, BagReader
-from ..ros.conversions import elevation_grid_from_msg, image_to_array, stamp_to_ns
+from ..ros.conversions import elevation_grid_from_msg, stamp_to_ns
+from ..rpc import HeightFunction
 
 
 def export_dsms(
@@ -28,28 +34,35 @@ def export_dsms(
     *,
     target: Literal["utm", "local"] = "utm",
     truth: Surface | None = None,
+    dem: HeightFunction | None = None,
     plots: bool = True,
 ) -> list[dict[str, Any]]:
     """Write the GeoTIFFs and plots of every DSM of ``out_bag`` into ``folder``; one row each.
 
+    The truth for the error figures and map: ``truth`` (a surface in the DSM's frame), or
+    ``dem`` (ellipsoidal heights by lon, lat) placed in each DSM's tangent-plane frame.
+
     Raises:
         BagError: the bag has no ``dsm`` topic (processed without heights).
+        InputError: ``dem`` given for a DSM whose frame is not a tangent plane.
     """
     reader = BagReader(out_bag)
     if "dsm" not in reader.topics():
         raise BagError("no dsm topic: process the bag with --heights", out_bag)
-    disparities: dict[int, Any] = {}
-    if "disparity" in reader.topics():
-        for item in reader.messages(topics=["disparity"]):
-            d = image_to_array(item.msg.image).astype(np.float32)
-            d[d < item.msg.min_disparity] = np.nan
-            disparities[stamp_to_ns(item.msg.header.stamp)] = d
+    disparities = disparities_by_stamp(reader)
     rows: list[dict[str, Any]] = []
     for item in reader.messages(topics=["dsm"]):
         m = item.msg
         heights, grid, ortho = elevation_grid_from_msg(m)
         name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"
         frame = m.header.frame_id
+        surface = truth
+        if dem is not None:
+            if frame_of(frame) is None:
+                raise InputError(
+                    "--dem", f"the DSM of {m.pair_id} is in {frame!r}, not a tangent plane"
+                )
+            surface = enu_dem_surface(frame, dem)
         crs, out_grid = write_dsm_geotiff(folder / f"{name}_dsm.tif", heights, grid, frame,
                                           target=target)  # fmt: skip
         files = [f"{name}_dsm.tif"]
@@ -74,11 +87,11 @@ def export_dsms(
             "cell_size_m": out_grid.cell,
             "files": files,
         }
-        if truth is not None:
-            row["against_truth"] = dsm_accuracy(heights, grid, truth)
+        if surface is not None:
+            row["against_truth"] = dsm_accuracy(heights, grid, surface)
         if plots:
             written = save_height_plots(
-                folder, name, heights, grid, disparity=disp, truth=truth, ortho=ortho
+                folder, name, heights, grid, disparity=disp, truth=surface, ortho=ortho
             )
             files += [p.name for p in written]
         rows.append(row)

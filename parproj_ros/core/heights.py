@@ -183,20 +183,12 @@ class HeightsStage:
         self.options = options
         self.z_range = z_range
         self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
-        #: pairs measured and blocks kept: a nested call's outputs come back in the outer one
-        self._done: set[tuple[str, str, int]] = set()
 
     def __call__(self, out: Outputs) -> Outputs:
         """Add the heights (and their issues) of the pairs ``out`` completes, in place."""
         for blk in out.blocks:
-            key = (blk.pair_id, blk.side, blk.index)
-            if key not in self._done:
-                self._done.add(key)
-                self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
+            self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
         for pair in out.pairs:
-            if (pair.pair_id, "pair", pair.stamp_ns) in self._done:
-                continue
-            self._done.add((pair.pair_id, "pair", pair.stamp_ns))
             images = self._images(pair)
             if images is None:
                 out.issues.append(

@@ -143,7 +143,7 @@ class Pipeline:
         accepted, issues = self.feed.add(sample)
         out.issues += issues
         if not accepted:
-            return self._step7(out)
+            return out
         out.extend(self._process_waiting())
         if self.streamer.wait and self.streamer.can_stream:
             # A streaming decision held for navigation may be taken now; then the scenes it
@@ -211,7 +211,7 @@ class Pipeline:
         out = Outputs()
         if view not in self.assemblers:
             out.issues.append(Issue(Level.ERROR, f"view {view}", "unknown view: strip dropped"))
-            return self._step7(out)
+            return out
         detectors = self.views[view].camera.detectors
         want = self.views[view].dtype
         if want is not None and strip.dtype != np.dtype(want):
@@ -222,7 +222,7 @@ class Pipeline:
                     (f"strip is {strip.dtype}, the camera delivers {want}: dropped"),
                 )
             )
-            return self._step7(out)
+            return out
         if strip.ndim == 2 and strip.shape[1] != detectors:
             out.issues.append(
                 Issue(
@@ -235,16 +235,16 @@ class Pipeline:
                     ),
                 )
             )
-            return self._step7(out)
+            return out
         try:
             scenes = self.assemblers[view].add(stamp_ns, scene_id, strip)
         except StripRejectedError as err:
             out.issues.append(Issue(Level.WARN, f"{view}/{scene_id}", str(err)))
-            return self._step7(out)
+            return out
         for scene in scenes:
             if scene.reason == SceneEnd.GAP:
                 out.issues.append(self._split(scene, stamp_ns))
-            out.extend(self._scene_closed(scene))
+            out.extend(self.streamer.scene_closed(scene))
         if self.streamer.can_stream:
             out.extend(self.streamer.start())
             out.extend(self.streamer.advance(view))
@@ -266,17 +266,21 @@ class Pipeline:
     def _scene_closed(self, scene: Scene) -> Outputs:
         """A scene is complete: the end of its stream, or processed whole (:meth:`_scene_done`).
 
-        Also called by the node (``ParprojNode._close_view``) for a scene it closes itself.
+        Called by the node (``ParprojNode._close_view``) for a scene it closes itself; inside,
+        the streamer's ``scene_closed`` is called directly (step 7 once, at the entry point).
         """
         return self._step7(self.streamer.scene_closed(scene))
 
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""
+        return self._step7(self._close_all())
+
+    def _close_all(self) -> Outputs:
         out = Outputs()
         for asm in self.assemblers.values():
             for scene in asm.flush():
-                out.extend(self._scene_closed(scene))
-        return self._step7(out)
+                out.extend(self.streamer.scene_closed(scene))
+        return out
 
     def close_idle_scenes(self) -> Outputs:
         """Close the open scenes whose strips stopped coming (the node's ``scene_timeout``).
@@ -298,12 +302,12 @@ class Pipeline:
             if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
                 continue
             for scene in asm.flush():
-                out.extend(self._scene_closed(scene))
+                out.extend(self.streamer.scene_closed(scene))
         return self._step7(out)
 
     def flush(self) -> Outputs:
         """End of data: close open scenes, process what can be, report what cannot."""
-        out = self.close_scenes()
+        out = self._close_all()
         for scene in self.feed.waiting:
             if self.gcps.for_scene(scene)[0].shape[0] >= self.config.min_gcp:
                 out.extend(self._process_scene(scene))  # navigation ended early: GCP only

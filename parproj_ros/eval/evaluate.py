@@ -35,7 +35,13 @@ from ..ros.conversions import (
     stamp_to_ns,
 )
 from ..sim.recording import truth_from_bag
-from .heights import Surface, dsm_accuracy, save_height_plots, scenario_terrain
+from .heights import (
+    Surface,
+    disparities_by_stamp,
+    dsm_accuracy,
+    save_height_plots,
+    scenario_terrain,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -170,13 +176,8 @@ def _evaluate_heights(
     reader: BagReader, surface: Surface | None, plots: Path | None
 ) -> list[dict[str, Any]]:
     """Per ElevationGrid: its figures, and against ``surface`` its errors (eval/heights.py)."""
-    disparities: dict[str, Any] = {}
-    if plots is not None and "disparity" in reader.topics():
-        # stamps tie a disparity image to its pair's DSM
-        for item in reader.messages(topics=["disparity"]):
-            d = image_to_array(item.msg.image).astype(np.float32)
-            d[d < item.msg.min_disparity] = np.nan
-            disparities[str(stamp_to_ns(item.msg.header.stamp))] = d
+    # stamps tie a disparity image to its pair's DSM
+    disparities = disparities_by_stamp(reader) if plots is not None else {}
     out = []
     for item in reader.messages(topics=["dsm"]):
         m = item.msg
@@ -203,7 +204,7 @@ def _evaluate_heights(
                 m.pair_id.replace("+", "_"),
                 heights,
                 grid,
-                disparity=disparities.get(str(stamp_to_ns(m.header.stamp))),
+                disparity=disparities.get(stamp_to_ns(m.header.stamp)),
                 truth=truth,
                 ortho=ortho,
             )

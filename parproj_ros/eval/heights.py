@@ -30,6 +30,24 @@ FloatArray = NDArray[np.float64]
 Surface = Callable[[FloatArray, FloatArray], FloatArray]
 
 
+def disparities_by_stamp(reader: Any) -> dict[int, NDArray[np.float32]]:
+    """The ``disparity`` maps of an output bag by stamp (ns), invalid pixels NaN.
+
+    ``reader``: a :class:`~parproj_ros.ros.bag.BagReader`. A DisparityImage marks an invalid
+    pixel with a value below its ``min_disparity``.
+    """
+    from ..ros.conversions import image_to_array, stamp_to_ns
+
+    out: dict[int, NDArray[np.float32]] = {}
+    if "disparity" not in reader.topics():
+        return out
+    for item in reader.messages(topics=["disparity"]):
+        d = image_to_array(item.msg.image).astype(np.float32)
+        d[d < item.msg.min_disparity] = np.nan
+        out[stamp_to_ns(item.msg.header.stamp)] = d
+    return out
+
+
 def footprint(heights: NDArray[np.floating[Any]]) -> NDArray[np.bool_]:
     """Cells inside the convex hull of the cells with a height (the imaged area)."""
     valid = np.isfinite(heights)

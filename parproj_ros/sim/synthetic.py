@@ -103,6 +103,17 @@ def make_platform(lines: int, detectors: int, *, lag_scenes: int = 1) -> Platfor
     return Platform(views, lines, scene_s, lag_scenes, theta, rotation_from_angles(roll, 0.0, 0.0))
 
 
+def stereo_platform(lines: int, detectors: int, *, min_base_to_height: float = 0.005) -> Platform:
+    """:func:`make_platform` with a base-to-height ratio of at least ``min_base_to_height``.
+
+    The aft view sees the fore view's ground as many scenes later as that needs (short
+    scenes: more than one).
+    """
+    plat = make_platform(lines, detectors)
+    lag = max(1, math.ceil(min_base_to_height / (2 * math.tan(plat.theta))))
+    return plat if lag == 1 else make_platform(lines, detectors, lag_scenes=lag)
+
+
 def texture_blocks(count: int, rows: int, detectors: int, seed: int) -> list[NDArray[np.uint16]]:
     """``count`` random 11-bit uint16 blocks of rows x detectors (the synthetic scene texture)."""
     rng = np.random.default_rng(seed)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import shutil
 import sys
@@ -24,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from parproj_ros.sim.synthetic import make_platform
+from parproj_ros.sim.synthetic import stereo_platform
 
 from .offline import write_input_bag
 
@@ -64,10 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     work = args.workdir or Path(tempfile.mkdtemp(prefix="parproj_bench_batch_"))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        plat = make_platform(args.lines, args.detectors)
-        # small scenes: the aft view some scenes later, for a base-to-height ratio >= 0.005
-        lag = max(1, math.ceil(0.005 / (2 * math.tan(plat.theta))))
-        plat = make_platform(args.lines, args.detectors, lag_scenes=lag)
+        plat = stereo_platform(args.lines, args.detectors)
         first = work / "in" / "pair_00"
         t = time.perf_counter()
         write_input_bag(plat, 1, args.strip_lines, first, 50.0)

@@ -25,7 +25,7 @@ from parproj_ros.imaging.resample import (
 )
 from parproj_ros.sim.synthetic import (
     PRINCIPAL_DISTANCE_M,
-    make_platform,
+    stereo_platform,
     texture_blocks,
 )
 
@@ -59,11 +59,7 @@ def resample_problem(lines: int, detectors: int) -> ResampleProblem:
 
     Short scenes get a larger aft lag so that the base-to-height ratio stays above 0.005.
     """
-    plat = make_platform(lines, detectors)
-    if 2 * math.tan(plat.theta) < 0.005:
-        plat = make_platform(
-            lines, detectors, lag_scenes=math.ceil(0.005 / (2 * math.tan(plat.theta)))
-        )
+    plat = stereo_platform(lines, detectors)
     nav = [
         parameters_from_navigation(
             plat.model(v, 0), line_mid=(lines - 1) / 2.0, z_avg=0.0, scene_lines=lines

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 from typing import Any
 
 from ...io.files import check_output, input_path, number, staged_output
@@ -13,9 +12,8 @@ from .common import FORCE_HELP, report
 
 def run(args: argparse.Namespace) -> int:
     """Export every DSM of the bag; print one line per pair (or JSON)."""
-    from ...eval.heights import enu_dem_surface, scenario_terrain
+    from ...eval.heights import scenario_terrain
     from ...io.dem import srtm_height
-    from ...io.geotiff import frame_of
     from ..export import export_dsms
 
     args.inputs = [args.output_bag, args.dem]
@@ -28,16 +26,11 @@ def run(args: argparse.Namespace) -> int:
         from ...sim.scenarios import SCENARIOS
 
         raise InputError("--scenario", f"unknown; known: {', '.join(SCENARIOS)}")
+    dem = None
+    if args.dem:
+        dem = srtm_height(input_path(args.dem, "file"), geoid_undulation=args.geoid_undulation)
     with staged_output(out, force=args.force, kind="folder") as work:
-        if args.dem:
-            dem = srtm_height(input_path(args.dem, "file"), geoid_undulation=args.geoid_undulation)
-            frames = _frames(bag)
-            if not frames or frame_of(frames[0]) is None:
-                from ...io.files import InputError
-
-                raise InputError("--dem", "the bag's DSMs are not in a tangent-plane frame")
-            truth = enu_dem_surface(frames[0], dem)
-        rows = export_dsms(bag, work, target=args.target, truth=truth)
+        rows = export_dsms(bag, work, target=args.target, truth=truth, dem=dem)
         (work / "dsm.json").write_text(json.dumps(rows, indent=1, default=float))
 
     def show(res: dict[str, Any]) -> None:
@@ -54,12 +47,6 @@ def run(args: argparse.Namespace) -> int:
 
     report(args.json, {"pairs": rows, "output": str(out)}, show)
     return 0 if rows else 1
-
-
-def _frames(bag: Path) -> list[str]:
-    from ...ros.bag import BagReader
-
-    return [i.msg.header.frame_id for i in BagReader(bag).messages(topics=["dsm"])]
 
 
 def add_parser(sub: Any) -> None:
