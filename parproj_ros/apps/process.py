@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from ..core.config import PipelineConfig
+from ..core.memory import tune_malloc
 from ..core.pipeline import Pipeline
 from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
@@ -103,6 +104,7 @@ def process_bag(
 
     reader = BagReader(src)
     cfg = config or config_from_bag(reader, **(overrides or {}))
+    tune_malloc()  # freed strips and images reused, not given back (core/memory.py)
     pipe = Pipeline(cfg)
     summary = ProcessSummary()
     strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}

@@ -471,6 +471,19 @@ PARAMS: tuple[Param, ...] = (
         high=1e6,
     ),
     Param(
+        "prefault_mb",
+        "double",
+        0.0,
+        "memory touched at start so that the first pairs do not pay for first touches: this "
+        "many MB of heap kept for messages, strips and blocks, plus, when > 0, two line "
+        "buffers of scene_lines x detectors x 2 bytes per view; on the project's VMs a page "
+        "touched for the first time costs 2.2 ms per MB against 0.05 once resident (README, "
+        "Keeping up with the sensor); 0: off, memory as needed",
+        unit="MB",
+        low=0.0,
+        high=1e6,
+    ),
+    Param(
         "stereo_pair_images",
         "bool",
         True,

@@ -53,8 +53,20 @@ PublishPair = Callable[
     PairResult,
 ]
 
-#: Columns per streamed block (the tile size of the resampler, so blocks hold whole tiles).
+#: Columns per streamed block (the tile width of the resampler, so blocks hold whole tiles).
 BLOCK_COLS = 256
+#: Rows of a block's tiles before any split to meet the resampler's tolerance: one
+#: ``cv2.warpAffine`` per tile, and each call gives the GIL back and waits to take it again.
+#: With the node receiving 343 MB/s (its executor holds the GIL while it takes a strip) that
+#: wait, not the resampling, was the time of a block (``python -m tools.bench``); 512 rows
+#: halve the calls of 256 x 256 tiles within the same tolerance (0.0034 px at IKONOS size).
+TILE_ROWS = 512
+#: A view whose strips lag the other view's by more than a scene, and at least this many
+#: seconds of sensor time, has stopped (a short scene): its pair is processed whole. Over DDS
+#: one view's strips can arrive more than 1 s after the other's at the full IKONOS rate (a
+#: reliable writer resending lost fragments; ``python -m tools.bench``), which half a scene,
+#: the former bound, took for a stop.
+STALE_MIN_S = 2.0
 #: Lines of margin around the lines a tile's affine map reaches (bicubic needs 2).
 LINE_MARGIN = 3
 
@@ -102,7 +114,7 @@ class StreamPair:
 
 def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[_Block]:
     """Column blocks of the output with the tiles they contain and the lines they need."""
-    tiles = plan_tiles(geom, grid, tile=BLOCK_COLS)
+    tiles = plan_tiles(geom, grid, tile=BLOCK_COLS, tile_rows=TILE_ROWS)
     groups: dict[int, list[Tile]] = {}
     for t in tiles:
         groups.setdefault(t.col0 // BLOCK_COLS, []).append(t)
@@ -142,20 +154,32 @@ def render_block(
 ) -> NDArray[np.generic]:
     """Resample one column block from the retained lines ``data`` (line ``first_line`` first)."""
     out = np.empty((grid.height, block.cols), dtype=data.dtype)
+    src = cast("NDArray[Any]", data)
     flags = interpolation | cv2.WARP_INVERSE_MAP
+    border = float(nodata)
     for t in block.tiles:
         m = t.affine.copy()
         m[1, 2] -= first_line
-        out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols] = (
+        dst = out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols]
+        if dst.flags.c_contiguous:  # a tile as wide as the block: written in place
             cv2.warpAffine(
-                cast("NDArray[Any]", data),
+                src,
+                m,
+                (t.cols, t.rows),
+                dst=cast("NDArray[Any]", dst),
+                flags=flags,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=border,
+            )
+        else:
+            dst[...] = cv2.warpAffine(
+                src,
                 m,
                 (t.cols, t.rows),
                 flags=flags,
                 borderMode=cv2.BORDER_CONSTANT,
-                borderValue=float(nodata),
+                borderValue=border,
             )
-        )
     return out
 
 
@@ -339,7 +363,7 @@ class Streamer:
             duration = self.config.scene_lines * max(
                 v.camera.line_period for v in self.config.views
             )
-            stale_ns = max(1.0, 0.5 * duration) * 1e9
+            stale_ns = max(STALE_MIN_S, duration) * 1e9
             overdue = [
                 part
                 for _, part in parts
@@ -349,7 +373,7 @@ class Streamer:
             ]
             if overdue:
                 # Strips of a scene stopped coming while the other view went on (by more than
-                # half a scene, at least 1 s): it is short (end of a pass) and its length is
+                # a scene, at least STALE_MIN_S): it is short (end of a pass) and its length is
                 # unknown, so it is processed whole. A view merely delivered late is not stale.
                 self.no_stream.add(k)
                 out.issues.append(

@@ -178,17 +178,20 @@ def plan_tiles(
     tile: int = 512,
     tolerance_px: float = 0.004,
     min_tile: int = 16,
+    tile_rows: int | None = None,
 ) -> list[Tile]:
     """Cover the output grid with tiles on which an affine map is within ``tolerance_px``.
 
     The exact map is an affine map followed by the inverse PTP correction, a smooth 1-D
     function of one coordinate, so its deviation from the best affine fit grows with the square
     of the tile size: tiles that miss the tolerance are split in four until they meet it.
+    Tiles are ``tile_rows`` (default ``tile``) rows by ``tile`` columns.
     """
     out: list[Tile] = []
+    rows = tile if tile_rows is None else int(tile_rows)
     todo = [
-        (r0, c0, min(tile, grid.height - r0), min(tile, grid.width - c0))
-        for r0 in range(0, grid.height, tile)
+        (r0, c0, min(rows, grid.height - r0), min(tile, grid.width - c0))
+        for r0 in range(0, grid.height, rows)
         for c0 in range(0, grid.width, tile)
     ]
     while todo:

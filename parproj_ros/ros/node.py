@@ -54,6 +54,13 @@ from sensor_msgs.msg import Image
 from stereo_msgs.msg import DisparityImage
 
 from ..core.config import PARAMS, VIEW_PARAMS, Param, config_from_values
+from ..core.memory import (
+    held_bytes,
+    malloc_trim,
+    prefault_heap,
+    rss_bytes,
+    tune_malloc,
+)
 from ..core.pipeline import Issue, Outputs, Pipeline
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
@@ -160,38 +167,8 @@ def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
     return rpy
 
 
-def _malloc_trim() -> None:
-    """Give the heap's free memory back to the system (glibc ``malloc_trim``; else nothing).
-
-    So that the resident memory the admission reads is what the node holds, not what glibc
-    kept after freeing strips and images.
-    """
-    global _LIBC
-    try:
-        if _LIBC is None:
-            import ctypes
-
-            _LIBC = ctypes.CDLL("libc.so.6")
-        if _LIBC:
-            _LIBC.malloc_trim(0)
-    except (OSError, AttributeError):
-        _LIBC = False
-
-
-_LIBC: Any = None
-
-
-def _rss_bytes() -> int:
-    """The resident memory of the node's process, bytes (0 when /proc cannot be read)."""
-    import os
-
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, IndexError):
-        return 0
-
-
+#: Navigation samples the navigation callback takes besides its own (those already waiting).
+NAV_DRAIN_MAX = 100
 #: Raw pairs' worth of memory the node is first assumed to need besides the pairs in flight
 #: (the normalized images of the pair being finished, the messages being serialized); the
 #: admission then learns the working set from the resident memory (the benchmark, streaming:
@@ -227,9 +204,11 @@ class PairAdmission:
     (normalized images, messages being sent, DDS buffers: :data:`WORKING_SET_PAIRS` raw pairs
     at first, then the largest resident memory beyond the start-up memory and the pairs in
     flight over the last samples, taken at each decision and each pair published), is within
-    the budget, and
-    the resident memory is within it too. Otherwise every strip of the pair is shed (dropped
-    in the subscription callback, before conversion or queueing) and one WARN says so. A pair
+    the budget, and the memory held is within it too. Memory is read as held: the resident
+    memory less the free heap glibc keeps for reuse (:func:`tune_malloc`); when the resident
+    memory itself is over the budget, that free heap is first given back. Otherwise every
+    strip of the pair is shed (dropped in the subscription callback, before conversion or
+    queueing) and one WARN says so. A pair
     leaves the flight when its StereoPair is published (with every earlier one), or at the
     flush. With nothing in flight a pair is always admitted (the node can hold no less).
 
@@ -276,8 +255,8 @@ class PairAdmission:
             if st is None:  # not a configured view: the pipeline reports it
                 return True, issues, close
             if not self.base:
-                _malloc_trim()
-                self.base = _rss_bytes()
+                malloc_trim()
+                self.base = rss_bytes()
             if rows > 0:
                 st.row_bytes = max(st.row_bytes, nbytes // rows)
             new_scene = st.frame_id != frame_id or (
@@ -331,10 +310,9 @@ class PairAdmission:
             self.working_set = max(self._samples)
 
     def _decide(self) -> tuple[bool, str]:
-        rss = _rss_bytes()
-        if rss > self.budget:
-            _malloc_trim()
-            rss = _rss_bytes()
+        if rss_bytes() > self.budget:
+            malloc_trim()
+        rss = held_bytes()
         self._learn(rss)
         if not self._in_flight:
             return True, ""
@@ -351,7 +329,8 @@ class PairAdmission:
             )
         if rss > self.budget:
             return False, (
-                f"resident memory {rss / mb:.0f} MB is over memory_budget_mb "
+                f"memory held {rss / mb:.0f} MB (resident, less the free heap kept for "
+                f"reuse) is over memory_budget_mb "
                 f"{self.budget / mb:.0f} MB"
             )
         return True, ""
@@ -367,7 +346,7 @@ class PairAdmission:
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
-        rss = _rss_bytes()  # the pair's working set is still held
+        rss = held_bytes()  # the pair's working set is still held
         with self._lock:
             self._learn(rss)
             group = self._scene_group.get((view, scene_id))
@@ -375,13 +354,12 @@ class PairAdmission:
                 group = min(self._in_flight)  # come out in order, so it is the oldest one
             if group is not None:
                 self._in_flight = {g for g in self._in_flight if g > group}
-        _malloc_trim()  # the pair's freed images and messages: glibc keeps them otherwise
 
     def release_all(self) -> None:
         """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
         with self._lock:
             self._in_flight.clear()
-        _malloc_trim()
+        malloc_trim()
 
     @property
     def in_flight(self) -> int:
@@ -441,6 +419,7 @@ class ParprojNode(Node):
         self.frame_id = str(vals["frame_id"])
         config = config_from_values(vals)
         self.pipeline = Pipeline(config)
+        self._prefault(config, float(vals["prefault_mb"]))
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
         self.stop_timeout_s = float(vals["stop_timeout_s"])
@@ -492,9 +471,11 @@ class ParprojNode(Node):
         for topic, callback, qos in inputs:
             cls = Odometry if topic == "navigation" else Image
             try:
-                self.create_subscription(
+                sub = self.create_subscription(
                     cls, topic, callback, qos, qos_overriding_options=overrides
                 )
+                if topic == "navigation":
+                    self._nav_sub = sub
             except Exception as err:  # rclpy: RuntimeError or a parameter exception
                 raise StartupError(
                     f"QoS override of {topic}: {type(err).__name__}: {err}"
@@ -566,8 +547,44 @@ class ParprojNode(Node):
             if not name.startswith("qos_overrides.") and not self.has_parameter(name)
         ]
 
+    def _prefault(self, config: Any, prefault_mb: float) -> None:
+        """Keep freed memory for reuse (process-wide), and touch the ``prefault_mb`` reserve."""
+        tune_malloc(int(prefault_mb * 2**20))
+        if prefault_mb <= 0:
+            return
+        t0 = time.monotonic()
+        heap = prefault_heap(int(prefault_mb * 2**20))
+        lines = 0
+        if config.scene_lines > 0:
+            for vc in config.views:
+                asm = self.pipeline.assemblers[vc.name]
+                asm.pool.prefault(config.scene_lines * vc.camera.detectors * 2)
+                lines += asm.pool.held_bytes
+        self._log(
+            "info",
+            f"prefault_mb: {heap / 2**20:.0f} MB of heap and {lines / 2**20:.0f} MB of line "
+            f"buffers touched in {time.monotonic() - t0:.1f} s",
+        )
+
     # ---- callbacks: convert and queue ----------------------------------------------------
     def _on_nav(self, msg: Odometry) -> None:
+        self._nav_one(msg)
+        # Take the navigation samples already waiting too. The executor takes one message per
+        # subscription and wait; a strip takes tens of ms to take at the full rate, so one
+        # navigation sample per wait fell behind a 50 Hz stream and held the streaming decision
+        # of every pair until the scene was complete (``python -m tools.bench``).
+        sub = getattr(self, "_nav_sub", None)
+        for _ in range(NAV_DRAIN_MAX if sub is not None else 0):
+            try:
+                with sub.handle:
+                    taken = sub.handle.take_message(Odometry, False)
+            except Exception:  # destroyed at shutdown, or an rclpy without this handle API
+                return
+            if taken is None:
+                return
+            self._nav_one(taken[0])
+
+    def _nav_one(self, msg: Odometry) -> None:
         try:
             sample = conv.odometry_to_sample(msg)
         except conv.ConversionError as err:
@@ -944,7 +961,7 @@ class ParprojNode(Node):
                         ("gcp_points", len(self.pipeline.gcp)),
                         ("pairs_in_flight", self.admission.in_flight),
                         ("working_set_mb", f"{self.admission.working_set / 2**20:.0f}"),
-                        ("rss_mb", f"{_rss_bytes() / 2**20:.0f}"),
+                        ("rss_mb", f"{rss_bytes() / 2**20:.0f}"),
                         ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
                         ("worker", "dead" if not self._worker.is_alive() else "alive"),
                         ("busy_s", f"{time.monotonic() - busy[1]:.1f}" if busy else "0"),

@@ -116,8 +116,10 @@ def test_short_last_scene_is_processed_whole(tmp_path: Path) -> None:
     assert len(set(ids)) == 3  # split scenes have distinct ids ("#1", "#2")
 
 
-def _feed_synthetic(delay_s: Callable[[Any], float], *, flush: bool) -> tuple[int, int, list[Any]]:
-    """Two pairs of the benchmark's fore/aft platform (one line clock, narrow: 2048 lines,
+def _feed_synthetic(
+    delay_s: Callable[[Any], float], *, flush: bool, lines: int = 2048, strip_lines: int = 256
+) -> tuple[int, int, list[Any]]:
+    """Two pairs of the benchmark's fore/aft platform (one line clock, narrow: ``lines`` lines,
     256 detectors) through the pipeline, each event delivered ``delay_s(event)`` s after it is
     due (navigation first among events due together); with ``flush``, the pipeline is flushed
     at the end. Returns pairs streamed, pairs processed whole, and the issues."""
@@ -127,7 +129,6 @@ def _feed_synthetic(delay_s: Callable[[Any], float], *, flush: bool) -> tuple[in
 
     # 2048 lines: the platform's fore/aft angle follows the scene length (base/height 0.0025);
     # 256 detectors keep the test fast.
-    lines, strip_lines = 2048, 256
     plat = make_platform(lines, 256)
     events = acquisition(plat, 2, strip_lines, 50.0)
     strips = StripMessages(plat, strip_lines)
@@ -154,13 +155,26 @@ def _feed_synthetic(delay_s: Callable[[Any], float], *, flush: bool) -> tuple[in
     return streamed, whole, issues
 
 
-@pytest.mark.parametrize("delay_s", [0.0, 0.08, -0.08])
-def test_a_view_delivered_late_still_streams(delay_s: float) -> None:
+@pytest.mark.parametrize(
+    ("delay_s", "lines", "strip_lines"),
+    [
+        (0.0, 2048, 256),
+        (0.08, 2048, 256),
+        (-0.08, 2048, 256),
+        (1.5, 14000, 500),
+        (-1.5, 14000, 500),
+    ],
+)
+def test_a_view_delivered_late_still_streams(delay_s: float, lines: int, strip_lines: int) -> None:
     """Fore/aft cameras on one line clock (the benchmark's platform, narrow): one view's strips
-    arrive 0.08 s (two strips) after the other's. Both pairs must still stream: a view
-    that is merely late is not a short scene."""
+    arrive 0.08 s (two strips) after the other's, or, with IKONOS-length scenes (2.15 s),
+    1.5 s after (as over DDS at the full rate: a reliable writer resending). Both pairs must
+    still stream: a view that is merely late is not a short scene."""
     streamed, whole, _ = _feed_synthetic(
-        lambda e: delay_s if e.kind == "strip" and e.view == 0 else 0.0, flush=False
+        lambda e: delay_s if e.kind == "strip" and e.view == 0 else 0.0,
+        flush=False,
+        lines=lines,
+        strip_lines=strip_lines,
     )
     assert (streamed, whole) == (2, 0)
 

@@ -288,3 +288,58 @@ def test_scene_last_line_ns(lines: int, lp: float, expected: int) -> None:
     assert s.last_line_ns == 5_000_000_000 + expected
     assert isinstance(s.last_line_ns, int)
     assert (s.lines, s.detectors) == (lines, 2)
+
+
+# ---- line buffers reused from scene to scene (BufferPool) --------------------------------------
+
+
+def test_a_scene_still_held_keeps_its_buffer_and_a_released_one_is_reused() -> None:
+    """Scene k's array is handed to a later scene only once nothing refers to scene k's image;
+    every scene's pixels stay its own (no scene is overwritten by the next)."""
+    asm = SceneAssembler("v", LP, scene_lines=10)
+    held = []
+    for k in range(4):
+        held += asm.add(stamp(10 * k), "s", strip(10, 10 * k))
+    # Four scenes held: two arrays kept by the pool, the others allocated and not kept.
+    assert [int(sc.image[0, 0]) for sc in held] == [0, 10, 20, 30]
+    assert [int(sc.image[-1, 0]) for sc in held] == [9, 19, 29, 39]
+    assert asm.pool.reused == 0 and asm.pool.allocated == 4
+    del held[:]  # every scene let go: the next ones reuse the kept arrays
+    out = []
+    for k in range(4, 8):
+        out += asm.add(stamp(10 * k), "s", strip(10, 10 * k))
+        out = out[-1:]  # the consumer keeps only the latest scene
+    assert asm.pool.reused >= 3 and asm.pool.allocated <= 5
+    assert int(out[0].image[0, 0]) == 70 and int(out[0].image[-1, 0]) == 79
+
+
+def test_pool_never_hands_out_an_array_in_use() -> None:
+    from parproj_ros.imaging.assembly import BufferPool
+
+    pool = BufferPool(keep=2)
+    a = pool.take(5, 3, np.dtype(np.uint16))
+    b = pool.take(5, 3, np.dtype(np.uint16))
+    a[:] = 1
+    b[:] = 2
+    view_of_a = a[1:3]  # a view holds the array too
+    del a
+    c = pool.take(5, 3, np.dtype(np.uint16))  # both kept arrays in use: a new one
+    c[:] = 3
+    assert (view_of_a == 1).all() and (b == 2).all()
+    del view_of_a
+    d = pool.take(4, 3, np.dtype(np.uint16))  # a's array is free now
+    assert pool.reused == 1 and d.shape == (4, 3)
+    assert pool.take(9, 3, np.dtype(np.uint16)).shape == (9, 3)  # too small to reuse
+
+
+def test_streamed_scene_reuses_the_front_of_its_buffer() -> None:
+    """Lines released by a streaming consumer make room: the retained lines move to the front
+    and the array touched stays a few strips long, whatever the scene length."""
+    asm = SceneAssembler("v", LP, scene_lines=0)
+    for k in range(50):
+        asm.add(stamp(8 * k), "s", strip(8, 8 * k))
+        first, data = asm.retained()
+        assert int(data[0, 0]) == first and int(data[-1, 0]) == 8 * k + 7
+        asm.release(8 * k + 4)  # keep the last 4 lines
+    assert asm._open is not None and asm._open.data is not None
+    assert asm._open.data.high <= 32  # of the 400 lines that went through it

@@ -222,12 +222,19 @@ def bench_live(
     lag_max = 0.0
     start = math.nan
 
+    counted_seen: list[float] = [-1.0, time.time()]  # strips the node counted, and since when
+
     def node_idle() -> bool:
-        """The node has counted every strip sent, its queue is empty and it uses no CPU."""
+        """Whether the node is idle: every strip counted, queue empty, no CPU.
+
+        Every strip sent, or none more for 3 s (the others were lost on the way).
+        """
         with obs.lock:
             got = int(obs.summary.get("strips", -1)) + int(obs.summary.get("strips_rejected", 0))
+            if got != counted_seen[0]:
+                counted_seen[:] = [got, time.time()]
             counted = (
-                got >= sent_strips
+                (got >= sent_strips or time.time() - counted_seen[1] > 3.0)
                 and obs.summary.get("queue") == "0"
                 and time.time() - obs.summary_t < 1.5
             )
@@ -332,7 +339,7 @@ def bench_live(
             else:
                 pub = pubs[VIEWS[ev.view]]
                 try:
-                    pub.publish(strips.get(ev))
+                    pub.publish(strips.serialized(ev))
                 except Exception:  # rclpy RCLError: an overloaded writer (ROS2_WHEELS.md)
                     publish_errors += 1
                 sent_strips += 1
@@ -645,7 +652,7 @@ def _passthrough_at(
             if due > now:
                 time.sleep(due - now)
             try:
-                pubs[ev.view].publish(strips.get(ev))
+                pubs[ev.view].publish(strips.serialized(ev))
             except Exception:
                 res["publish_errors"] += 1
             sent[(ev.view, ev.stamp_ns)] = time.time()

@@ -462,7 +462,10 @@ DEFINITIONS = (
     "StereoPair (< 1 by the last latency). Sustained: scene time over the time between "
     "consecutive pairs.",
     "Open-loop (the default): every strip and navigation sample goes out at its sensor time, "
-    "the publisher never waits for the node, as a real sensor. --paced is the former flow "
+    "the publisher never waits for the node, as a real sensor. The strips go out as CDR bytes "
+    "(a new header joined to a body serialized once: one copy of the pixels, as a driver "
+    "filling a buffer) so that the simulated sensor takes as little as it can of the 2 cores "
+    "it shares with the node. --paced is the former flow "
     "control (the publisher waits until pair j - 2 is out before scene slot j, for every 4 "
     "strips' acknowledgement and for the node's memory); its keep-up target is met only when "
     "it never had to wait. A node that falls behind sheds whole pairs (memory_budget_mb) and "
