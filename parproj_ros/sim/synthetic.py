@@ -210,7 +210,6 @@ class StripMessages:
         dets = plat.camera.detectors
         self.strip_lines = strip_lines
         self.msgs: list[Any] = []
-        self._bodies: dict[tuple[int, int], bytes] = {}  # serialized(): (position, id length)
         for r0 in range(0, plat.lines, strip_lines):
             n = min(strip_lines, plat.lines - r0)
             (block,) = texture_blocks(1, n, dets, seed=10 + r0)
@@ -225,31 +224,6 @@ class StripMessages:
         ns_to_stamp(ev.stamp_ns, msg.header.stamp)
         msg.header.frame_id = ev.scene_id
         return msg
-
-    def serialized(self, ev: Event) -> bytes:
-        """The message of a strip event as CDR bytes, what ``Publisher.publish`` sends as is.
-
-        The body (size, encoding, pixels) is serialized once per strip position and frame_id
-        length; each call joins a new header (stamp, frame_id) to it: one copy of the pixels,
-        as a sensor driver filling a buffer would, instead of rclpy's conversion and
-        serialization (two copies and the message's Python fields) on every strip.
-        """
-        import struct
-
-        from rclpy.serialization import serialize_message
-
-        fid = ev.scene_id.encode() + b"\0"
-        head = 8 + 4 + len(fid)  # stamp, string length, characters (payload offsets)
-        split = 4 + head + (-head) % 4  # CDR: the next field (height, uint32) is 4-aligned
-        key = (ev.row0 // self.strip_lines, len(fid))
-        body = self._bodies.get(key)
-        if body is None:
-            body = serialize_message(self.get(ev))[split:]
-            self._bodies = {k: v for k, v in self._bodies.items() if k[1] == len(fid)}
-            self._bodies[key] = body
-        sec, nsec = divmod(int(ev.stamp_ns), 1_000_000_000)
-        prefix = b"\0\1\0\0" + struct.pack("<iII", sec, nsec, len(fid)) + fid
-        return b"".join((prefix, b"\0" * (split - len(prefix)), body))
 
 
 def nav_message(plat: Platform, t_s: float) -> Any:

@@ -73,22 +73,24 @@ def test_bench_options() -> None:
 
 @pytest.mark.ros
 def test_serialized_strips_are_the_messages() -> None:
-    """The bench publishes pre-serialized strips (CDR bytes with a new header joined to a cached
-    body): each must deserialize to the very message ``StripMessages.get`` builds."""
+    """The bench publishes pre-serialized strips (``SerializedStrips``: CDR bytes, a new header
+    joined to a cached body): each must deserialize to the message ``StripMessages.get`` builds."""
     import numpy as np
     from rclpy.serialization import deserialize_message
     from sensor_msgs.msg import Image
 
     from parproj_ros.ros.conversions import image_to_array, stamp_to_ns
     from parproj_ros.sim.synthetic import StripMessages, acquisition, make_platform
+    from tools.bench.dds import SerializedStrips
 
     plat = make_platform(512, 96)
     strips = StripMessages(plat, 100)
+    serialized = SerializedStrips(strips)
     events = [e for e in acquisition(plat, 2, 100, 50.0) if e.kind == "strip"]
     # "left_0000" and "right_0000": the header's padding before the 4-aligned body differs.
     assert len({len(ev.scene_id) for ev in events}) == 2
     for ev in events:
-        raw = strips.serialized(ev)
+        raw = serialized.get(ev)
         got = deserialize_message(raw, Image)
         ref = strips.get(ev)
         assert got.header.frame_id == ref.header.frame_id
