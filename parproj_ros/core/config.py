@@ -471,6 +471,15 @@ PARAMS: tuple[Param, ...] = (
         high=1e6,
     ),
     Param(
+        "render_process",
+        "bool",
+        True,
+        "streamed column blocks are rendered in a child process reading the line buffers from "
+        "shared memory, out of the node's GIL (which the executor holds while it takes each "
+        "strip: at the IKONOS rate the worker otherwise waited for it between tiles); false: in "
+        "the worker thread. Falls back to the worker, with a WARN, when the child cannot start",
+    ),
+    Param(
         "prefault_mb",
         "double",
         0.0,

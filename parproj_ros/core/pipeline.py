@@ -46,6 +46,7 @@ from .normalization import (
 )
 from .orientation import orient_scene, start_unseen
 from .pairing import Pairing
+from .render_process import RenderProcess
 from .results import (
     GroundPoint,
     Issue,
@@ -95,6 +96,16 @@ class Pipeline:
         #: The height range (m) of each published pair, kept for step 7 (its GCP are gone).
         self._z_ranges: dict[str, tuple[float, float]] = {}
         self.heights = HeightsStage(options_of(config), self._z_range) if config.heights else None
+
+    def use_render_process(self, renderer: RenderProcess) -> None:
+        """Render streamed blocks in ``renderer``'s process; line buffers in its shared memory.
+
+        Call before the first strip (buffers allocated earlier stay private and their blocks
+        are rendered in the calling thread).
+        """
+        self.streamer.renderer = renderer
+        for asm in self.assemblers.values():
+            asm.pool.allocate = renderer.allocate
 
     def _z_range(self, pair: PairResult) -> tuple[float, float]:
         c = self.config

@@ -37,6 +37,7 @@ from .navigation import NavigationFeed
 from .normalization import interpolation_flag, pair_geometry
 from .orientation import start_seen
 from .pairing import Pairing
+from .render_process import RenderProcess
 from .results import BlockResult, Issue, Level, Outputs, PairGeometry, PairResult, SceneResult
 from .trajectory import NavigationError
 
@@ -147,13 +148,20 @@ def render_block(
     block: _Block,
     data: NDArray[np.generic],
     first_line: int,
-    grid: OutputGrid,
+    grid: OutputGrid | None,
     *,
     nodata: float,
     interpolation: int,
+    out: NDArray[np.generic] | None = None,
 ) -> NDArray[np.generic]:
-    """Resample one column block from the retained lines ``data`` (line ``first_line`` first)."""
-    out = np.empty((grid.height, block.cols), dtype=data.dtype)
+    """Resample one column block from the retained lines ``data`` (line ``first_line`` first).
+
+    Into ``out`` (grid height x block columns, of the data's type) when given, else a new array.
+    """
+    if out is None:
+        if grid is None:
+            raise ValueError("render_block needs the grid or the output array")
+        out = np.empty((grid.height, block.cols), dtype=data.dtype)
     src = cast("NDArray[Any]", data)
     flags = interpolation | cv2.WARP_INVERSE_MAP
     border = float(nodata)
@@ -218,6 +226,8 @@ class Streamer:
         self.streams: dict[int, StreamPair] = {}
         #: Pairs decided not to stream (processed whole).
         self.no_stream: set[int] = set()
+        #: Renders blocks out of the caller's GIL (the node's), or None: in the calling thread.
+        self.renderer: RenderProcess | None = None
         #: Pairs whose streaming decision waits for navigation (it lagged behind their first
         #: strips): pair index -> the scene start it must reach (see :meth:`_predict_scene`).
         self.wait: dict[int, int] = {}
@@ -563,14 +573,17 @@ class Streamer:
             b = side.blocks[side.next_block]
             if not complete and b.max_line >= received:
                 break
-            img = render_block(
-                b,
-                data,
-                first,
-                side.grid,
-                nodata=self.config.nodata,
-                interpolation=interpolation_flag(self.config),
-            )
+            interp = interpolation_flag(self.config)
+            img = None
+            if self.renderer is not None:
+                img = self.renderer.render(
+                    b, data, first, side.grid.height, nodata=self.config.nodata,
+                    interpolation=interp,
+                )  # fmt: skip
+            if img is None:
+                img = render_block(
+                    b, data, first, side.grid, nodata=self.config.nodata, interpolation=interp
+                )
             side.next_block += 1
             out.blocks.append(
                 BlockResult(

@@ -10,6 +10,7 @@ scene; the caller logs and reports them.
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import NamedTuple
@@ -94,6 +95,10 @@ class StripRejectedError(ValueError):
     """A strip that cannot be used, with the reason (the scene it would belong to is unchanged)."""
 
 
+def _private(nbytes: int) -> NDArray[np.uint8]:
+    return np.empty(nbytes, dtype=np.uint8)
+
+
 class BufferPool:
     """Line-buffer arrays an assembler keeps and reuses from scene to scene.
 
@@ -112,6 +117,8 @@ class BufferPool:
 
     def __init__(self, keep: int = 2) -> None:
         self.keep = int(keep)
+        #: Makes a uint8 array of n bytes (shared memory for a render process, say).
+        self.allocate: Callable[[int], NDArray[np.uint8]] = _private
         self._arrays: list[NDArray[np.uint8]] = []  # raw bytes, viewed as the type asked for
         self.reused = 0  # arrays handed out again
         self.allocated = 0  # arrays allocated
@@ -130,7 +137,7 @@ class BufferPool:
                 continue
             self.reused += 1
             return self._arrays[i][:need].view(dtype).reshape(rows, width)
-        raw = np.empty(need, dtype=np.uint8)
+        raw = self.allocate(need)
         self.allocated += 1
         self._keep(raw)
         return raw.view(dtype).reshape(rows, width)
@@ -148,7 +155,7 @@ class BufferPool:
     def prefault(self, nbytes: int) -> None:
         """Allocate the kept arrays now, ``nbytes`` each, and touch every page of them."""
         while len(self._arrays) < self.keep:
-            raw = np.empty(int(nbytes), dtype=np.uint8)
+            raw = self.allocate(int(nbytes))
             raw[::4096] = 0  # one byte per page faults the page in
             self._arrays.append(raw)
 

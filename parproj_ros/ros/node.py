@@ -62,6 +62,7 @@ from ..core.memory import (
     tune_malloc,
 )
 from ..core.pipeline import Issue, Outputs, Pipeline
+from ..core.render_process import RenderProcess
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
 
@@ -419,6 +420,20 @@ class ParprojNode(Node):
         self.frame_id = str(vals["frame_id"])
         config = config_from_values(vals)
         self.pipeline = Pipeline(config)
+        self.renderer: RenderProcess | None = None
+        if bool(vals["render_process"]) and config.scene_lines > 0 and len(config.views) == 2:
+            try:
+                self.renderer = RenderProcess()
+                self.pipeline.use_render_process(self.renderer)
+            except Exception as err:  # no /dev/shm, no process: render in the worker
+                self._startup_issues.append(
+                    Issue(
+                        "warn",
+                        "render_process",
+                        f"cannot start the render process ({type(err).__name__}: {err}): "
+                        "streamed blocks are rendered in the worker thread",
+                    )
+                )
         self._prefault(config, float(vals["prefault_mb"]))
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
@@ -1003,6 +1018,9 @@ class ParprojNode(Node):
         if self._worker.is_alive():
             self._worker.join(timeout=timeout_s)
         self._closed = True
+        if self.renderer is not None and not self._worker.is_alive():
+            self.renderer.close()
+            self.renderer = None
 
 
 @dataclass

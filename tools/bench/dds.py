@@ -43,7 +43,6 @@ class BenchAbortError(RuntimeError):
     """The live run cannot go on (node died, memory guard, stall); says why."""
 
 
-@dataclass
 class SerializedStrips:
     """The bench's strips as CDR bytes, what ``Publisher.publish`` sends as is.
 
@@ -76,6 +75,7 @@ class SerializedStrips:
         return b"".join((prefix, b"\0" * (split - len(prefix)), body))
 
 
+@dataclass
 class _Observer:
     """What the bench process receives from the node."""
 
