@@ -398,9 +398,15 @@ def bench_live(
             # Open loop: pairs the node shed (memory_budget_mb) never come; stop when every
             # pair is accounted for, or when the node has taken everything and gone idle.
             def accounted() -> bool:
+                # Pairs shed among the bench's own (the node may shed the pair of the extra
+                # fore scene too: it is no pair of the bench's).
                 with obs.lock:
-                    shed = int(obs.summary.get("pairs_shed", 0))
-                return len(obs.pairs) + shed >= cfg.pairs
+                    shed = {
+                        int(m.group(1))
+                        for text in obs.issues
+                        if (m := re.search(r"overload: pair (\d+) ", text))
+                    }
+                return len(obs.pairs) + len({k for k in shed if k < cfg.pairs}) >= cfg.pairs
 
             idle_since: list[float] = []
 
