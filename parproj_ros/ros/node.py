@@ -220,8 +220,17 @@ class PairAdmission:
     Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
     """
 
-    def __init__(self, views: Sequence[str], budget_mb: float, scene_lines: int) -> None:
+    def __init__(
+        self,
+        views: Sequence[str],
+        budget_mb: float,
+        scene_lines: int,
+        line_buffers: Callable[[], int] = lambda: 0,
+    ) -> None:
         self.views = list(views)
+        #: Bytes of the assemblers' line buffers (kept by their pools): left out of the memory
+        #: readings, since the pairs in flight count the scenes they hold.
+        self.line_buffers = line_buffers
         self.single = len(self.views) == 1
         self.budget = int(budget_mb * 2**20)
         self.scene_lines = int(scene_lines)
@@ -256,8 +265,7 @@ class PairAdmission:
             if st is None:  # not a configured view: the pipeline reports it
                 return True, issues, close
             if not self.base:
-                malloc_trim()
-                self.base = rss_bytes()
+                self.base = self._held()
             if rows > 0:
                 st.row_bytes = max(st.row_bytes, nbytes // rows)
             new_scene = st.frame_id != frame_id or (
@@ -296,6 +304,10 @@ class PairAdmission:
                     close = previous is not None and self._decided.get(previous, False)
             return ok, issues, close
 
+    def _held(self) -> int:
+        """Memory held (resident less the free heap kept), line buffers left out, bytes."""
+        return max(0, held_bytes() - self.line_buffers())
+
     def _group_of(self, ordinal: int) -> int:
         return ordinal // 2 if self.single else ordinal
 
@@ -313,7 +325,7 @@ class PairAdmission:
     def _decide(self) -> tuple[bool, str]:
         if rss_bytes() > self.budget:
             malloc_trim()
-        rss = held_bytes()
+        rss = self._held()
         self._learn(rss)
         if not self._in_flight:
             return True, ""
@@ -347,7 +359,7 @@ class PairAdmission:
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
-        rss = held_bytes()  # the pair's working set is still held
+        rss = self._held()  # the pair's working set is still held
         with self._lock:
             self._learn(rss)
             group = self._scene_group.get((view, scene_id))
@@ -441,7 +453,10 @@ class ParprojNode(Node):
         self.stereo_pair_images = bool(vals["stereo_pair_images"])
         self.anaglyph = bool(vals["anaglyph"])
         self.admission = PairAdmission(
-            vals["views"], float(vals["memory_budget_mb"]), config.scene_lines
+            vals["views"],
+            float(vals["memory_budget_mb"]),
+            config.scene_lines,
+            lambda: sum(a.pool.held_bytes for a in self.pipeline.assemblers.values()),
         )
         self.counts = {
             "strips": 0,

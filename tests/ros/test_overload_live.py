@@ -2,7 +2,7 @@
 
 parproj_node runs in its own process with a small ``memory_budget_mb``; the synthetic fore/aft
 acquisition of the benchmark (parproj_ros.sim.synthetic, 2048 x 2048 scenes, whole-image pairs,
-no tie points) is published open-loop: 2 pairs at the sensor rate (warm-up), 7 at 6 times the
+no tie points) is published open-loop: 2 pairs at the sensor rate (warm-up), 7 at 12 times the
 sensor rate (the overload: 2-4 times what the node sustains here, on the shared machine),
 then 5 at half the sensor rate (the load drops). 13-20 s. Checked:
 
@@ -38,13 +38,14 @@ PAIRS = 14
 #: (first pair, rate x the sensor's) of each phase: a warm-up at the sensor rate (the node
 #: learns its working set), the overload, then the load drops: the node must publish all of
 #: the last phase's pairs.
-PHASES = ((0, 1.0), (2, 6.0), (9, 0.5))
+PHASES = ((0, 1.0), (2, 12.0), (9, 0.5))
 #: Pairs after the load drops that the node may still shed.
 CATCH_UP_PAIRS = 2
 #: Start-up memory (about 90 MB) + a working set (first assumed 2 raw pairs, then learned:
 #: whole images, and what Fast DDS keeps of the outputs) + raw pairs of 16 MB in flight: tight
-#: enough that the node sheds during the overload.
-BUDGET_MB = 250.0
+#: enough that the node sheds during the overload. (250 MB and 6x no longer overloaded the node
+#: reliably once it reused its memory: 2 runs of 3 shed nothing.)
+BUDGET_MB = 200.0
 #: y-parallax tolerance of the pair checks elsewhere (tests/apps/test_import.py), px.
 Y_PARALLAX_MAX_PX = 0.05
 

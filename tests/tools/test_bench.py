@@ -102,3 +102,16 @@ def test_serialized_strips_are_the_messages() -> None:
             ref.step,
         )
         assert np.array_equal(image_to_array(got), image_to_array(ref))
+
+
+def test_report_keeps_the_hand_written_part(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    from tools.bench.run import HAND_WRITTEN, write_report
+
+    path = tmp_path / "BENCHMARKS.md"
+    write_report(path, "# first\n")
+    assert path.read_text() == "# first\n"
+    path.write_text(f"# first\n\n{HAND_WRITTEN}\n\n## by hand\nkept\n")
+    write_report(path, "# second\n")
+    text = path.read_text()
+    assert text.startswith("# second\n") and "# first" not in text
+    assert text.endswith(f"{HAND_WRITTEN}\n\n## by hand\nkept\n")

@@ -29,6 +29,19 @@ from .micro import bench_resample, bench_scaling
 from .offline import bench_offline
 from .report import format_markdown, format_text, summary_keys, targets
 
+#: The line of bench/BENCHMARKS.md after which the report is written by hand (kept as it is).
+HAND_WRITTEN = "<!-- hand-written below this line: bench/run.sh keeps it as it is -->"
+
+
+def write_report(path: Path, report: str) -> None:
+    """Write ``report`` to ``path``, keeping what follows :data:`HAND_WRITTEN` in the old file."""
+    kept = ""
+    if path.exists():
+        old = path.read_text()
+        if HAND_WRITTEN in old:
+            kept = old[old.index(HAND_WRITTEN) :]
+    path.write_text(report.rstrip("\n") + "\n\n" + kept if kept else report)
+
 
 def run_bench(
     cfg: BenchConfig,
@@ -143,7 +156,7 @@ def run_and_report(
     res["targets"] = targets(res)
     if markdown is not None:
         markdown.parent.mkdir(parents=True, exist_ok=True)
-        markdown.write_text(format_markdown(res))
+        write_report(markdown, format_markdown(res))
     if json_out:
         json.dump(res, sys.stdout, indent=1)
         sys.stdout.write("\n")
