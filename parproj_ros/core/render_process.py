@@ -37,7 +37,7 @@ ATTACHED_MAX = 8
 
 def _child(conn: Any, out_name: str) -> None:
     """The render loop: (segment, offset, shape, dtype, first line, block, ...) -> rendered."""
-    from .streaming import render_block
+    from ..imaging.resample import render_block
 
     # Attached segments are registered with the parent's resource tracker (a spawned child
     # shares it) under the names the parent registered: the parent's unlink unregisters them.

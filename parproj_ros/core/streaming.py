@@ -21,16 +21,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, cast
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ..geometry import GeometryError, PushbroomModel, parameters_from_navigation
 from ..geometry.navigation import virtual_points
 from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd
-from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles
+from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles, render_block
 from .config import PipelineConfig
 from .gcp_store import GcpStore
 from .navigation import NavigationFeed
@@ -142,53 +140,6 @@ def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[_Bloc
             )
         )
     return blocks
-
-
-def render_block(
-    block: _Block,
-    data: NDArray[np.generic],
-    first_line: int,
-    grid: OutputGrid | None,
-    *,
-    nodata: float,
-    interpolation: int,
-    out: NDArray[np.generic] | None = None,
-) -> NDArray[np.generic]:
-    """Resample one column block from the retained lines ``data`` (line ``first_line`` first).
-
-    Into ``out`` (grid height x block columns, of the data's type) when given, else a new array.
-    """
-    if out is None:
-        if grid is None:
-            raise ValueError("render_block needs the grid or the output array")
-        out = np.empty((grid.height, block.cols), dtype=data.dtype)
-    src = cast("NDArray[Any]", data)
-    flags = interpolation | cv2.WARP_INVERSE_MAP
-    border = float(nodata)
-    for t in block.tiles:
-        m = t.affine.copy()
-        m[1, 2] -= first_line
-        dst = out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols]
-        if dst.flags.c_contiguous:  # a tile as wide as the block: written in place
-            cv2.warpAffine(
-                src,
-                m,
-                (t.cols, t.rows),
-                dst=cast("NDArray[Any]", dst),
-                flags=flags,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=border,
-            )
-        else:
-            dst[...] = cv2.warpAffine(
-                src,
-                m,
-                (t.cols, t.rows),
-                flags=flags,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=border,
-            )
-    return out
 
 
 class Streamer:

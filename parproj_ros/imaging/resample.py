@@ -286,3 +286,52 @@ def resample_remap(
             borderValue=float(nodata),
         )
     return out
+
+
+def render_block(
+    block: Any,
+    data: NDArray[np.generic],
+    first_line: int,
+    grid: OutputGrid | None,
+    *,
+    nodata: float,
+    interpolation: int,
+    out: NDArray[np.generic] | None = None,
+) -> NDArray[np.generic]:
+    """Resample one column block from the retained lines ``data`` (line ``first_line`` first).
+
+    ``block``: a streamed column block (``core.streaming``): its ``cols`` and ``tiles``.
+
+    Into ``out`` (grid height x block columns, of the data's type) when given, else a new array.
+    """
+    if out is None:
+        if grid is None:
+            raise ValueError("render_block needs the grid or the output array")
+        out = np.empty((grid.height, block.cols), dtype=data.dtype)
+    src = cast("NDArray[Any]", data)
+    flags = interpolation | cv2.WARP_INVERSE_MAP
+    border = float(nodata)
+    for t in block.tiles:
+        m = t.affine.copy()
+        m[1, 2] -= first_line
+        dst = out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols]
+        if dst.flags.c_contiguous:  # a tile as wide as the block: written in place
+            cv2.warpAffine(
+                src,
+                m,
+                (t.cols, t.rows),
+                dst=cast("NDArray[Any]", dst),
+                flags=flags,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=border,
+            )
+        else:
+            dst[...] = cv2.warpAffine(
+                src,
+                m,
+                (t.cols, t.rows),
+                flags=flags,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=border,
+            )
+    return out
