@@ -441,13 +441,12 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
 
 #: Where the node's time goes beyond the transport (issue 11's profile; README "Keeping up").
 GAP_NOTES = (
-    "What the node adds (profile of issue 11, offline at full size): scene assembly copies each "
-    "strip once more into its scene buffer (SceneAssembler.add, 3.8 s of 26.6 s for 3 pairs), "
-    "the resampling itself (warpAffine, render_block: 4.3 s), message building (0.8 s since "
-    "array_to_image fills the message in place; it was 2.4 s), and in the live node the GIL "
-    "shared by the executor (taking strips) and the worker, the anaglyph of whole-image pairs "
-    "(a fifth of the worker's samples; anaglyph=false drops it) and the whole images sent twice "
-    "(stereo_pair_images=false sends them once).",
+    "What the node adds (issue 11; bench/BENCHMARKS.md, 'Issue 11 at the full rate'): each "
+    "strip copied into its scene's line buffer (SceneAssembler.add), the resampling (the render "
+    "process, about half a core at the IKONOS rate), each block copied out of the render "
+    "process and into its message, DDS on both sides, and the executor thread taking strips "
+    "with the GIL held; the simulated sensor shares the same 2 cores. Once the node falls "
+    "behind, its backlog grows past the prefault_mb reserve into memory touched afresh.",
 )
 
 DEFINITIONS = (
