@@ -641,7 +641,9 @@ def restart_node(
             res["a_code"] = a.stop()
         else:
             res["a_code"] = a.stop()  # SIGINT: the node flushes and exits
-            wait(lambda: pair_of(listener_messages(listener), case) is not None, 5)
+            # 15 s: under the whole suite's load the flushed whole pair (images, reliable) once
+            # took more than 5 s to reach the listener (CI, 2026-11-24).
+            wait(lambda: pair_of(listener_messages(listener), case) is not None, 15)
     finally:
         a.stop()
     n_before = len(listener.statuses()), len(listener.messages("parallel_projection"))
