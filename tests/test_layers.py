@@ -43,7 +43,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("rpc", ("parproj_ros.rpc",)),  # RPC sensor models and their files
     ("core", ("parproj_ros.core",)),  # parameters, results, the pipeline
     ("io", ("parproj_ros.io",)),  # GCP files, DEM, rasters, safe files (no ROS)
-    ("messages", ("parproj_ros.ros.conversions", "parproj_ros.ros.bag")),  # ROS types, MCAP
+    ("messages", ("parproj_ros.ros.conversions", "parproj_ros.ros.bag", "parproj_ros.ros.cdr")),
     ("sim", ("parproj_ros.sim",)),  # the simulator and its recordings
     ("ros", ("parproj_ros.ros",)),  # the node, the live graph
     ("eval", ("parproj_ros.eval",)),  # evaluation, paper, reference grids

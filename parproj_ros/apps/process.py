@@ -5,10 +5,13 @@ Outputs are logged at the log time of the input message that produced them.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import queue
+import threading
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from ..core.config import PipelineConfig
 from ..core.memory import tune_malloc
@@ -17,6 +20,119 @@ from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
 from ..sim.recording import FRAME_ID, config_from_bag
+
+T = TypeVar("T")
+
+#: Messages read ahead of the pipeline, and output messages waiting to be written: each up to
+#: 8 (a full-size strip or block is 14 MB: about 110 MB each at most).
+READ_AHEAD = 8
+WRITE_BEHIND = 8
+
+
+class _Failure:
+    """An exception raised in a worker thread, carried to the main thread."""
+
+    def __init__(self, err: BaseException) -> None:
+        self.err = err
+
+
+_END = object()
+
+
+class ReadAhead(Generic[T]):
+    """Iterates ``source`` in a thread, up to ``depth`` items ahead of the consumer.
+
+    Reading the bag (file read, chunk decompression and CRC, both without the GIL; and the
+    deserialization) overlaps the pipeline's work on the other core. An exception raised by
+    ``source`` is raised again by the iteration, in the consumer's thread. :meth:`close` stops
+    the thread (it is a daemon: a consumer that stops early does not keep the process alive).
+    """
+
+    def __init__(self, source: Iterable[T], depth: int = READ_AHEAD) -> None:
+        self._q: queue.Queue[Any] = queue.Queue(maxsize=max(int(depth), 1))
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, args=(source,), name="bag-read-ahead", daemon=True
+        )
+        self._thread.start()
+
+    def _put(self, item: Any) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _run(self, source: Iterable[T]) -> None:
+        try:
+            for item in source:
+                if not self._put(item):
+                    return
+            self._put(_END)
+        except BaseException as err:  # carried to the consumer, raised there
+            self._put(_Failure(err))
+
+    def __iter__(self) -> Iterator[T]:
+        while True:
+            item = self._q.get()
+            if item is _END:
+                return
+            if isinstance(item, _Failure):
+                raise item.err
+            yield item
+
+    def close(self) -> None:
+        """Stop reading ahead and wait for the thread (items not taken are dropped)."""
+        self._stop.set()
+        self._thread.join()
+
+
+class WriteBehind:
+    """Writes ``(topic, message, log time)`` to a BagWriter in a thread, in the order given.
+
+    A message given as ``bytes`` is CDR already (``BagWriter.write_raw``).
+
+    Serialization holds the GIL; chunk compression, CRC and the file write do not, and overlap
+    the pipeline's work. A write error is raised again by the next :meth:`write` or by
+    :meth:`close`; the messages after it are discarded (the bag is being abandoned).
+    """
+
+    def __init__(self, bag: BagWriter, depth: int = WRITE_BEHIND) -> None:
+        self._bag = bag
+        self._q: queue.Queue[tuple[str, Any, int] | None] = queue.Queue(maxsize=max(depth, 1))
+        self.error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="bag-write-behind", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            if self.error is None:
+                try:
+                    topic, msg, stamp_ns = item
+                    if isinstance(msg, bytes):  # already CDR (conversions.block_to_cdr)
+                        self._bag.write_raw(topic, msg, stamp_ns)
+                    else:
+                        self._bag.write(topic, msg, stamp_ns)
+                except BaseException as err:  # carried to the producer
+                    self.error = err
+
+    def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        """Queue one message (blocks while ``depth`` are waiting)."""
+        if self.error is not None:
+            raise self.error
+        self._q.put((topic, msg, stamp_ns))
+
+    def close(self) -> None:
+        """Write what is queued, stop the thread; raise a write error if there was one."""
+        self._q.put(None)
+        self._thread.join()
+        if self.error is not None:
+            raise self.error
 
 
 @dataclass
@@ -116,12 +232,14 @@ def process_bag(
     ) as bw:
         for topic, msgtype in conv.OUTPUT_TOPICS.items():
             bw.add_topic(topic, msgtype, "reliable")
+        writer = WriteBehind(bw)
+        inputs = ReadAhead(reader.messages(image_views=True))
 
         def emit(out: Outputs, stamp_ns: int) -> None:
             for topic, msg, _ in conv.outputs_to_messages(
-                out, frame_id=frame_id, stamp_ns=stamp_ns
+                out, frame_id=frame_id, stamp_ns=stamp_ns, raw_blocks=True
             ):
-                bw.write(topic, msg, stamp_ns)  # log time: the input that produced it
+                writer.write(topic, msg, stamp_ns)  # log time: the input that produced it
             summary.scenes += len(out.scenes)
             summary.pairs += len(out.pairs)
             summary.issues += out.issues
@@ -136,32 +254,41 @@ def process_bag(
             disable=not progress,
             leave=False,
         )
-        for item in reader.messages():
-            summary.messages_in += 1
-            bar.update(1)
-            last = item.log_time_ns
-            out = Outputs()
-            try:
-                if item.topic == "navigation":
-                    out = pipe.add_navigation(conv.odometry_to_sample(item.msg))
-                elif item.topic in strip_topics:
-                    arr = conv.image_to_array(item.msg)
-                    out = pipe.add_strip(
-                        strip_topics[item.topic],
-                        conv.stamp_to_ns(item.msg.header.stamp),
-                        item.msg.header.frame_id,
-                        arr,
-                    )
-                elif item.topic == "gcp":
-                    out = pipe.add_gcp(conv.gcp_from_msg(item.msg))
-                elif item.topic == "pairs":
-                    out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
-            except conv.ConversionError as err:
-                out.issues.append(Issue(Level.WARN, item.topic, f"{err}: message dropped"))
-            emit(out, item.log_time_ns)
+        try:
+            for item in inputs:
+                summary.messages_in += 1
+                bar.update(1)
+                last = item.log_time_ns
+                out = Outputs()
+                try:
+                    if item.topic == "navigation":
+                        out = pipe.add_navigation(conv.odometry_to_sample(item.msg))
+                    elif item.topic in strip_topics:
+                        arr = conv.image_to_array(item.msg)
+                        out = pipe.add_strip(
+                            strip_topics[item.topic],
+                            conv.stamp_to_ns(item.msg.header.stamp),
+                            item.msg.header.frame_id,
+                            arr,
+                        )
+                    elif item.topic == "gcp":
+                        out = pipe.add_gcp(conv.gcp_from_msg(item.msg))
+                    elif item.topic == "pairs":
+                        out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
+                except conv.ConversionError as err:
+                    out.issues.append(Issue(Level.WARN, item.topic, f"{err}: message dropped"))
+                emit(out, item.log_time_ns)
+            emit(_bag_issues(reader, Path(src).name), last)
+            emit(pipe.flush(), last)
+        except BaseException:
+            inputs.close()
+            bar.close()
+            with contextlib.suppress(BaseException):
+                writer.close()  # the outputs queued so far; the run's error is the one raised
+            raise
+        inputs.close()
         bar.close()
-        emit(_bag_issues(reader, Path(src).name), last)
-        emit(pipe.flush(), last)
+        writer.close()
     summary.recovery = reader.recovery
     summary.skipped_topics = dict(reader.skipped)
     return summary

@@ -61,6 +61,8 @@ from mcap.records import Channel, Chunk, Schema
 from mcap.stream_reader import CRCValidationError, get_chunk_data_stream
 from mcap.writer import CompressionType, Writer
 
+from .cdr import CdrError, parse_image
+
 __all__ = [
     "QOS_PRESETS",
     "BagError",
@@ -799,6 +801,9 @@ class _FileIndex:
     start_ns: int | None = None
     end_ns: int | None = None
     recovery: Recovery = field(default_factory=Recovery)
+    #: {chunk start offset: channel ids with messages in it}, from the summary's chunk indexes
+    #: (None: no summary, or chunks without message indexes)
+    chunk_channels: dict[int, frozenset[int]] | None = None
 
     def msgtype(self, channel: Channel) -> str:
         schema = self.schemas.get(channel.schema_id)
@@ -846,11 +851,13 @@ def _scan(
     start_ns: int | None = None,
     end_ns: int | None = None,
     stop_at_data_end: bool = False,
+    skip_chunks: frozenset[int] = frozenset(),
 ) -> Iterator[_Msg]:
     """Walk an MCAP file record by record, yielding its complete messages in file order.
 
     Schemas and channels met on the way are added to ``index``; problems are recorded in
-    ``recovery``. Chunks entirely outside [start_ns, end_ns) are not decompressed.
+    ``recovery``. Chunks entirely outside [start_ns, end_ns), and those starting at an offset
+    in ``skip_chunks`` (none of the wanted topics in them), are not read.
     """
     path = index.path
     size = path.stat().st_size
@@ -898,8 +905,10 @@ def _scan(
                 return
             if opcode == Opcode.CHUNK and length >= _CHUNK_HEAD.size:
                 t0, t1, _, _ = _CHUNK_HEAD.unpack(f.read(_CHUNK_HEAD.size))
-                if (start_ns is not None and t1 < start_ns) or (
-                    end_ns is not None and t0 >= end_ns
+                if (
+                    (start_ns is not None and t1 < start_ns)
+                    or (end_ns is not None and t0 >= end_ns)
+                    or pos in skip_chunks
                 ):
                     f.seek(end)
                 else:
@@ -1072,6 +1081,11 @@ def _index_file(path: Path, validate_crcs: bool) -> _FileIndex:
         if stats.message_count:
             index.start_ns, index.end_ns = stats.message_start_time, stats.message_end_time
         index.recovery.messages_read = int(stats.message_count)
+        chunks = summary.chunk_indexes
+        if chunks and all(ci.message_index_offsets for ci in chunks):
+            index.chunk_channels = {
+                int(ci.chunk_start_offset): frozenset(ci.message_index_offsets) for ci in chunks
+            }
         return index
     for msg in _scan(index, index.recovery, validate_crcs=validate_crcs):
         index.counts[msg.channel_id] = index.counts.get(msg.channel_id, 0) + 1
@@ -1280,6 +1294,12 @@ class BagReader:
             # a copy: the pass re-reads channel records and must not disturb the index
             pass_index = _FileIndex(index.path, dict(index.schemas), dict(index.channels))
             rec = Recovery()
+            skip: frozenset[int] = frozenset()
+            if wanted is not None and index.chunk_channels is not None:
+                ids = {cid for cid, ch in index.channels.items() if ch.topic in wanted}
+                skip = frozenset(
+                    start for start, chans in index.chunk_channels.items() if not chans & ids
+                )  # e.g. the cameras of a bag of strips: its first chunk only, not 2.5 GB
             scan = _scan(
                 pass_index,
                 rec,
@@ -1287,6 +1307,7 @@ class BagReader:
                 start_ns=start_ns,
                 end_ns=end_ns,
                 stop_at_data_end=index.recovery.complete,
+                skip_chunks=skip,
             )
             for m in _guarded(scan, index.path):
                 ch = pass_index.channels.get(m.channel_id)
@@ -1305,6 +1326,8 @@ class BagReader:
         topics: Iterable[str] | str | None = None,
         start_ns: int | None = None,
         end_ns: int | None = None,
+        *,
+        image_views: bool = False,
     ) -> Iterator[BagMessage]:
         """Deserialized messages (rclpy objects) in file order.
 
@@ -1315,6 +1338,8 @@ class BagReader:
             topics: Topic names to keep (None: all).
             start_ns: Keep messages logged at or after this time (ns).
             end_ns: Keep messages logged before this time (ns).
+            image_views: sensor_msgs/Image messages as :class:`~.cdr.ImageView` (the pixels a
+                view on the bag's bytes; 5 us instead of rclpy's 8.7 ms per full-size strip).
 
         Yields:
             (topic, message object, log time in ns).
@@ -1326,6 +1351,15 @@ class BagReader:
         self.decode_errors = {}
         classes: dict[str, type | None] = {}
         for topic, msgtype, data, t in self.raw_messages(topics, start_ns, end_ns):
+            if image_views and msgtype == "sensor_msgs/msg/Image":
+                try:
+                    view = parse_image(data)
+                except CdrError:
+                    self.decode_errors[topic] = self.decode_errors.get(topic, 0) + 1
+                    continue
+                if view is not None:
+                    yield BagMessage(topic, view, t)
+                    continue
             if msgtype not in classes:
                 classes[msgtype] = get_message_class(msgtype)
             cls = classes[msgtype]

@@ -345,13 +345,15 @@ def outputs_to_messages(
     stamp_ns: int,
     stereo_pair_images: bool = True,
     anaglyph: bool = True,
+    raw_blocks: bool = False,
 ) -> list[tuple[str, Any, int]]:
     """Pipeline outputs -> [(topic, message, stamp_ns)] on the node's published topics.
 
     ``stamp_ns`` stamps the diagnostics (the node uses its clock; ``process`` the input time).
     ``stereo_pair_images`` false: a whole-image pair's StereoPair carries no pixels (they go
     out once, on ``left/image_normalized`` and ``right/image_normalized``). ``anaglyph``
-    false: no ``anaglyph`` message is made.
+    false: no ``anaglyph`` message is made. ``raw_blocks``: streamed blocks as CDR bytes
+    (:func:`block_to_cdr`; ``Publisher.publish`` and ``BagWriter.write_raw`` take them).
     """
     from parproj_msgs.msg import ParallelProjection
     from sensor_msgs.msg import Image
@@ -367,9 +369,10 @@ def outputs_to_messages(
                 res.scene.first_line_ns,
             )
         )
+    to_block = block_to_cdr if raw_blocks else block_to_msg
     for blk in out.blocks:
         msgs.append(
-            (f"{blk.side}/normalized_block", block_to_msg(blk, frame_id=frame_id), blk.stamp_ns)
+            (f"{blk.side}/normalized_block", to_block(blk, frame_id=frame_id), blk.stamp_ns)
         )
     for pair in out.pairs:
         sp, left, right = pair_to_msgs(
@@ -421,6 +424,37 @@ def block_to_msg(blk: BlockResult, *, frame_id: str) -> Any:
         blk.image, Image(), frame_id=msg.header.frame_id, stamp_ns=blk.stamp_ns
     )
     return msg
+
+
+def block_to_cdr(blk: BlockResult, *, frame_id: str) -> bytes:
+    """BlockResult -> parproj_msgs/NormalizedBlock as CDR bytes.
+
+    The same fields as :func:`block_to_msg`, with one copy of the pixels instead of three
+    (``cdr.serialize_block``: 0.75 ms instead of 6.9 ms for a 14000 x 256 uint16 block).
+
+    Raises:
+        ConversionError: pixels of a dtype or shape an Image cannot carry.
+    """
+    from .cdr import CdrError, serialize_block
+
+    try:
+        return serialize_block(
+            frame_id=f"{frame_id}/normalized_{blk.side}",
+            stamp_ns=blk.stamp_ns,
+            pair_id=blk.pair_id,
+            side=blk.side,
+            col0=blk.col0,
+            full_width=blk.grid.width,
+            full_height=blk.grid.height,
+            pixel_size=blk.grid.pixel,
+            x_origin=blk.grid.x_origin,
+            y_origin=blk.grid.y_origin,
+            index=blk.index,
+            last=blk.last,
+            image=blk.image,
+        )
+    except CdrError as err:
+        raise ConversionError(str(err)) from None
 
 
 def assemble_blocks(blocks: list[Any]) -> Any:

@@ -307,6 +307,45 @@ def test_topic_and_time_filters(bag: tuple[Path, dict]) -> None:
     assert reader.end_ns == T0 + (N_FRAMES - 1) * DT + 1
 
 
+def test_topic_filter_reads_only_chunks_holding_the_topics(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A topic filter skips, by the summary's chunk indexes, the chunks without those topics
+    (the cameras of a bag of strips: one chunk read, not every strip); without a summary (a
+    cut-off file) every chunk is read, and the messages are the same."""
+    import parproj_ros.ros.bag as bagmod
+
+    path = tmp_path / "two"
+    with BagWriter(path, chunk_size=1000, topic_compression={"/nav/odom": "lz4"}) as bw:
+        bw.add_topic("/scanner/image", "sensor_msgs/msg/Image")
+        bw.add_topic("/nav/odom", "nav_msgs/msg/Odometry")
+        bw.write("/nav/odom", make_odom(0), T0)
+        for i in range(6):  # images: chunks of their own
+            bw.write("/scanner/image", make_image(i), T0 + (i + 1) * DT)
+        bw.write("/nav/odom", make_odom(1), T0 + 10 * DT)
+    read: list[int] = []
+    real = bagmod._chunk
+
+    def counting(body: bytes, *args: Any) -> Any:
+        read.append(len(body))
+        return real(body, *args)
+
+    monkeypatch.setattr(bagmod, "_chunk", counting)
+    mcap_file = path / "two_0.mcap"
+    got = [(t, ts) for t, _, ts in BagReader(path).messages(["/nav/odom"])]
+    assert got == [("/nav/odom", T0), ("/nav/odom", T0 + 10 * DT)]
+    assert len(read) == 2  # the two odometry chunks
+    read.clear()
+    list(BagReader(path).messages())
+    assert len(read) >= 8
+    # cut off before the summary: no chunk index, every chunk read, the same messages
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(mcap_file.read_bytes()[: mcap_file.stat().st_size - 200])
+    read.clear()
+    again = [(t, ts) for t, _, ts in BagReader(cut).messages(["/nav/odom"])]
+    assert again == got and len(read) >= 8
+
+
 def test_rosbags_reads_the_folder(bag: tuple[Path, dict]) -> None:
     path, written = bag
     kilted = get_typestore(Stores.ROS2_KILTED)

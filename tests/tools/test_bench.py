@@ -65,6 +65,27 @@ def test_resampling_part_keys_and_geometric_error() -> None:
     assert "Resampling one scene" in format_text(doc)
 
 
+def test_offline_part_with_its_io_bound(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """process_bag over a bag of one small pair, and the I/O bound of the same bags: the copy
+    reads every input byte and writes as many bytes as the output holds."""
+    from dataclasses import replace
+
+    from tools.bench.offline import bench_offline
+
+    small = replace(TINY, lines=1024, detectors=512, strip_lines=128)  # TINY's scenes: no pair
+    off = bench_offline(small, tmp_path, log=lambda s: None)
+    assert off["pairs_out"] == small.offline_pairs == 1
+    assert off["input_compression"] == "none"
+    io = off["io_bound"]
+    assert io["written_mb"] >= off["output_mb_uncompressed"] > 0
+    assert io["read_mb"] > 0 and io["wall_s"] > 0
+    assert io["realtime_factor"] == pytest.approx(off["sensor_s"] / io["wall_s"])
+    assert [p.name for p in tmp_path.iterdir()] == ["offline.pstats"]  # the bags are deleted
+    (target,) = [t for t in targets({"offline": off}) if t["target"].startswith("offline")]
+    assert "the I/O alone, same run" in target["figure"]
+    assert "The I/O bound, same run" in format_markdown({"offline": off})
+
+
 def test_bench_options() -> None:
     args = build_parser().parse_args(["--quick", "--json", "--node-param", "streaming=false"])
     assert args.quick and args.json

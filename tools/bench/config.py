@@ -48,6 +48,10 @@ class BenchConfig:
         memory_budget_mb: the node's memory_budget_mb (None: its default).
         image_compression: chunk compression of the offline output bag's image topics
             ("zstd", "lz4", "none"; None: the bag's zstd).
+        input_compression: chunk compression of the offline input bag: "none", what
+            ``ros2 bag record`` writes by default and the only one that keeps up with the
+            sensor's 360 MB/s on one core here (zstd writes 184 MB/s; README, "Recording large
+            images"); "zstd" or "lz4" to measure what reading them costs.
     """
 
     name: str
@@ -74,6 +78,7 @@ class BenchConfig:
     shm: bool = False
     memory_budget_mb: float | None = None
     image_compression: str | None = None
+    input_compression: str = "none"
 
 
 FULL = BenchConfig(

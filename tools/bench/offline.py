@@ -24,9 +24,17 @@ from .dds import latency_stats
 
 
 def write_input_bag(
-    plat: Platform, pairs: int, strip_lines: int, path: Path, nav_hz: float
+    plat: Platform,
+    pairs: int,
+    strip_lines: int,
+    path: Path,
+    nav_hz: float,
+    compression: str = "zstd",
 ) -> int:
-    """The acquisition of ``pairs`` pairs as a bag (what ``parproj process`` reads); messages."""
+    """The acquisition of ``pairs`` pairs as a bag (what ``parproj process`` reads); messages.
+
+    ``compression``: the bag's chunk compression ("zstd", "lz4", "none").
+    """
     from rclpy.serialization import serialize_message
 
     from parproj_ros.ros import conversions as conv
@@ -35,7 +43,7 @@ def write_input_bag(
     events = acquisition(plat, pairs, strip_lines, nav_hz)
     strips = StripMessages(plat, strip_lines)
     n = 0
-    with BagWriter(path, compression="zstd", overwrite=True) as bw:
+    with BagWriter(path, compression=compression, overwrite=True) as bw:
         bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
         for v in plat.views:
             bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
@@ -56,6 +64,45 @@ def write_input_bag(
                 bw.write_raw(f"{VIEWS[ev.view]}/image_strip", data, log_ns)
             n += 1
     return n
+
+
+def io_bound(src: Path, out_bytes: int, path: Path, compression: str) -> dict[str, Any]:
+    """The I/O alone, what ``parproj process`` cannot beat on this disk.
+
+    Reads every message of the bag ``src`` and writes ``out_bytes`` of them (what
+    ``process_bag`` wrote, uncompressed) to a bag at ``path``, chunk compression
+    ``compression``; then deletes it.
+
+    Returns wall_s (s), read_mb and written_mb (uncompressed MB), bag_mb (on disk).
+    """
+    from parproj_ros.ros.bag import BagReader, BagWriter
+
+    read = written = 0
+    t0 = time.perf_counter()
+    with BagWriter(path, compression=compression, overwrite=True) as bw:
+        bw.add_topic("copy", "sensor_msgs/msg/Image")
+        last = b""
+        for m in BagReader(src).raw_messages():
+            read += len(m.data)
+            if written < out_bytes:
+                bw.write_raw("copy", m.data, m.log_time_ns)
+                written += len(m.data)
+                last = m.data
+        while last and written < out_bytes:  # an output larger than the input
+            bw.write_raw("copy", last, 0)
+            written += len(last)
+    wall = time.perf_counter() - t0
+    bag_mb = sum(f.stat().st_size for f in path.iterdir()) / 2**20
+    for f in path.iterdir():
+        f.unlink()
+    path.rmdir()
+    return {
+        "wall_s": wall,
+        "read_mb": read / 2**20,
+        "written_mb": written / 2**20,
+        "bag_mb": bag_mb,
+        "compression": compression,
+    }
 
 
 #: (label, file name, function) of the cProfile breakdown of the offline run; rows whose
@@ -121,12 +168,15 @@ def bench_offline(
     from parproj_ros.apps.process import process_bag
     from parproj_ros.core.pipeline import PipelineConfig
     from parproj_ros.core.results import Outputs
+    from parproj_ros.ros.bag import BagReader
 
     plat = make_platform(cfg.lines, cfg.detectors)
     pairs = cfg.offline_pairs
     src, dst = workdir / "offline_input", workdir / "offline_output"
     t = time.perf_counter()
-    nmsg = write_input_bag(plat, pairs, cfg.strip_lines, src, cfg.nav_rate_hz)
+    nmsg = write_input_bag(
+        plat, pairs, cfg.strip_lines, src, cfg.nav_rate_hz, compression=cfg.input_compression
+    )
     t_write = time.perf_counter() - t
     log(f"offline: input bag of {pairs} pairs ({nmsg} messages) written in {t_write:.1f} s")
     gc.collect()
@@ -165,9 +215,19 @@ def bench_offline(
     lat = [now - marks[i - 1] for i, now in pair_marks if i >= 1]
     sensor_s = (pairs + plat.lag_scenes) * plat.scene_s
     size = sum(f.stat().st_size for f in dst.iterdir()) / 2**20 if dst.exists() else 0.0
+    out_bytes = sum(len(m.data) for m in BagReader(dst).raw_messages()) if dst.exists() else 0
+    io = io_bound(src, out_bytes, workdir / "io_bound", cfg.image_compression or "zstd")
+    io["realtime_factor"] = sensor_s / io["wall_s"]
+    log(
+        f"offline: I/O bound (read the input, write {out_bytes / 2**20:.0f} MB) "
+        f"{io['wall_s']:.1f} s (real-time factor {io['realtime_factor']:.3f})"
+    )
     res = {
         "pairs": pairs,
         "image_compression": cfg.image_compression or "zstd",
+        "input_compression": cfg.input_compression,
+        "output_mb_uncompressed": out_bytes / 2**20,
+        "io_bound": io,
         "pairs_out": summary.pairs,
         "messages_in": summary.messages_in,
         "issues": [f"{i.level} {i.where}: {i.message}" for i in summary.issues][:20],

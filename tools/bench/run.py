@@ -123,6 +123,7 @@ def run_and_report(
     shm: bool = False,
     memory_budget_mb: float | None = None,
     image_compression: str | None = None,
+    input_compression: str = "none",
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -136,6 +137,7 @@ def run_and_report(
         shm=shm,
         memory_budget_mb=memory_budget_mb,
         image_compression=image_compression,
+        input_compression=input_compression,
     )
     res = run_bench(
         cfg,
@@ -218,6 +220,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="chunk compression of the offline output bag's image topics (default: zstd)",
     )
+    p.add_argument(
+        "--input-compression",
+        choices=("zstd", "lz4", "none"),
+        default="none",
+        help="chunk compression of the offline input bag (default: none, what ros2 bag record "
+        "writes by default)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -245,5 +254,6 @@ def main(argv: list[str] | None = None) -> int:
         shm=args.shm,
         memory_budget_mb=args.memory_budget_mb,
         image_compression=args.image_compression,
+        input_compression=args.input_compression,
     )
     return 1 if (res.get("live") or {}).get("error") else 0
