@@ -644,3 +644,34 @@ def test_chunk_compression_per_topic(tmp_path: Path) -> None:
     assert got == [(t, f"{t}{i}" * 100) for i in range(5) for t in "abc"]
     with pytest.raises(ValueError):
         BagWriter(tmp_path / "bad", topic_compression={"a": "gzip"})
+
+
+def test_image_views_read_strips_and_count_broken_ones(tmp_path: Path) -> None:
+    """messages(image_views=True): Images as cdr.ImageView equal to rclpy's; a cut Image is
+    counted in decode_errors (reported by ``parproj process``), the others still read."""
+    from rclpy.serialization import serialize_message
+
+    from parproj_ros.ros import conversions as conv
+    from parproj_ros.ros.cdr import ImageView
+
+    path = tmp_path / "views"
+    with BagWriter(path) as bw:
+        bw.add_topic("/scanner/image", "sensor_msgs/msg/Image")
+        bw.add_topic("/nav/odom", "nav_msgs/msg/Odometry")
+        bw.write("/scanner/image", make_image(0), T0)
+        bw.write_raw("/scanner/image", serialize_message(make_image(1))[:40], T0 + DT)
+        bw.write("/nav/odom", make_odom(2), T0 + 2 * DT)
+        bw.write("/scanner/image", make_image(3), T0 + 3 * DT)
+    reader = BagReader(path)
+    got = list(reader.messages(image_views=True))
+    assert [(m.topic, m.log_time_ns) for m in got] == [
+        ("/scanner/image", T0),
+        ("/nav/odom", T0 + 2 * DT),
+        ("/scanner/image", T0 + 3 * DT),
+    ]
+    assert isinstance(got[0].msg, ImageView) and isinstance(got[1].msg, Odometry)
+    assert reader.decode_errors == {"/scanner/image": 1}
+    ref = [m.msg for m in BagReader(path).messages(["/scanner/image"])]
+    for view, msg in zip((got[0].msg, got[2].msg), ref, strict=True):
+        assert view.header.frame_id == msg.header.frame_id
+        np.testing.assert_array_equal(conv.image_to_array(view), conv.image_to_array(msg))

@@ -105,6 +105,25 @@ BAD_STRIPS: dict[str, tuple[Callable[[Image], None], str]] = {
 }
 
 
+def _cut_strip() -> bytes:
+    """A strip's CDR bytes cut in the middle of its pixels (as a broken driver could send)."""
+    from rclpy.serialization import serialize_message
+
+    raw = serialize_message(strip("cdr_cut", lambda m: None))
+    return raw[: len(raw) // 2]
+
+
+#: CDR bytes published as they are (``Publisher.publish(bytes)``) -> what the WARN must say.
+#: The node takes strips raw (ros/cdr.py): they never become rclpy messages.
+BAD_CDR: dict[str, tuple[Callable[[], bytes], str]] = {
+    "cut": (_cut_strip, "unreadable CDR (truncated: data needs 98304 bytes"),
+    "garbage": (
+        lambda: b"\x00\x01\x00\x00" + bytes([0xFF] * 12),  # frame_id of 4 GB
+        "unreadable CDR (truncated: header.frame_id needs 4294967295 bytes",
+    ),
+}
+
+
 def odometry(q: tuple[float, float, float, float], v: tuple[float, float, float]) -> Odometry:
     m = Odometry()
     m.header.stamp.sec = 1
@@ -165,6 +184,8 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
         # Bad messages.
         for frame_id, (change, _) in BAD_STRIPS.items():
             pub_strip.publish(strip(frame_id, change))
+        for make, _ in BAD_CDR.values():
+            pub_strip.publish(make())
         for msg, _ in BAD_NAV.values():
             pub_nav.publish(msg)
         assert pub_strip.wait_for_all_acked(Duration(seconds=5))
@@ -184,7 +205,11 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
         def reported() -> bool:
             names = " ".join(s.name for s in test.statuses())
             msgs = " ".join(s.message for s in test.statuses())
-            return all(f in names for f in BAD_STRIPS) and msgs.count("sample dropped") >= 3
+            return (
+                all(f in names for f in BAD_STRIPS)
+                and msgs.count("sample dropped") >= 3
+                and msgs.count("unreadable CDR") >= len(BAD_CDR)
+            )
 
         wait(reported, 10, lambda: proc.proc.poll() is None)
         # The good bag after all that.
@@ -224,6 +249,16 @@ def test_bad_strip_reported(frame_id: str, session: dict[str, Any]) -> None:
     assert f"pan/{frame_id}: strip rejected" in session["log"]  # and logged
 
 
+@pytest.mark.parametrize("case", sorted(BAD_CDR))
+def test_unreadable_cdr_reported(case: str, session: dict[str, Any]) -> None:
+    """Bytes that are not a well-formed Image: a WARN naming the view and what was wrong."""
+    says = BAD_CDR[case][1]
+    hits = [s for s in session["statuses"] if s.name == "parproj_node: pan" and says in s.message]
+    assert len(hits) == 1, show(session["statuses"])
+    assert level(hits[0]) == WARN and "strip rejected" in hits[0].message
+    assert hits[0].message.endswith(": dropped"), hits[0].message
+
+
 @pytest.mark.parametrize("case", sorted(BAD_NAV))
 def test_bad_navigation_reported(case: str, session: dict[str, Any]) -> None:
     says = BAD_NAV[case][1]
@@ -240,7 +275,7 @@ def test_summary_counts_rejections(session: dict[str, Any]) -> None:
     summaries = [s for s in session["statuses"] if s.name == "parproj_node: summary"]
     assert summaries
     values = {kv.key: kv.value for kv in summaries[-1].values}
-    assert values["strips_rejected"] == str(len(BAD_STRIPS)), values
+    assert values["strips_rejected"] == str(len(BAD_STRIPS) + len(BAD_CDR)), values
     assert values["nav_rejected"] == str(len(BAD_NAV)), values
     assert values["pairs"] == "1" and values["scenes"] == "2", values
 
@@ -290,7 +325,9 @@ def test_good_pair_after_bad_input(session: dict[str, Any]) -> None:
     bad = [
         s
         for s in session["statuses"]
-        if level(s) >= WARN and not any(k in s.name for k in (*BAD_STRIPS, "navigation"))
+        if level(s) >= WARN
+        and not any(k in s.name for k in (*BAD_STRIPS, "navigation"))
+        and "unreadable CDR" not in s.message  # BAD_CDR: no frame id to name them by
     ]
     assert not bad, show(bad)
 

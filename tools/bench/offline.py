@@ -118,7 +118,7 @@ PROFILE_ROWS = (
     ("outputs_to_messages (conversion, anaglyph)", "conversions.py", "outputs_to_messages"),
     ("  anaglyph (preview)", "preview.py", "anaglyph"),
     ("  array_to_image (Image.data)", "conversions.py", "array_to_image"),
-    ("  block_to_msg", "conversions.py", "block_to_msg"),
+    ("  block_to_cdr (blocks as CDR bytes)", "conversions.py", "block_to_cdr"),
     ("bag write (serialize + zstd)", "bag.py", "write"),
     ("image_to_array (input strips)", "conversions.py", "image_to_array"),
     ("rclpy serialize_message", "serialization.py", "serialize_message"),
@@ -238,7 +238,10 @@ def bench_offline(
         "realtime_factor": sensor_s / wall,
         "latency_s": latency_stats(lat),
         "profile": _profile_breakdown(prof, pairs),
-        "profile_note": "cProfile cumulative seconds (profiling adds a few percent)",
+        "profile_note": (
+            "cProfile cumulative seconds of the main thread (the pipeline; the read-ahead and "
+            "write-behind threads are not in it; profiling adds a few percent)"
+        ),
     }
     log(f"offline: {summary.pairs} pairs in {wall:.1f} s (real-time factor {sensor_s / wall:.3f})")
     for p in (src, dst):

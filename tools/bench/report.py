@@ -391,8 +391,9 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             yield ""
         prof = off.get("profile") or {}
         for key, title in (
-            ("labelled", "Where the time goes (cProfile of that run; cumulative, nested rows"
-             " indented):"),
+            ("labelled", "Where the time goes (cProfile of that run's main thread, the pipeline;"
+             " the threads reading ahead and writing behind are not in it; cumulative, nested"
+             " rows indented):"),
             ("top_own_time", "Functions with the most own time (cProfile):"),
         ):  # fmt: skip
             if prof.get(key):
@@ -459,11 +460,12 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
 #: Where the node's time goes beyond the transport (issue 11's profile; README "Keeping up").
 GAP_NOTES = (
     "What the node adds (issue 11; bench/BENCHMARKS.md, 'Issue 11 at the full rate'): each "
-    "strip copied into its scene's line buffer (SceneAssembler.add), the resampling (the render "
-    "process, about half a core at the IKONOS rate), each block copied out of the render "
-    "process and into its message, DDS on both sides, and the executor thread taking strips "
-    "with the GIL held; the simulated sensor shares the same 2 cores. Once the node falls "
-    "behind, its backlog grows past the prefault_mb reserve into memory touched afresh.",
+    "strip taken as CDR bytes by the executor (one copy) and copied into its scene's line "
+    "buffer (SceneAssembler.add), the resampling (the render process, about half a core at the "
+    "IKONOS rate), each block copied out of the render process and into its CDR bytes, and DDS "
+    "on both sides; the simulated sensor shares the same 2 cores. A node that falls behind "
+    "grows a backlog past the prefault_mb reserve into memory touched afresh (2.2 ms per MB "
+    "here), which slows it further.",
 )
 
 DEFINITIONS = (
