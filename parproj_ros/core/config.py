@@ -482,14 +482,16 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "prefault_mb",
         "double",
-        0.0,
+        -1.0,
         "memory touched at start so that the first pairs do not pay for first touches: this "
         "many MB of heap kept for messages, strips and blocks, plus, when > 0, two line "
         "buffers of scene_lines x detectors x 2 bytes per view; on the project's VMs a page "
         "touched for the first time costs 2.2 ms per MB against 0.05 once resident (README, "
-        "Keeping up with the sensor); 0: off, memory as needed",
+        "At the full IKONOS rate). -1: two raw pairs of the configured scenes (scene_lines x "
+        "detectors x 2 bytes, both views, twice: 1476 MB for IKONOS-size scenes), 0 when "
+        "scene_lines is 0; 0: off, memory as needed",
         unit="MB",
-        low=0.0,
+        low=-1.0,
         high=1e6,
     ),
     Param(

@@ -69,6 +69,19 @@ from . import conversions as conv
 from .cdr import CdrError, ImageView, parse_image
 
 
+def auto_prefault_mb(config: Any) -> float:
+    """``prefault_mb`` -1: two raw pairs of the configured scenes, MB (0 without scene_lines).
+
+    scene_lines x detectors x 2 bytes (uint16; an upper bound for 8-bit strips) summed over
+    the views, twice: 1476 MB for two IKONOS-size views (14000 x 13816), the reserve with
+    which the node keeps up at the full rate (bench/BENCHMARKS.md).
+    """
+    if config.scene_lines <= 0:
+        return 0.0
+    pair = sum(config.scene_lines * vc.camera.detectors * 2 for vc in config.views)
+    return 2.0 * pair / 2**20
+
+
 def _read_strip(raw: bytes | Image) -> ImageView | Image:
     """A received strip, read from its CDR bytes (:func:`.cdr.parse_image`).
 
@@ -609,7 +622,12 @@ class ParprojNode(Node):
         ]
 
     def _prefault(self, config: Any, prefault_mb: float) -> None:
-        """Keep freed memory for reuse (process-wide), and touch the ``prefault_mb`` reserve."""
+        """Keep freed memory for reuse (process-wide), and touch the ``prefault_mb`` reserve.
+
+        ``prefault_mb`` -1: :func:`auto_prefault_mb`.
+        """
+        if prefault_mb < 0:
+            prefault_mb = auto_prefault_mb(config)
         tune_malloc(int(prefault_mb * 2**20))
         if prefault_mb <= 0:
             return

@@ -13,6 +13,8 @@ from sensor_msgs.msg import Image
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.cdr import CdrError, ImageView, parse_image
 
+pytestmark = pytest.mark.ros  # compared with rclpy's own (de)serialization
+
 
 def _image(frame_id: str, encoding: str, h: int, w: int, itemsize: int, pad: int = 0) -> Image:
     rng = np.random.default_rng(len(frame_id) * 7 + h)

@@ -145,3 +145,18 @@ def test_descriptors_are_the_table_rows(started: dict[str, Any]) -> None:
             assert (r.from_value, r.to_value) == (p.low, p.high), name
         if p.choices:
             assert all(c in d.additional_constraints for c in p.choices if c), name
+
+
+def test_auto_prefault_is_two_raw_pairs() -> None:
+    """prefault_mb -1 (the default): two raw pairs of the configured scenes, 0 without them."""
+    from dataclasses import replace
+
+    from parproj_ros.core.config import PARAMS, PipelineConfig
+    from parproj_ros.ros.node import auto_prefault_mb
+    from parproj_ros.sim.synthetic import make_platform
+
+    assert next(p for p in PARAMS if p.name == "prefault_mb").default == -1.0
+    plat = make_platform(14000, 13816)  # IKONOS-size scenes, two views
+    cfg = PipelineConfig(views=tuple(plat.views), scene_lines=14000)
+    assert auto_prefault_mb(cfg) == pytest.approx(2 * 2 * 14000 * 13816 * 2 / 2**20)  # 1476
+    assert auto_prefault_mb(replace(cfg, scene_lines=0)) == 0.0
