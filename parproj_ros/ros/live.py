@@ -6,6 +6,7 @@ running the node in its own process.
 
 from __future__ import annotations
 
+import atexit
 import os
 import signal
 import subprocess
@@ -316,9 +317,17 @@ class NodeProcess:
             stdout=self._log,
             stderr=subprocess.STDOUT,
         )
+        # A caller that raises before stop() (a bench or test bug) leaves no orphaned node.
+        atexit.register(self._kill_at_exit)
+
+    def _kill_at_exit(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
 
     def stop(self, timeout: float = 60.0) -> int:
         """SIGINT (the node flushes open scenes and exits); kill after ``timeout``."""
+        atexit.unregister(self._kill_at_exit)
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGINT)
             try:

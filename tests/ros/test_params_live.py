@@ -160,3 +160,25 @@ def test_auto_prefault_is_two_raw_pairs() -> None:
     cfg = PipelineConfig(views=tuple(plat.views), scene_lines=14000)
     assert auto_prefault_mb(cfg) == pytest.approx(2 * 2 * 14000 * 13816 * 2 / 2**20)  # 1476
     assert auto_prefault_mb(replace(cfg, scene_lines=0)) == 0.0
+
+
+def test_node_process_not_orphaned_when_its_caller_fails(tmp_path: Any) -> None:
+    """A caller that raises before NodeProcess.stop() (the bench once did): its node is
+    killed when the caller's process exits, not left running."""
+    import subprocess
+    import sys
+
+    pid_file = tmp_path / "pid"
+    script = f"""
+import sys
+from pathlib import Path
+from parproj_ros.ros.live import NodeProcess
+node = NodeProcess(Path("unused.yaml"), {{}}, Path({str(tmp_path / "node.log")!r}),
+                   program=[sys.executable, "-c", "import time; time.sleep(120)"])
+Path({str(pid_file)!r}).write_text(str(node.proc.pid))
+raise RuntimeError("the caller fails before stop()")
+"""
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1 and "the caller fails" in r.stderr, r.stderr
+    pid = int(pid_file.read_text())
+    assert not os.path.exists(f"/proc/{pid}"), f"node process {pid} still running"
