@@ -131,6 +131,9 @@ def overload(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
             stereo_pair_images=False,
             anaglyph=False,
             memory_budget_mb=BUDGET_MB,
+            # No reserve touched at start (the default, two raw pairs and two line buffers per
+            # view, adds about 65 MB here): the budget is sized on a 90 MB start-up.
+            prefault_mb=0.0,
         ),
         tmp_path / "params.yaml",
         reliable_inputs=inputs,
