@@ -163,7 +163,8 @@ def bench_offline(
     ``node_params`` that are pipeline settings (PipelineConfig fields) apply here too.
 
     Returns the real-time factor (sensor time / wall time of ``process_bag``), per-pair latency
-    from reading a pair's last strip to its outputs written (s), and the profile breakdown.
+    from reading a pair's last strip to its outputs handed to the writing thread (s), and the
+    profile breakdown.
     """
     from parproj_ros.apps.process import process_bag
     from parproj_ros.core.pipeline import PipelineConfig

@@ -376,7 +376,8 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             f"{off['output_bag_mb']:.0f} MB output bag. Real-time factor "
             f"{off['realtime_factor']:.3f} ({off['sensor_s']:.2f} s of sensor data in "
             f"{off['wall_s']:.1f} s); latency from reading a pair's last strip to its outputs "
-            f"written: median {_f(lat.get('median'), 2)} s, max {_f(lat.get('max'), 2)} s."
+            f"handed to the writing thread: median {_f(lat.get('median'), 2)} s, max "
+            f"{_f(lat.get('max'), 2)} s."
         )
         yield ""
         io = off.get("io_bound") or {}
