@@ -229,6 +229,16 @@ def publish(sources: dict[str, Source], msgs: Iterable[Msg], sent: Counter[str])
         time.sleep(PACE_S)
 
 
+#: Output topics whose publishers tell one node from another (Listener.wait_node).
+NODE_TOPICS = (
+    "/parallel_projection",
+    "/diagnostics",
+    "/stereo_pair",
+    "/left/image_normalized",
+    "/right/image_normalized",
+)
+
+
 class Listener(Graph):
     """Records every output topic of the node (``/diagnostics`` included)."""
 
@@ -251,16 +261,25 @@ class Listener(Graph):
     def publisher_gids(self) -> frozenset[bytes]:
         return frozenset(
             bytes(i.endpoint_gid)
-            for t in ("/parallel_projection", "/diagnostics")
+            for t in NODE_TOPICS
             for i in self.node.get_publishers_info_by_topic(t)
         )
 
     def wait_node(self, exclude: frozenset[bytes] = frozenset()) -> None:
-        """Until the outputs of a node (not those in ``exclude``) are discovered."""
+        """Until the outputs of a node (not those in ``exclude``) are discovered: every topic in
+        NODE_TOPICS has a publisher not in ``exclude``. The image topics too: a pair flushed at
+        SIGINT goes out on them at once, and a publisher with no matched reader yet counts as
+        acknowledged (the pair lost, not late)."""
         subs = dict(zip(self.recorder.counts, self.recorder._subs, strict=True))
 
         def matched() -> bool:
-            return bool(self.publisher_gids() - exclude) and all(
+            return all(
+                any(
+                    bytes(i.endpoint_gid) not in exclude
+                    for i in self.node.get_publishers_info_by_topic(t)
+                )
+                for t in NODE_TOPICS
+            ) and all(
                 subs[t].get_publisher_count() > 0 for t in ("parallel_projection", "stereo_pair")
             )
 
