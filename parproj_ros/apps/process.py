@@ -110,16 +110,32 @@ class WriteBehind:
         while True:
             item = self._q.get()
             if item is None:
+                self._q.task_done()
                 return
-            if self.error is None:
-                try:
-                    topic, msg, stamp_ns = item
-                    if isinstance(msg, bytes):  # already CDR (conversions.block_to_cdr)
-                        self._bag.write_raw(topic, msg, stamp_ns)
-                    else:
-                        self._bag.write(topic, msg, stamp_ns)
-                except BaseException as err:  # carried to the producer
-                    self.error = err
+            self._write(*item)
+            del item  # the message is not kept alive while waiting for the next one
+            self._q.task_done()
+
+    def _write(self, topic: str, msg: Any, stamp_ns: int) -> None:
+        if self.error is not None:
+            return
+        try:
+            if isinstance(msg, bytes):  # already CDR (conversions.block_to_cdr)
+                self._bag.write_raw(topic, msg, stamp_ns)
+            else:
+                self._bag.write(topic, msg, stamp_ns)
+        except BaseException as err:  # carried to the producer
+            self.error = err
+
+    def drain(self) -> None:
+        """Wait until every queued message is written, then raise a write error if any.
+
+        For whole images (hundreds of MB each at IKONOS size), so that they are not kept while
+        the next input is processed.
+        """
+        self._q.join()
+        if self.error is not None:
+            raise self.error
 
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
         """Queue one message (blocks while ``depth`` are waiting)."""
@@ -232,14 +248,14 @@ def process_bag(
     ) as bw:
         for topic, msgtype in conv.OUTPUT_TOPICS.items():
             bw.add_topic(topic, msgtype, "reliable")
-        writer = WriteBehind(bw)
-        inputs = ReadAhead(reader.messages(image_views=True))
 
         def emit(out: Outputs, stamp_ns: int) -> None:
             for topic, msg, _ in conv.outputs_to_messages(
                 out, frame_id=frame_id, stamp_ns=stamp_ns, raw_blocks=True
             ):
                 writer.write(topic, msg, stamp_ns)  # log time: the input that produced it
+            if any(p.left_image is not None for p in out.pairs):
+                writer.drain()  # whole images written before the next input, as before
             summary.scenes += len(out.scenes)
             summary.pairs += len(out.pairs)
             summary.issues += out.issues
@@ -254,6 +270,8 @@ def process_bag(
             disable=not progress,
             leave=False,
         )
+        writer = WriteBehind(bw)
+        inputs = ReadAhead(reader.messages(image_views=True))
         try:
             for item in inputs:
                 summary.messages_in += 1
@@ -281,10 +299,12 @@ def process_bag(
             emit(_bag_issues(reader, Path(src).name), last)
             emit(pipe.flush(), last)
         except BaseException:
-            inputs.close()
-            bar.close()
-            with contextlib.suppress(BaseException):
-                writer.close()  # the outputs queued so far; the run's error is the one raised
+            try:
+                inputs.close()
+                bar.close()
+            finally:
+                with contextlib.suppress(BaseException):
+                    writer.close()  # the outputs queued so far; the run's error is raised
             raise
         inputs.close()
         bar.close()

@@ -79,7 +79,7 @@ def auto_prefault_mb(config: Any) -> float:
     if config.scene_lines <= 0:
         return 0.0
     pair = sum(config.scene_lines * vc.camera.detectors * 2 for vc in config.views)
-    return 2.0 * pair / 2**20
+    return float(2.0 * pair / 2**20)
 
 
 def _read_strip(raw: bytes | Image) -> ImageView | Image:

@@ -148,7 +148,7 @@ BLOCKS = [
     (np.dtype(np.uint16), (7, 5), "left", "a+b"),
     (np.dtype(np.uint8), (3, 9), "right", "scene_0001+scene_0002"),
     (np.dtype(np.float32), (4, 4), "left", "é"),
-    (np.dtype(">u2"), (2, 3), "right", ""),  # big-endian pixels: written little-endian
+    (np.dtype(">u2"), (2, 3), "right", ""),  # big-endian pixels: refused, as by block_to_msg
 ]
 
 
