@@ -90,6 +90,9 @@ def test_bench_options() -> None:
     args = build_parser().parse_args(["--quick", "--json", "--node-param", "streaming=false"])
     assert args.quick and args.json
     assert args.node_param == ["streaming=false"]
+    assert (args.live_rate, args.input_compression) == (1.0, "none")
+    args = build_parser().parse_args(["--live-rate", "2", "--input-compression", "zstd"])
+    assert (args.live_rate, args.input_compression) == (2.0, "zstd")
 
 
 @pytest.mark.ros

@@ -124,6 +124,7 @@ def run_and_report(
     memory_budget_mb: float | None = None,
     image_compression: str | None = None,
     input_compression: str = "none",
+    live_rate: float = 1.0,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -138,6 +139,7 @@ def run_and_report(
         memory_budget_mb=memory_budget_mb,
         image_compression=image_compression,
         input_compression=input_compression,
+        live_rate=live_rate,
     )
     res = run_bench(
         cfg,
@@ -227,6 +229,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="chunk compression of the offline input bag (default: none, what ros2 bag record "
         "writes by default)",
     )
+    p.add_argument(
+        "--live-rate",
+        type=float,
+        default=1.0,
+        help="the live sensor at this multiple of the IKONOS rate (2: the 2x headroom stretch)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -255,5 +263,6 @@ def main(argv: list[str] | None = None) -> int:
         memory_budget_mb=args.memory_budget_mb,
         image_compression=args.image_compression,
         input_compression=args.input_compression,
+        live_rate=args.live_rate,
     )
     return 1 if (res.get("live") or {}).get("error") else 0
