@@ -34,8 +34,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from ..imaging.encodings import DTYPE_ENCODINGS
-
 #: Encapsulation identifiers read here: plain CDR, big- and little-endian.
 _CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
 _HEADER = 4
@@ -200,19 +198,6 @@ class _Writer:
         self.u32(nanosec)
 
 
-def image_fields(arr: NDArray[np.generic]) -> tuple[str, NDArray[np.generic]]:
-    """(encoding, C-contiguous little-endian pixels) of a 2-D mono8 / mono16 / 32FC1 array.
-
-    Raises:
-        CdrError: another dtype or shape.
-    """
-    enc = DTYPE_ENCODINGS.get(arr.dtype)
-    if not enc or arr.ndim != 2:
-        raise CdrError(f"cannot encode array of {arr.dtype} and shape {arr.shape}")
-    little = np.ascontiguousarray(arr.astype(arr.dtype.newbyteorder("<"), copy=False))
-    return enc, little
-
-
 def serialize_block(
     *,
     frame_id: str,
@@ -227,18 +212,17 @@ def serialize_block(
     y_origin: float,
     index: int,
     last: bool,
-    image: NDArray[np.generic],
+    encoding: str,
+    pixels: NDArray[np.generic],
 ) -> bytes:
     """A parproj_msgs/NormalizedBlock as CDR bytes (encapsulation header included).
 
     The header and the image's header carry ``frame_id`` and ``stamp_ns`` (ns since the epoch,
-    >= 0); ``image`` is 2-D mono8 / mono16 / 32FC1. The pixels are copied once, into the
-    returned bytes.
-
-    Raises:
-        CdrError: an image of another dtype or shape.
+    >= 0); ``pixels`` is the image, (height, width), C-contiguous and little-endian, of that
+    ``encoding`` (``conversions.block_to_cdr`` checks both). The pixels are copied once, into
+    the returned bytes.
     """
-    enc, px = image_fields(image)
+    px = pixels
     w = _Writer()
     w.stamp(stamp_ns)
     w.string(frame_id)
@@ -254,7 +238,7 @@ def serialize_block(
     w.string(frame_id)
     w.u32(int(px.shape[0]))
     w.u32(int(px.shape[1]))
-    w.string(enc)
+    w.string(encoding)
     w.u8(0)  # is_bigendian
     w.u32(int(px.shape[1] * px.itemsize))
     w.u32(int(px.nbytes))
