@@ -460,12 +460,14 @@ PARAMS: tuple[Param, ...] = (
         "memory_budget_mb",
         "double",
         6144.0,
-        "bounds what the node holds: a pair (both scenes) is admitted at its first strip only if "
-        "the node's start-up memory, one raw pair for each pair in flight (admitted, not yet "
-        "published) and the new one, and the working set (learnt from the resident memory) fit, "
-        "and the resident memory is under it; otherwise every strip of both its scenes is shed, "
-        "counted and reported on /diagnostics (README, Overload); 6144 MB: 3 IKONOS-size pairs "
-        "(737 MB each) in flight with the 3.3 GB peak measured at that size",
+        "bounds the node's resident memory: a pair (both scenes) is admitted at its first strip "
+        "only if the start-up memory, the raw data held (line buffers, queued strips) or one raw "
+        "pair for each pair in flight (admitted, not yet published) and the new one, and the "
+        "working set (learnt from the resident memory) fit; otherwise every strip of both its "
+        "scenes is shed, counted and reported on /diagnostics (README, Overload). It must hold "
+        "two pairs in flight (consecutive pairs overlap), or pairs are shed at any rate (the WARN "
+        "names the least budget that would); 6144 MB: 3 IKONOS-size pairs (737 MB each) in flight "
+        "with the 3.3 GB peak measured at that size",
         unit="MB",
         low=64.0,
         high=1e6,

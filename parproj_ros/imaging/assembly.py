@@ -10,6 +10,8 @@ scene; the caller logs and reports them.
 from __future__ import annotations
 
 import sys
+import threading
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import StrEnum
@@ -122,6 +124,8 @@ class BufferPool:
         self._arrays: list[NDArray[np.uint8]] = []  # raw bytes, viewed as the type asked for
         self.reused = 0  # arrays handed out again
         self.allocated = 0  # arrays allocated
+        self._live = 0  # bytes of the arrays allocated here and still alive (kept or in use)
+        self._live_lock = threading.Lock()
 
     def take(self, rows: int, width: int, dtype: np.dtype) -> NDArray[np.generic]:
         """An array of (rows, width) of ``dtype``: a free kept one, else a new one.
@@ -137,10 +141,22 @@ class BufferPool:
                 continue
             self.reused += 1
             return self._arrays[i][:need].view(dtype).reshape(rows, width)
-        raw = self.allocate(need)
+        raw = self._new(need)
         self.allocated += 1
         self._keep(raw)
         return raw.view(dtype).reshape(rows, width)
+
+    def _new(self, nbytes: int) -> NDArray[np.uint8]:
+        """A new array from :attr:`allocate`, counted in :attr:`live_bytes` while it lives."""
+        raw = self.allocate(int(nbytes))
+        with self._live_lock:
+            self._live += raw.nbytes
+        weakref.finalize(raw, self._freed, raw.nbytes)
+        return raw
+
+    def _freed(self, nbytes: int) -> None:
+        with self._live_lock:
+            self._live -= nbytes
 
     def _keep(self, raw: NDArray[np.uint8]) -> None:
         if len(self._arrays) < self.keep:
@@ -155,7 +171,7 @@ class BufferPool:
     def prefault(self, nbytes: int) -> None:
         """Allocate the kept arrays now, ``nbytes`` each, and touch every page of them."""
         while len(self._arrays) < self.keep:
-            raw = self.allocate(int(nbytes))
+            raw = self._new(int(nbytes))
             raw[::4096] = 0  # one byte per page faults the page in
             self._arrays.append(raw)
 
@@ -163,6 +179,15 @@ class BufferPool:
     def held_bytes(self) -> int:
         """Bytes of the arrays the pool keeps (in use or not)."""
         return sum(a.nbytes for a in self._arrays)
+
+    @property
+    def live_bytes(self) -> int:
+        """Bytes of every array allocated here and still alive: kept, or in use by a scene.
+
+        An array allocated while the pool was full is not kept, but lives while used.
+        """
+        with self._live_lock:
+            return self._live
 
     def clear(self) -> None:
         """Forget the kept arrays (those in use stay alive with their users)."""

@@ -213,6 +213,10 @@ NAV_DRAIN_MAX = 100
 #: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
 #: 2048 x 2048: about 13).
 WORKING_SET_PAIRS = 2
+#: The same when pairs are normalized as whole images (``streaming`` false): both normalized
+#: images, their messages and what DDS copies of them; learnt 100-145 MB, 6-9 raw pairs, at
+#: 2048 x 2048 (tests/ros/test_overload_live.py, 2026-11-24).
+WHOLE_IMAGE_WORKING_SET_PAIRS = 8
 #: Resident memory samples (two per pair: at its decision and at its publication) over which
 #: the working set is the largest.
 WORKING_SET_SAMPLES = 4
@@ -237,22 +241,28 @@ class PairAdmission:
     processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
     by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
 
-    A pair is admitted when the node's memory at its first strip, plus one raw pair for each
-    pair in flight (admitted and not yet published) and for the new one, plus the working set
-    (normalized images, messages being sent, DDS buffers: :data:`WORKING_SET_PAIRS` raw pairs
-    at first, then the largest resident memory beyond the start-up memory and the pairs in
-    flight over the last samples, taken at each decision and each pair published), is within
-    the budget, and the memory held is within it too. Memory is read as held: the resident
-    memory less the free heap glibc keeps for reuse (:func:`tune_malloc`); when the resident
-    memory itself is over the budget, that free heap is first given back. Otherwise every
-    strip of the pair is shed (dropped in the subscription callback, before conversion or
-    queueing) and one WARN says so. A pair
-    leaves the flight when its StereoPair is published (with every earlier one), or at the
-    flush. With nothing in flight a pair is always admitted (the node can hold no less).
+    The memory the node holds (resident, less the free heap glibc keeps for reuse:
+    :func:`held_bytes`) is read in two parts: the raw scene data (``raw_held``: the
+    assemblers' line buffers, kept or in use, and the strips queued for the worker), and the
+    rest. The start-up memory is the rest at the first strip; the working set (normalized
+    images, messages being sent, DDS buffers, a strip backlog in DDS) is the largest excess of
+    the rest over the start-up memory in the last :data:`WORKING_SET_SAMPLES` samples, taken at
+    each decision and each pair published (so a burst's transient is forgotten once the load
+    drops), and at least ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`, or
+    :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are normalized as whole images). A pair
+    is admitted when
 
-    Not counted by the pairs: what DDS holds outside Python (the strip subscription's history,
-    up to its QoS depth of strips not yet taken, and the payload pools Fast DDS keeps after a
-    burst); the learned working set and the resident-memory check take it in.
+        start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working set
+
+    is within the budget (when the resident memory is over the budget, the free heap is first
+    given back; the sum is never below the resident memory, the working set including the
+    present excess). Otherwise every strip of the pair is
+    shed (dropped in the subscription callback, before conversion or queueing) and one WARN says
+    so. A pair is in flight from its admission until its StereoPair is published (with every
+    earlier one), or the flush. With nothing in flight a pair is always admitted (the node can
+    hold no less); when the budget cannot hold two pairs in flight (consecutive pairs overlap
+    in time: the fore view's next scene begins before the aft view's scene ends), the WARN says
+    so and names the budget that would.
 
     Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
     """
@@ -262,18 +272,21 @@ class PairAdmission:
         views: Sequence[str],
         budget_mb: float,
         scene_lines: int,
-        line_buffers: Callable[[], int] = lambda: 0,
+        raw_held: Callable[[], int] = lambda: 0,
+        floor_pairs: float = WORKING_SET_PAIRS,
     ) -> None:
         self.views = list(views)
-        #: Bytes of the assemblers' line buffers (kept by their pools): left out of the memory
-        #: readings, since the pairs in flight count the scenes they hold.
-        self.line_buffers = line_buffers
+        #: The working set is at least this many raw pairs (:data:`WORKING_SET_PAIRS`).
+        self.floor_pairs = float(floor_pairs)
+        #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
+        self.raw_held = raw_held
         self.single = len(self.views) == 1
         self.budget = int(budget_mb * 2**20)
         self.scene_lines = int(scene_lines)
-        self.base = 0  # resident memory at the first strip, bytes
-        self.working_set = 0  # largest seen beyond base and the pairs in flight, bytes
+        self.base = 0  # memory held at the first strip less its raw data, bytes
+        self.working_set = 0  # largest excess of the non-raw memory over base, recent, bytes
         self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
+        self._peak_rest = 0  # the largest non-raw memory read by sample() since the last sample
         self._streams = {v: _ViewStream() for v in self.views}
         self._decided: dict[int, bool] = {}
         self._in_flight: set[int] = set()
@@ -284,7 +297,9 @@ class PairAdmission:
     def pair_bytes(self) -> int:
         """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
         lines = self.scene_lines or max(s.max_lines for s in self._streams.values())
-        per_view = [lines * s.row_bytes for s in self._streams.values()]
+        # A view with no strip yet: taken as wide as the widest seen (its scene is coming).
+        widest = max(s.row_bytes for s in self._streams.values())
+        per_view = [lines * (s.row_bytes or widest) for s in self._streams.values()]
         return 2 * per_view[0] if self.single else sum(per_view)
 
     def admit(
@@ -302,7 +317,7 @@ class PairAdmission:
             if st is None:  # not a configured view: the pipeline reports it
                 return True, issues, close
             if not self.base:
-                self.base = self._held()
+                self.base = max(1, self._memory()[2])
             if rows > 0:
                 st.row_bytes = max(st.row_bytes, nbytes // rows)
             new_scene = st.frame_id != frame_id or (
@@ -341,48 +356,71 @@ class PairAdmission:
                     close = previous is not None and self._decided.get(previous, False)
             return ok, issues, close
 
-    def _held(self) -> int:
-        """Memory held (resident less the free heap kept), line buffers left out, bytes."""
-        return max(0, held_bytes() - self.line_buffers())
+    def _memory(self) -> tuple[int, int, int]:
+        """(resident memory, raw data held, the rest), bytes."""
+        rss = rss_bytes()
+        raw = min(rss, max(0, int(self.raw_held())))
+        return rss, raw, rss - raw
 
     def _group_of(self, ordinal: int) -> int:
         return ordinal // 2 if self.single else ordinal
 
-    def _learn(self, rss: int) -> None:
-        """Update the working set from a resident memory sample (lock held).
+    def _learn(self, rest: int) -> None:
+        """Update the working set from a sample of the non-raw memory (lock held).
 
-        The largest of the last :data:`WORKING_SET_SAMPLES` samples: a burst's transient
-        (DDS buffers, glibc) is forgotten once the load drops, so that the node catches up.
+        The sample is the largest of ``rest`` and what :meth:`sample` saw since the last one.
         """
         if self.base:
-            held = self.base + len(self._in_flight) * self.pair_bytes()
-            self._samples.append(max(0, rss - held))
+            self._samples.append(max(0, max(rest, self._peak_rest) - self.base))
             self.working_set = max(self._samples)
+        self._peak_rest = 0
+
+    def sample(self) -> None:
+        """Read the memory now (the worker, after each input): keeps the peak between samples.
+
+        Resident memory rarely falls (glibc keeps freed heap), so a reading after each input
+        holds that input's peak (normalization, messages, DDS) for the next decision.
+        """
+        rest = self._memory()[2]
+        with self._lock:
+            self._peak_rest = max(self._peak_rest, rest)
+
+    def need(self, in_flight: int, raw: int = 0) -> int:
+        """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
+        pair = self.pair_bytes()
+        work = max(self.working_set, int(self.floor_pairs * pair))
+        return self.base + max(raw, (in_flight + 1) * pair) + work
 
     def _decide(self) -> tuple[bool, str]:
         if rss_bytes() > self.budget:
             malloc_trim()
-        rss = self._held()
-        self._learn(rss)
+        _rss, raw, rest = self._memory()
+        self._learn(rest)
         if not self._in_flight:
             return True, ""
+        n = len(self._in_flight)
         pair = self.pair_bytes()
-        work = max(self.working_set, WORKING_SET_PAIRS * pair)
-        need = self.base + (len(self._in_flight) + 1) * pair + work
+        need = self.need(n, raw)
         mb = 2**20
+        # Consecutive pairs overlap in time: a budget below this sheds at any rate.
+        least = self.need(1)
+        short = (
+            f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
+            f"any rate: memory_budget_mb >= {least / mb:.0f} would)"
+            if least > self.budget
+            else ""
+        )
         if need > self.budget:
+            work = max(self.working_set, int(self.floor_pairs * pair))
             return False, (
-                f"{len(self._in_flight)} pairs in flight; with this one it would need "
-                f"{need / mb:.0f} MB (start-up {self.base / mb:.0f} MB + "
-                f"{len(self._in_flight) + 1} x {pair / mb:.0f} MB + working set "
-                f"{work / mb:.0f} MB), over memory_budget_mb {self.budget / mb:.0f} MB"
+                f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
+                f"(start-up {self.base / mb:.0f} MB + raw data "
+                f"{max(raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
+                f"held + working set {work / mb:.0f} MB), over memory_budget_mb "
+                f"{self.budget / mb:.0f} MB{short}"
             )
-        if rss > self.budget:
-            return False, (
-                f"memory held {rss / mb:.0f} MB (resident, less the free heap kept for "
-                f"reuse) is over memory_budget_mb "
-                f"{self.budget / mb:.0f} MB"
-            )
+        # need >= the resident memory now (start-up + raw + the rest's excess, the working
+        # set being at least this sample): a node over its budget sheds by the sum above.
         return True, ""
 
     def _prune(self) -> None:
@@ -396,9 +434,9 @@ class PairAdmission:
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
-        rss = self._held()  # the pair's working set is still held
+        rest = self._memory()[2]  # the pair's working set is still held
         with self._lock:
-            self._learn(rss)
+            self._learn(rest)
             group = self._scene_group.get((view, scene_id))
             if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
                 group = min(self._in_flight)  # come out in order, so it is the oldest one
@@ -493,7 +531,8 @@ class ParprojNode(Node):
             vals["views"],
             float(vals["memory_budget_mb"]),
             config.scene_lines,
-            lambda: sum(a.pool.held_bytes for a in self.pipeline.assemblers.values()),
+            self._raw_held,
+            WORKING_SET_PAIRS if config.streaming else WHOLE_IMAGE_WORKING_SET_PAIRS,
         )
         self.counts = {
             "strips": 0,
@@ -512,6 +551,7 @@ class ParprojNode(Node):
         self._closed = False  # set at shutdown: nothing more is published
         self._queue: queue.Queue[tuple[InputKind, Any] | None] = queue.Queue()
         self._queue_peak = 0  # longest input queue since the last 1 Hz summary, items
+        self._queued_bytes = 0  # pixels of the strips in the queue, bytes
         # Inputs: sensor-data QoS (REP 2003: best effort, volatile) with a deep queue, since a
         # strip lost is a gap in a scene; reliability can be overridden per topic
         # (qos_overrides.<topic>.subscription.reliability) for lossless replay.
@@ -746,8 +786,16 @@ class ParprojNode(Node):
 
     def _enqueue(self, item: tuple[InputKind, Any]) -> None:
         """Queue an input for the worker and keep the queue's peak length for the summary."""
+        if item[0] == InputKind.STRIP:
+            with self._counts_lock:
+                self._queued_bytes += item[1][3].nbytes
         self._queue.put(item)
         self._queue_peak = max(self._queue_peak, self._queue.qsize())
+
+    def _raw_held(self) -> int:
+        """Raw scene data the node holds: line buffers (kept or in use), queued strips, bytes."""
+        lines = sum(a.pool.live_bytes for a in list(self.pipeline.assemblers.values()))
+        return lines + self._queued_bytes
 
     def _count(self, key: str, n: int = 1) -> None:
         """Add to a summary counter (callbacks and the worker count from two threads)."""
@@ -762,7 +810,11 @@ class ParprojNode(Node):
             try:
                 if item is None:
                     return
+                if item[0] == InputKind.STRIP:
+                    with self._counts_lock:
+                        self._queued_bytes -= item[1][3].nbytes
                 self._handle(*item)
+                self.admission.sample()
             except BaseException as err:  # _handle catches Exception; this is the last guard
                 self.internal_error(f"an input ({item[0] if item else item})", err)
             finally:
@@ -1053,6 +1105,9 @@ class ParprojNode(Node):
                         ("gcp_points", len(self.pipeline.gcp)),
                         ("pairs_in_flight", self.admission.in_flight),
                         ("working_set_mb", f"{self.admission.working_set / 2**20:.0f}"),
+                        ("raw_mb", f"{self._raw_held() / 2**20:.0f}"),
+                        ("startup_mb", f"{self.admission.base / 2**20:.0f}"),
+                        ("held_mb", f"{held_bytes() / 2**20:.0f}"),
                         ("rss_mb", f"{rss_bytes() / 2**20:.0f}"),
                         ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
                         ("worker", "dead" if not self._worker.is_alive() else "alive"),

@@ -343,3 +343,21 @@ def test_streamed_scene_reuses_the_front_of_its_buffer() -> None:
         asm.release(8 * k + 4)  # keep the last 4 lines
     assert asm._open is not None and asm._open.data is not None
     assert asm._open.data.high <= 32  # of the 400 lines that went through it
+
+
+def test_pool_live_bytes_count_every_array_alive_kept_or_not() -> None:
+    """live_bytes: the arrays kept plus those allocated while the pool was full, as long as a
+    scene holds them (what the overload admission reads as raw data held)."""
+    from parproj_ros.imaging.assembly import BufferPool
+
+    pool = BufferPool(keep=1)
+    a = pool.take(4, 10, np.dtype(np.uint16))  # kept
+    b = pool.take(4, 10, np.dtype(np.uint16))  # pool full, a in use: not kept, alive via b
+    assert pool.held_bytes == 80
+    assert pool.live_bytes == 160
+    del b
+    assert pool.live_bytes == 80
+    del a  # kept by the pool: still alive
+    assert pool.live_bytes == 80
+    pool.clear()
+    assert pool.live_bytes == 0

@@ -4,7 +4,7 @@ parproj_node runs in its own process with a small ``memory_budget_mb``; the synt
 acquisition of the benchmark (parproj_ros.sim.synthetic, 2048 x 2048 scenes, whole-image pairs,
 no tie points) is published open-loop: 2 pairs at the sensor rate (warm-up), 7 at 12 times the
 sensor rate (the overload: 2-4 times what the node sustains here, on the shared machine),
-then 5 at half the sensor rate (the load drops). 13-20 s. Checked:
+then 6 at half the sensor rate (the load drops). 13-25 s. Checked:
 
 - it shed whole pairs, each reported by a WARN on /diagnostics naming the scene and the reason,
   and counted in the 1 Hz summary (pairs_shed, scenes_shed, strips_shed);
@@ -15,7 +15,7 @@ then 5 at half the sensor rate (the load drops). 13-20 s. Checked:
   shed, never both; shed strips = the strips of the shed scenes;
 - it catches up: the last pairs, sent after the load dropped, are all published (xfail:
   not reliable yet, see the test);
-- the resident memory stays under the budget (xfail: not yet, see the test).
+- the resident memory (VmHWM, sampled every 50 ms and read at the end) stays under the budget.
 """
 
 from __future__ import annotations
@@ -34,18 +34,20 @@ from parproj_ros.sim.synthetic import VIEWS, StripMessages, acquisition, make_pl
 pytestmark = pytest.mark.ros  # live node over DDS
 
 LINES, DETECTORS, STRIP_LINES = 2048, 2048, 256
-PAIRS = 14
+PAIRS = 15
 #: (first pair, rate x the sensor's) of each phase: a warm-up at the sensor rate (the node
 #: learns its working set), the overload, then the load drops: the node must publish all of
 #: the last phase's pairs.
 PHASES = ((0, 1.0), (2, 12.0), (9, 0.5))
 #: Pairs after the load drops that the node may still shed.
-CATCH_UP_PAIRS = 2
-#: Start-up memory (about 90 MB) + a working set (first assumed 2 raw pairs, then learned:
-#: whole images, and what Fast DDS keeps of the outputs) + raw pairs of 16 MB in flight: tight
-#: enough that the node sheds during the overload. (250 MB and 6x no longer overloaded the node
-#: reliably once it reused its memory: 2 runs of 3 shed nothing.)
-BUDGET_MB = 200.0
+CATCH_UP_PAIRS = 3
+#: The least budget that holds two overlapping pairs (consecutive pairs overlap in time) is
+#: start-up (about 97 MB) + 2 raw pairs (32 MB) + the working set learnt for a whole-image pair
+#: at this size (100-120 MB: normalized images, messages, DDS), about 250 MB; 280 MB holds 3-4
+#: pairs in flight, so the burst sheds (it did in every run at 280 MB, 2026-11-24). Below
+#: 250 MB every pair that overlaps its predecessor is shed, at any rate (200 MB was: the node
+#: never caught up).
+BUDGET_MB = 280.0
 #: y-parallax tolerance of the pair checks elsewhere (tests/apps/test_import.py), px.
 Y_PARALLAX_MAX_PX = 0.05
 
@@ -331,14 +333,6 @@ def test_overload_sheds_whole_pairs_and_counts_add_up(
     assert int(s["internal_errors"]) == 0 and int(s["errors"]) == 0, s
 
 
-@pytest.mark.xfail(
-    reason="issue 11, not done: the budget is exceeded transiently. Under a burst the node's "
-    "Python executor takes strips more slowly than they come, and the backlog waits in the DDS "
-    "reader's history (reliable, depth 1000), outside what the admission sees; and one "
-    "whole-image pair at 2048 x 2048 needs 150-250 MB (about 12 raw pairs) of working set "
-    "(RELIABILITY.md, Overload)",
-    strict=False,
-)
 def test_overload_node_memory_stays_under_budget(overload: dict[str, Any]) -> None:
     hwm = overload["hwm"]
     assert 0 < hwm < BUDGET_MB, (
@@ -347,10 +341,11 @@ def test_overload_node_memory_stays_under_budget(overload: dict[str, Any]) -> No
 
 
 @pytest.mark.xfail(
-    reason="issue 11, not done: after the burst the node keeps what Fast DDS holds for its "
-    "reliable outputs (whole images, depth 10) and the burst's buffers, so its resident memory "
-    "can stay near the budget and the admission (resident memory over the budget, or the "
-    "working set learnt in the burst) still sheds pairs sent after the load dropped",
+    reason="issue 11, not done: over UDP loopback the burst loses datagrams and reliable "
+    "delivery holds every later sample of a reader until the writer's next heartbeat repairs "
+    "the gap (seconds): the node, idle meanwhile (py-spy: both threads waiting), then receives "
+    "the pairs sent after the load dropped all at once, while the burst's pairs are still in "
+    "flight, and sheds them (1 run of 7 passed, 2026-11-24; RELIABILITY.md, Overload)",
     strict=False,
 )
 def test_overload_catches_up_when_the_load_drops(overload: dict[str, Any]) -> None:

@@ -1,0 +1,135 @@
+"""PairAdmission (ros/node.py): the sum it admits by, read with memory readings set by the test.
+
+The live behaviour under overload is tests/ros/test_overload_live.py; here each term of the
+rule (README, "Overload: memory_budget_mb") is checked on its own, in bytes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+pytestmark = pytest.mark.ros  # parproj_ros.ros.node imports rclpy
+
+MB = 2**20
+ROW = 2 * 1024  # bytes per line: 1024 detectors, uint16
+LINES = 1024  # scene lines: a scene is 2 MB, a raw pair 4 MB
+
+
+class Memory:
+    """The readings the admission takes: resident memory and raw data held, bytes."""
+
+    def __init__(self) -> None:
+        self.rss = 100 * MB
+        self.raw = 0
+
+    def raw_held(self) -> int:
+        return self.raw
+
+
+@pytest.fixture
+def mem(monkeypatch: pytest.MonkeyPatch) -> Memory:
+    from parproj_ros.ros import node
+
+    m = Memory()
+    monkeypatch.setattr(node, "rss_bytes", lambda: m.rss)
+    monkeypatch.setattr(node, "malloc_trim", lambda: None)
+    return m
+
+
+def make(mem: Memory, budget_mb: float) -> Any:
+    from parproj_ros.ros.node import PairAdmission
+
+    return PairAdmission(["left", "right"], budget_mb, LINES, mem.raw_held)
+
+
+def first_strip(adm: Any, k: int, view: str = "left") -> tuple[bool, list[Any], bool]:
+    """The first strip (100 lines) of scene k of a view."""
+    return adm.admit(view, f"{view}_{k:04d}", 100, 100 * ROW)
+
+
+def test_nothing_in_flight_is_always_admitted(mem: Memory) -> None:
+    adm = make(mem, 64.0)  # start-up alone (100 MB) is over it
+    ok, issues, _ = first_strip(adm, 0)
+    assert ok and not issues and adm.in_flight == 1
+    assert adm.base == 100 * MB
+
+
+def test_admitted_while_the_sum_fits_then_shed_with_its_figures(mem: Memory) -> None:
+    # start-up 100 MB; pair 4 MB; working set at least 2 pairs (8 MB) before it is learnt:
+    # with n in flight the new pair needs 100 + (n + 1) x 4 + 8 MB.
+    adm = make(mem, 100 + 3 * 4 + 8)  # fits 2 in flight + the new one, not 3
+    for k in range(3):
+        ok, issues, _ = first_strip(adm, k)
+        assert ok and not issues, (k, issues)
+    ok, issues, _ = first_strip(adm, 3)
+    assert not ok and adm.in_flight == 3
+    (iss,) = issues
+    assert "overload: pair 3" in iss.message and "3 pairs in flight" in iss.message
+    assert "would need 124 MB" in iss.message, iss.message  # 100 + 4 x 4 + 8
+    assert adm.counts == {"pairs_shed": 1, "scenes_shed": 1, "strips_shed": 1}
+    # The pair's next strip: shed too, without a second WARN.
+    ok, issues, _ = adm.admit("left", "left_0003", 100, 100 * ROW)
+    assert not ok and not issues and adm.counts["strips_shed"] == 2
+
+
+def test_raw_data_held_counts_when_above_the_pairs_in_flight(mem: Memory) -> None:
+    adm = make(mem, 100 + 3 * 4 + 8)
+    first_strip(adm, 0)
+    first_strip(adm, 1)
+    # Line buffers kept and queued strips: 20 MB held, more than 2 pairs in flight + 1 (12 MB).
+    mem.raw = 20 * MB
+    mem.rss = 120 * MB  # the raw data is resident: the rest is still the start-up memory
+    ok, issues, _ = first_strip(adm, 2)
+    assert not ok
+    assert "would need 128 MB" in issues[0].message  # 100 + 20 + 8
+
+
+def test_working_set_is_the_peak_seen_between_decisions(mem: Memory) -> None:
+    adm = make(mem, 1000.0)
+    first_strip(adm, 0)
+    mem.rss = 160 * MB  # the worker's reading during the pair: 60 MB beyond start-up
+    adm.sample()
+    mem.rss = 120 * MB  # lower again at the next decision (a transient)
+    first_strip(adm, 1)
+    assert adm.working_set == 60 * MB
+    # Forgotten after WORKING_SET_SAMPLES later samples without it (the load dropped).
+    from parproj_ros.ros.node import WORKING_SET_SAMPLES
+
+    for k in range(2, 2 + WORKING_SET_SAMPLES):
+        first_strip(adm, k)
+    assert adm.working_set == 20 * MB
+
+
+def test_resident_memory_over_the_budget_sheds(mem: Memory) -> None:
+    adm = make(mem, 200.0)
+    first_strip(adm, 0)
+    mem.rss = 210 * MB  # 110 MB beyond start-up, none of it raw data: learnt as working set
+    ok, issues, _ = first_strip(adm, 1)
+    assert not ok and "would need 218 MB" in issues[0].message  # 100 + 2 x 4 + 110
+
+
+def test_a_budget_that_cannot_hold_two_pairs_says_which_would(mem: Memory) -> None:
+    # Consecutive pairs overlap: with one in flight the least need is 100 + 2 x 4 + 8 = 116 MB.
+    adm = make(mem, 110.0)
+    first_strip(adm, 0)
+    ok, issues, _ = first_strip(adm, 1)
+    assert not ok
+    assert "cannot hold two pairs in flight" in issues[0].message
+    assert "memory_budget_mb >= 116 would" in issues[0].message
+    # A budget that holds two pairs does not say it.
+    adm = make(mem, 130.0)
+    shed = [first_strip(adm, k) for k in range(6)]
+    assert [ok for ok, _, _ in shed] == [True] * 5 + [False]  # 100 + 6 x 4 + 8 > 130
+    assert "cannot hold" not in shed[5][1][0].message
+
+
+def test_published_pair_leaves_the_flight(mem: Memory) -> None:
+    adm = make(mem, 100 + 2 * 4 + 8)  # fits 1 in flight + the new one
+    first_strip(adm, 0)
+    first_strip(adm, 1)
+    assert not first_strip(adm, 2)[0]
+    adm.published("left", "left_0001")  # pair 1 and every earlier one
+    assert adm.in_flight == 0
+    assert first_strip(adm, 3)[0]
