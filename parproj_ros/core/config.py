@@ -463,8 +463,9 @@ PARAMS: tuple[Param, ...] = (
         "bounds the node's resident memory: a pair (both scenes) is admitted at its first strip "
         "only if the start-up memory, the raw data held (line buffers, queued strips) or one raw "
         "pair for each pair in flight (admitted, not yet published) and the new one, and the "
-        "working set (learnt from the resident memory) fit; otherwise every strip of both its "
-        "scenes is shed, counted and reported on /diagnostics (README, Overload). It must hold "
+        "working set (learnt from the memory held) fit in it less 5 % headroom; otherwise every "
+        "strip of both its scenes is shed, counted and reported on /diagnostics (README, "
+        "Overload). It must hold "
         "two pairs in flight (consecutive pairs overlap), or pairs are shed at any rate (the WARN "
         "names the least budget that would); 6144 MB: 3 IKONOS-size pairs (737 MB each) in flight "
         "with the 3.3 GB peak measured at that size",

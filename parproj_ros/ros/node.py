@@ -214,12 +214,18 @@ NAV_DRAIN_MAX = 100
 #: 2048 x 2048: about 13).
 WORKING_SET_PAIRS = 2
 #: The same when pairs are normalized as whole images (``streaming`` false): both normalized
-#: images, their messages and what DDS copies of them; learnt 100-145 MB, 6-9 raw pairs, at
-#: 2048 x 2048 (tests/ros/test_overload_live.py, 2026-11-24).
+#: images, their messages and what DDS copies of them. At 2048 x 2048 the memory held beyond
+#: start-up and raw data was 52-89 MB (3-6 raw pairs) and the resident memory 100-145 MB
+#: (6-9: fragmentation, DDS) (tests/ros/test_overload_live.py, 2026-11-24); 8 keeps the
+#: resident memory under the budget in that test.
 WHOLE_IMAGE_WORKING_SET_PAIRS = 8
 #: Resident memory samples (two per pair: at its decision and at its publication) over which
 #: the working set is the largest.
 WORKING_SET_SAMPLES = 4
+#: Share of ``memory_budget_mb`` the admission leaves free: what it cannot foresee, the strips
+#: DDS holds before the executor takes them and heap fragmentation (the overload test went
+#: 1-4 % over its budget without it, 2026-11-24).
+HEADROOM = 0.05
 
 
 @dataclass
@@ -247,22 +253,22 @@ class PairAdmission:
     rest. The start-up memory is the rest at the first strip; the working set (normalized
     images, messages being sent, DDS buffers, a strip backlog in DDS) is the largest excess of
     the rest over the start-up memory in the last :data:`WORKING_SET_SAMPLES` samples, taken at
-    each decision and each pair published (so a burst's transient is forgotten once the load
-    drops), and at least ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`, or
+    each decision and each pair published, each holding the peak the worker read (:meth:`sample`,
+    after every input) since the one before; a burst's transient is forgotten once the load
+    drops. It is at least ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`, or
     :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are normalized as whole images). A pair
     is admitted when
 
         start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working set
 
-    is within the budget (when the resident memory is over the budget, the free heap is first
-    given back; the sum is never below the resident memory, the working set including the
-    present excess). Otherwise every strip of the pair is
-    shed (dropped in the subscription callback, before conversion or queueing) and one WARN says
-    so. A pair is in flight from its admission until its StereoPair is published (with every
-    earlier one), or the flush. With nothing in flight a pair is always admitted (the node can
-    hold no less); when the budget cannot hold two pairs in flight (consecutive pairs overlap
-    in time: the fore view's next scene begins before the aft view's scene ends), the WARN says
-    so and names the budget that would.
+    is within the budget less :data:`HEADROOM` (when the resident memory is over the budget,
+    the free heap is first given back). Otherwise every strip of the pair is shed (dropped in
+    the subscription callback, before conversion or queueing) and one WARN says so. A pair is
+    in flight from its admission until its StereoPair is published (with every earlier one),
+    or the flush. With nothing in flight a pair is always admitted (the node can hold no
+    less); when the budget cannot hold two pairs in flight (consecutive pairs overlap in time:
+    the fore view's next scene begins before the aft view's scene ends), the WARN says so and
+    names the budget that would.
 
     Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
     """
@@ -357,10 +363,14 @@ class PairAdmission:
             return ok, issues, close
 
     def _memory(self) -> tuple[int, int, int]:
-        """(resident memory, raw data held, the rest), bytes."""
-        rss = rss_bytes()
-        raw = min(rss, max(0, int(self.raw_held())))
-        return rss, raw, rss - raw
+        """(resident memory, raw data held, the rest of what is held), bytes.
+
+        Held: resident less the free heap glibc keeps for reuse (:func:`held_bytes`), which the
+        next allocations take before the resident memory grows again.
+        """
+        held = held_bytes()
+        raw = min(held, max(0, int(self.raw_held())))
+        return rss_bytes(), raw, held - raw
 
     def _group_of(self, ordinal: int) -> int:
         return ordinal // 2 if self.single else ordinal
@@ -378,12 +388,21 @@ class PairAdmission:
     def sample(self) -> None:
         """Read the memory now (the worker, after each input): keeps the peak between samples.
 
-        Resident memory rarely falls (glibc keeps freed heap), so a reading after each input
-        holds that input's peak (normalization, messages, DDS) for the next decision.
+        Freed heap stays resident for reuse, so a reading after each input holds most of that
+        input's peak (normalization, messages, DDS) for the next decision. When the resident
+        memory is over the budget less :data:`HEADROOM`, the free heap is given back
+        (``malloc_trim``): a fragmented heap otherwise grows the resident memory pair by pair.
         """
-        rest = self._memory()[2]
+        rss, _, rest = self._memory()
+        if rss > self.usable:  # free heap kept beyond what the budget leaves: given back
+            malloc_trim()
         with self._lock:
             self._peak_rest = max(self._peak_rest, rest)
+
+    @property
+    def usable(self) -> int:
+        """The budget less :data:`HEADROOM`, bytes: what admitted pairs may need."""
+        return int(self.budget * (1 - HEADROOM))
 
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
@@ -402,25 +421,25 @@ class PairAdmission:
         pair = self.pair_bytes()
         need = self.need(n, raw)
         mb = 2**20
+        usable = self.usable
         # Consecutive pairs overlap in time: a budget below this sheds at any rate.
         least = self.need(1)
         short = (
             f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
-            f"any rate: memory_budget_mb >= {least / mb:.0f} would)"
-            if least > self.budget
+            f"any rate: memory_budget_mb >= {math.ceil(least / (1 - HEADROOM) / mb)} would)"
+            if least > usable
             else ""
         )
-        if need > self.budget:
+        if need > usable:
             work = max(self.working_set, int(self.floor_pairs * pair))
             return False, (
                 f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
                 f"(start-up {self.base / mb:.0f} MB + raw data "
                 f"{max(raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
-                f"held + working set {work / mb:.0f} MB), over memory_budget_mb "
-                f"{self.budget / mb:.0f} MB{short}"
+                f"held + working set {work / mb:.0f} MB), over {usable / mb:.0f} MB "
+                f"(memory_budget_mb {self.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
+                f"{short}"
             )
-        # need >= the resident memory now (start-up + raw + the rest's excess, the working
-        # set being at least this sample): a node over its budget sheds by the sum above.
         return True, ""
 
     def _prune(self) -> None:

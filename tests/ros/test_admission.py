@@ -22,6 +22,7 @@ class Memory:
 
     def __init__(self) -> None:
         self.rss = 100 * MB
+        self.free = 0  # free heap glibc keeps (resident, reused before the resident grows)
         self.raw = 0
 
     def raw_held(self) -> int:
@@ -34,14 +35,18 @@ def mem(monkeypatch: pytest.MonkeyPatch) -> Memory:
 
     m = Memory()
     monkeypatch.setattr(node, "rss_bytes", lambda: m.rss)
+    monkeypatch.setattr(node, "held_bytes", lambda: m.rss - m.free)
     monkeypatch.setattr(node, "malloc_trim", lambda: None)
     return m
 
 
-def make(mem: Memory, budget_mb: float) -> Any:
-    from parproj_ros.ros.node import PairAdmission
+def make(mem: Memory, usable_mb: float) -> Any:
+    """An admission whose budget less the headroom is ``usable_mb``."""
+    from parproj_ros.ros.node import HEADROOM, PairAdmission
 
-    return PairAdmission(["left", "right"], budget_mb, LINES, mem.raw_held)
+    adm = PairAdmission(["left", "right"], usable_mb / (1 - HEADROOM) + 1e-6, LINES, mem.raw_held)
+    assert adm.usable == int(usable_mb * MB)
+    return adm
 
 
 def first_strip(adm: Any, k: int, view: str = "left") -> tuple[bool, list[Any], bool]:
@@ -102,22 +107,23 @@ def test_working_set_is_the_peak_seen_between_decisions(mem: Memory) -> None:
     assert adm.working_set == 20 * MB
 
 
-def test_resident_memory_over_the_budget_sheds(mem: Memory) -> None:
+def test_memory_over_the_budget_sheds(mem: Memory) -> None:
     adm = make(mem, 200.0)
     first_strip(adm, 0)
-    mem.rss = 210 * MB  # 110 MB beyond start-up, none of it raw data: learnt as working set
+    mem.rss = 210 * MB  # 110 MB held beyond start-up, none of it raw data: the working set
     ok, issues, _ = first_strip(adm, 1)
     assert not ok and "would need 218 MB" in issues[0].message  # 100 + 2 x 4 + 110
 
 
 def test_a_budget_that_cannot_hold_two_pairs_says_which_would(mem: Memory) -> None:
-    # Consecutive pairs overlap: with one in flight the least need is 100 + 2 x 4 + 8 = 116 MB.
+    # Consecutive pairs overlap: with one in flight the least need is 100 + 2 x 4 + 8 = 116 MB,
+    # 122.1 MB of budget with the 5 % headroom.
     adm = make(mem, 110.0)
     first_strip(adm, 0)
     ok, issues, _ = first_strip(adm, 1)
     assert not ok
     assert "cannot hold two pairs in flight" in issues[0].message
-    assert "memory_budget_mb >= 116 would" in issues[0].message
+    assert "memory_budget_mb >= 123 would" in issues[0].message
     # A budget that holds two pairs does not say it.
     adm = make(mem, 130.0)
     shed = [first_strip(adm, k) for k in range(6)]
@@ -133,3 +139,14 @@ def test_published_pair_leaves_the_flight(mem: Memory) -> None:
     adm.published("left", "left_0001")  # pair 1 and every earlier one
     assert adm.in_flight == 0
     assert first_strip(adm, 3)[0]
+
+
+def test_free_heap_kept_is_not_working_set(mem: Memory) -> None:
+    """After a burst the resident memory stays up (glibc keeps the freed heap for reuse); the
+    pairs that follow reuse it, so it does not count: the node catches up."""
+    adm = make(mem, 100 + 2 * 4 + 8)  # fits 1 in flight + the new one
+    first_strip(adm, 0)
+    mem.rss, mem.free = 300 * MB, 200 * MB  # the burst is over: 200 MB of it free heap
+    ok, issues, _ = first_strip(adm, 1)
+    assert ok and not issues
+    assert adm.working_set == 0
