@@ -5,7 +5,6 @@ Outputs are logged at the log time of the input message that produced them.
 
 from __future__ import annotations
 
-import contextlib
 import queue
 import threading
 from collections.abc import Callable, Iterable, Iterator
@@ -27,6 +26,8 @@ T = TypeVar("T")
 #: 8 (a full-size strip or block is 14 MB: about 110 MB each at most).
 READ_AHEAD = 8
 WRITE_BEHIND = 8
+#: On an error or a signal, the longest wait for each of the two threads, s.
+ABORT_TIMEOUT_S = 5.0
 
 
 class _Failure:
@@ -83,10 +84,16 @@ class ReadAhead(Generic[T]):
                 raise item.err
             yield item
 
-    def close(self) -> None:
-        """Stop reading ahead and wait for the thread (items not taken are dropped)."""
+    def close(self, timeout: float | None = None) -> None:
+        """Stop reading ahead and wait for the thread (items not taken are dropped).
+
+        ``timeout`` (s): wait no longer (the error path). A SIGINT/SIGTERM exception raised in
+        the consumer just as it took the queue's lock can leave that lock held (the exception
+        comes between the acquire and the ``with`` block: bpo-29988); the thread then never
+        returns, and is left behind (a daemon: the process still exits).
+        """
         self._stop.set()
-        self._thread.join()
+        self._thread.join(timeout)
 
 
 class WriteBehind:
@@ -103,12 +110,18 @@ class WriteBehind:
         self._bag = bag
         self._q: queue.Queue[tuple[str, Any, int] | None] = queue.Queue(maxsize=max(depth, 1))
         self.error: BaseException | None = None
+        self._closing = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bag-write-behind", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while True:
-            item = self._q.get()
+            try:
+                item = self._q.get(timeout=0.1)
+            except queue.Empty:
+                if self._closing.is_set():  # abort(): everything queued is written
+                    return
+                continue
             if item is None:
                 self._q.task_done()
                 return
@@ -149,6 +162,16 @@ class WriteBehind:
         self._thread.join()
         if self.error is not None:
             raise self.error
+
+    def abort(self, timeout: float) -> None:
+        """The error path: the thread writes what is queued and stops; wait ``timeout`` s.
+
+        Takes no lock of the queue (a SIGINT/SIGTERM exception may have left it held: see
+        :meth:`ReadAhead.close`); a thread that does not end in time is left behind (a daemon).
+        Write errors are not raised: the run's own error is.
+        """
+        self._closing.set()
+        self._thread.join(timeout)
 
 
 @dataclass
@@ -300,11 +323,11 @@ def process_bag(
             emit(pipe.flush(), last)
         except BaseException:
             try:
-                inputs.close()
+                inputs.close(timeout=ABORT_TIMEOUT_S)
                 bar.close()
             finally:
-                with contextlib.suppress(BaseException):
-                    writer.close()  # the outputs queued so far; the run's error is raised
+                # The outputs queued so far; the run's error is raised.
+                writer.abort(timeout=ABORT_TIMEOUT_S)
             raise
         inputs.close()
         bar.close()

@@ -77,3 +77,35 @@ def test_write_behind_error_raised_and_later_messages_dropped() -> None:
     assert bag.written[0] == ("t", 1, 1)
     assert all(m != 2 for _, m, _ in bag.written)
     assert not wb._thread.is_alive()
+
+
+def test_error_path_never_hangs_on_a_queue_lock_a_signal_left_held() -> None:
+    """A SIGTERM exception raised in the main thread just after it took a queue's lock (before
+    the ``with`` block: bpo-29988) leaves the lock held; ``parproj process`` then hung in
+    ReadAhead.close (seen under load: py-spy showed the reader waiting for the lock and the
+    main thread joining it). The error path now waits a bounded time and leaves the daemon
+    threads behind."""
+    ra = ReadAhead(iter(range(10_000)), depth=2)
+    assert next(iter(ra)) == 0
+    ra._q.mutex.acquire()  # what the interrupted get() left
+    t0 = time.monotonic()
+    ra.close(timeout=0.5)
+    assert time.monotonic() - t0 < 2.0
+    bag = _Bag(delay_s=0.002)
+    wb = WriteBehind(bag, depth=2)  # type: ignore[arg-type]
+    for i in range(3):
+        wb.write("t", i, i)
+    wb._q.mutex.acquire()  # the same, in write()
+    t0 = time.monotonic()
+    wb.abort(timeout=0.5)
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_write_behind_abort_writes_what_is_queued() -> None:
+    bag = _Bag(delay_s=0.002)
+    wb = WriteBehind(bag, depth=8)  # type: ignore[arg-type]
+    for i in range(5):
+        wb.write("t", i, i)
+    wb.abort(timeout=5.0)
+    assert not wb._thread.is_alive()
+    assert [m for _, m, _ in bag.written] == list(range(5))
