@@ -37,6 +37,9 @@ SHM_PROFILE_ENV = {
     "RMW_IMPLEMENTATION": "rmw_fastrtps_cpp",
     "FASTDDS_DEFAULT_PROFILES_FILE": str(SHM_PROFILE),
 }
+#: The profile for a sensor publishing large samples over UDP: its reliable writers heartbeat
+#: every 100 ms, not every 3 s (README, "Overload"; a datagram lost otherwise stalls a reader).
+FAST_REPAIR_PROFILE = ROOT / "config" / "fastdds_fast_repair.xml"
 
 
 def join_ros_domain(
@@ -45,12 +48,15 @@ def join_ros_domain(
     *,
     check_fields: bool = True,
     shm: bool = False,
+    fast_repair: bool = False,
 ) -> dict[str, str]:
     """The node's environment (:func:`parproj_ros.ros.live.ros_environment`); we join it.
 
     ``check_fields`` sets the node's ROS_PYTHON_CHECK_FIELDS (the tests' 1, or 0 as deployed).
     ``shm`` selects the shared-memory profile (config/fastdds_shm.xml) for the node and this
-    process; without it a profile file set in the environment is removed. Fast DDS loads the
+    process; else ``fast_repair`` selects config/fastdds_fast_repair.xml (default transports,
+    reliable writers heartbeating every 100 ms); with neither, a profile file set in the
+    environment is removed. Fast DDS loads the
     profile once per process (at its first participant), so a process keeps what it had then.
     The discovery range, domain, log folder and profile are also set in ``os.environ``, so that
     the rclpy context this process opens afterwards is on the node's domain.
@@ -62,6 +68,10 @@ def join_ros_domain(
     for key, value in SHM_PROFILE_ENV.items():
         if shm:
             env[key] = os.environ[key] = value
+        elif fast_repair:
+            env[key] = os.environ[key] = (
+                str(FAST_REPAIR_PROFILE) if key == "FASTDDS_DEFAULT_PROFILES_FILE" else value
+            )
         elif key != "RMW_IMPLEMENTATION":
             env.pop(key, None)
             os.environ.pop(key, None)

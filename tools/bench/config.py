@@ -45,6 +45,9 @@ class BenchConfig:
         passthrough_rates: sensor-rate multiples at which the pass-through node (the transport
             ceiling) is measured, open-loop.
         shm: run every process with the shared-memory profile config/fastdds_shm.xml.
+        fast_repair: without ``shm``, run every process with config/fastdds_fast_repair.xml
+            (default transports; reliable writers heartbeat every 100 ms instead of 3 s, as
+            the README advises a sensor on UDP).
         memory_budget_mb: the node's memory_budget_mb (None: its default).
         image_compression: chunk compression of the offline output bag's image topics
             ("zstd", "lz4", "none"; None: the bag's zstd).
@@ -78,6 +81,7 @@ class BenchConfig:
     min_sustained: float = 0.95
     passthrough_rates: tuple[float, ...] = (1.0, 2.0)
     shm: bool = False
+    fast_repair: bool = True
     memory_budget_mb: float | None = None
     image_compression: str | None = None
     input_compression: str = "none"

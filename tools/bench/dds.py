@@ -168,7 +168,11 @@ def bench_live(
     workdir.mkdir(parents=True, exist_ok=True)
     plat = make_platform(cfg.lines, cfg.detectors)
     env = join_ros_domain(
-        domain_id, workdir / "ros_log", check_fields=cfg.check_fields, shm=cfg.shm
+        domain_id,
+        workdir / "ros_log",
+        check_fields=cfg.check_fields,
+        shm=cfg.shm,
+        fast_repair=cfg.fast_repair,
     )
     inputs = ["/navigation"] + [f"/{v}/image_strip" for v in VIEWS]
     extra = dict(node_params or {})
@@ -209,6 +213,7 @@ def bench_live(
         "pairs_ahead": cfg.pairs_ahead,
         "paced": cfg.paced,
         "shm": cfg.shm,
+        "fast_repair": cfg.fast_repair and not cfg.shm,
         "latency_limit_s": cfg.latency_limit_s,
         "node_params": extra,
         "error": None,
@@ -218,6 +223,7 @@ def bench_live(
         f"strips, {sensor_s:.2f} s of sensor data at {res['input_mb_s']:.0f} MB/s, "
         f"{'paced by the node' if cfg.paced else 'open-loop'}"
         f"{', shared-memory profile' if cfg.shm else ''}"
+        f"{', writers heartbeat 100 ms' if cfg.fast_repair and not cfg.shm else ''}"
     )
     node = NodeProcess(pfile, env, workdir / "node.log")
     mon = RssMonitor(node.proc.pid, kill_above_mb=cfg.kill_above_mb)
@@ -606,6 +612,7 @@ def bench_transport(
             for rate in cfg.passthrough_rates
         ],
         "shm": cfg.shm,
+        "fast_repair": cfg.fast_repair and not cfg.shm,
     }
 
 
@@ -629,7 +636,11 @@ def _passthrough_at(
 
     plat = make_platform(cfg.lines, cfg.detectors)
     env = join_ros_domain(
-        domain_id, workdir / "ros_log", check_fields=cfg.check_fields, shm=cfg.shm
+        domain_id,
+        workdir / "ros_log",
+        check_fields=cfg.check_fields,
+        shm=cfg.shm,
+        fast_repair=cfg.fast_repair,
     )
     strips = StripMessages(plat, cfg.strip_lines)
     raw = SerializedStrips(strips)

@@ -38,6 +38,7 @@ def summary_keys(res: dict[str, Any]) -> dict[str, Any]:
         "sustained_realtime_factor": lv.get("sustained_realtime_factor"),
         "paced": lv.get("paced"),
         "shm": lv.get("shm"),
+        "fast_repair": lv.get("fast_repair"),
         "pairs_shed": lv.get("pairs_shed"),
         "held_back_s": lv.get("held_back_s"),
         "latency_s": (lv.get("latency_s") or {}).get("median"),
@@ -163,6 +164,18 @@ _TRANSPORTS = {
     True: "Fast DDS shared-memory profile config/fastdds_shm.xml",
     False: "default transports",
 }
+
+
+def _transports(lv: dict[str, Any]) -> str:
+    """The transports of a live run, as its report names them."""
+    if lv.get("shm"):
+        return _TRANSPORTS[True]
+    if lv.get("fast_repair"):
+        return (
+            "default transports, reliable writers heartbeating every 100 ms "
+            "(config/fastdds_fast_repair.xml)"
+        )
+    return _TRANSPORTS[False] + " (heartbeat 3 s)"
 
 
 def _f(v: Any, nd: int = 3) -> str:
@@ -297,7 +310,7 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             f"strips ({lv['strip_mb']:.1f} MB, {lv['strips_per_s_per_view']:.1f} per s per view, "
             f"{lv['input_mb_s']:.0f} MB/s for both views), published at 6500 lines/s from the "
             f"bench process (reliable QoS, "
-            f"{_PACING[bool(lv.get('paced'))]}; {_TRANSPORTS[bool(lv.get('shm'))]}"
+            f"{_PACING[bool(lv.get('paced'))]}; {_transports(lv)}"
             f"); normalized images {out} px, "
             f"{lv.get('pairs_streamed')} of {lv.get('pairs_received')} pairs streamed in column "
             "blocks, the others sent as whole images; node with "

@@ -125,6 +125,7 @@ def run_and_report(
     image_compression: str | None = None,
     input_compression: str = "none",
     live_rate: float = 1.0,
+    fast_repair: bool = True,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -136,6 +137,7 @@ def run_and_report(
         cfg,
         paced=paced,
         shm=shm,
+        fast_repair=fast_repair,
         memory_budget_mb=memory_budget_mb,
         image_compression=image_compression,
         input_compression=input_compression,
@@ -211,6 +213,12 @@ def build_parser() -> argparse.ArgumentParser:
         "shared-memory profile config/fastdds_shm.xml",
     )
     p.add_argument(
+        "--no-fast-repair",
+        action="store_true",
+        help="without --shm: Fast DDS's default heartbeat (3 s) instead of "
+        "config/fastdds_fast_repair.xml (100 ms) in every process",
+    )
+    p.add_argument(
         "--memory-budget-mb",
         type=float,
         default=None,
@@ -260,6 +268,7 @@ def main(argv: list[str] | None = None) -> int:
         node_params=params,
         paced=args.paced,
         shm=args.shm,
+        fast_repair=not args.no_fast_repair,
         memory_budget_mb=args.memory_budget_mb,
         image_compression=args.image_compression,
         input_compression=args.input_compression,
