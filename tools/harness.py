@@ -42,6 +42,11 @@ SHM_PROFILE_ENV = {
 FAST_REPAIR_PROFILE = ROOT / "config" / "fastdds_fast_repair.xml"
 
 
+def fast_dds() -> bool:
+    """Whether ROS runs on Fast DDS here (the RMW the profiles in config/ are for)."""
+    return os.environ.get("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp").startswith("rmw_fastrtps")
+
+
 def join_ros_domain(
     domain_id: int | None = None,
     log_dir: Path | None = None,
@@ -68,10 +73,9 @@ def join_ros_domain(
     for key, value in SHM_PROFILE_ENV.items():
         if shm:
             env[key] = os.environ[key] = value
-        elif fast_repair:
-            env[key] = os.environ[key] = (
-                str(FAST_REPAIR_PROFILE) if key == "FASTDDS_DEFAULT_PROFILES_FILE" else value
-            )
+        elif fast_repair and key == "FASTDDS_DEFAULT_PROFILES_FILE":
+            # Only the file: another RMW (Cyclone DDS) keeps running, and ignores it.
+            env[key] = os.environ[key] = str(FAST_REPAIR_PROFILE)
         elif key != "RMW_IMPLEMENTATION":
             env.pop(key, None)
             os.environ.pop(key, None)

@@ -213,12 +213,18 @@ NAV_DRAIN_MAX = 100
 #: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
 #: 2048 x 2048: about 13).
 WORKING_SET_PAIRS = 2
-#: The same when pairs are normalized as whole images (``streaming`` false): both normalized
-#: images, their messages and what DDS copies of them. At 2048 x 2048 the memory held beyond
-#: start-up and raw data was 52-89 MB (3-6 raw pairs) and the resident memory 100-145 MB
-#: (6-9: fragmentation, DDS) (tests/ros/test_overload_live.py, 2026-11-24); 8 keeps the
-#: resident memory under the budget in that test.
-WHOLE_IMAGE_WORKING_SET_PAIRS = 8
+#: The same when pairs are normalized as whole images (not streamed: ``streaming`` false, or
+#: ``scene_lines`` 0, or one view), as raw pairs plus a fixed amount: both normalized images,
+#: their messages and what DDS copies of them. At 2048 x 2048 (16 MB pairs) the memory held
+#: beyond start-up and raw data was 52-89 MB and the resident memory 100-145 MB
+#: (tests/ros/test_overload_live.py, 2026-11-24); 64 MB + 4 pairs (128 MB there) kept the
+#: resident memory under the budget in that test, and at IKONOS size (738 MB pairs) it is
+#: 3 GB, so that the default budget still holds 3 pairs.
+WHOLE_IMAGE_WORKING_SET_PAIRS = 4
+WHOLE_IMAGE_WORKING_SET_MB = 64.0
+#: Least time between two returns of the free heap to the system by :meth:`PairAdmission.sample`
+#: (each costs milliseconds, and the pages given back cost 2.2 ms per MB to touch again), s.
+TRIM_INTERVAL_S = 1.0
 #: Resident memory samples (two per pair: at its decision and at its publication) over which
 #: the working set is the largest.
 WORKING_SET_SAMPLES = 4
@@ -226,6 +232,17 @@ WORKING_SET_SAMPLES = 4
 #: DDS holds before the executor takes them and heap fragmentation (the overload test went
 #: 1-4 % over its budget without it, 2026-11-24).
 HEADROOM = 0.05
+
+
+def working_set_floor(config: Any) -> tuple[float, float]:
+    """(raw pairs, MB): the least working set the admission assumes for this configuration.
+
+    Streamed pairs (``streaming``, a ``scene_lines``, two views: what :class:`Streamer` needs)
+    hold column blocks; the others are normalized as whole images.
+    """
+    if config.streaming and config.scene_lines > 0 and not config.single_camera:
+        return float(WORKING_SET_PAIRS), 0.0
+    return float(WHOLE_IMAGE_WORKING_SET_PAIRS), WHOLE_IMAGE_WORKING_SET_MB
 
 
 @dataclass
@@ -255,8 +272,9 @@ class PairAdmission:
     the rest over the start-up memory in the last :data:`WORKING_SET_SAMPLES` samples, taken at
     each decision and each pair published, each holding the peak the worker read (:meth:`sample`,
     after every input) since the one before; a burst's transient is forgotten once the load
-    drops. It is at least ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`, or
-    :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are normalized as whole images). A pair
+    drops. It is at least ``floor_mb`` + ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`;
+    :data:`WHOLE_IMAGE_WORKING_SET_MB` + :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are
+    normalized as whole images). A pair
     is admitted when
 
         start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working set
@@ -280,10 +298,13 @@ class PairAdmission:
         scene_lines: int,
         raw_held: Callable[[], int] = lambda: 0,
         floor_pairs: float = WORKING_SET_PAIRS,
+        floor_mb: float = 0.0,
     ) -> None:
         self.views = list(views)
-        #: The working set is at least this many raw pairs (:data:`WORKING_SET_PAIRS`).
+        #: The working set is at least ``floor_mb`` MB + this many raw pairs.
         self.floor_pairs = float(floor_pairs)
+        self.floor = int(floor_mb * 2**20)
+        self._trimmed = 0.0  # monotonic time of sample()'s last malloc_trim
         #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
         self.raw_held = raw_held
         self.single = len(self.views) == 1
@@ -388,13 +409,17 @@ class PairAdmission:
     def sample(self) -> None:
         """Read the memory now (the worker, after each input): keeps the peak between samples.
 
-        Freed heap stays resident for reuse, so a reading after each input holds most of that
-        input's peak (normalization, messages, DDS) for the next decision. When the resident
-        memory is over the budget less :data:`HEADROOM`, the free heap is given back
-        (``malloc_trim``): a fragmented heap otherwise grows the resident memory pair by pair.
+        The reading is of memory still in use after the input (the free heap left out), so a
+        transient the input freed is not seen: the floor of the working set and
+        :data:`HEADROOM` are for those. When the resident memory is over the budget less the
+        headroom, the free heap is given back (``malloc_trim``, at most every
+        :data:`TRIM_INTERVAL_S`): a fragmented heap otherwise grew the resident memory pair by
+        pair after a burst.
         """
         rss, _, rest = self._memory()
-        if rss > self.usable:  # free heap kept beyond what the budget leaves: given back
+        now = time.monotonic()
+        if rss > self.usable and now - self._trimmed >= TRIM_INTERVAL_S:
+            self._trimmed = now  # the free heap kept beyond what the budget leaves: given back
             malloc_trim()
         with self._lock:
             self._peak_rest = max(self._peak_rest, rest)
@@ -407,7 +432,7 @@ class PairAdmission:
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
         pair = self.pair_bytes()
-        work = max(self.working_set, int(self.floor_pairs * pair))
+        work = max(self.working_set, self.floor + int(self.floor_pairs * pair))
         return self.base + max(raw, (in_flight + 1) * pair) + work
 
     def _decide(self) -> tuple[bool, str]:
@@ -431,7 +456,7 @@ class PairAdmission:
             else ""
         )
         if need > usable:
-            work = max(self.working_set, int(self.floor_pairs * pair))
+            work = max(self.working_set, self.floor + int(self.floor_pairs * pair))
             return False, (
                 f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
                 f"(start-up {self.base / mb:.0f} MB + raw data "
@@ -551,7 +576,7 @@ class ParprojNode(Node):
             float(vals["memory_budget_mb"]),
             config.scene_lines,
             self._raw_held,
-            WORKING_SET_PAIRS if config.streaming else WHOLE_IMAGE_WORKING_SET_PAIRS,
+            *working_set_floor(config),
         )
         self.counts = {
             "strips": 0,

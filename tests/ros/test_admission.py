@@ -150,3 +150,43 @@ def test_free_heap_kept_is_not_working_set(mem: Memory) -> None:
     ok, issues, _ = first_strip(adm, 1)
     assert ok and not issues
     assert adm.working_set == 0
+
+
+def test_working_set_floor_by_what_the_pairs_are() -> None:
+    """Streamed only with streaming, a scene length and two views; otherwise whole images,
+    whose floor is a fixed amount plus pairs, so that at IKONOS size (738 MB pairs) the
+    default budget (6144 MB) still holds pairs in flight (review: 8 pairs shed every pair)."""
+    from dataclasses import replace
+
+    from parproj_ros.core.config import PipelineConfig
+    from parproj_ros.ros.node import (
+        WHOLE_IMAGE_WORKING_SET_MB,
+        WHOLE_IMAGE_WORKING_SET_PAIRS,
+        WORKING_SET_PAIRS,
+        working_set_floor,
+    )
+    from parproj_ros.sim.synthetic import make_platform
+
+    cfg = PipelineConfig(views=make_platform(2048, 2048).views, scene_lines=2048)
+    whole = (WHOLE_IMAGE_WORKING_SET_PAIRS, WHOLE_IMAGE_WORKING_SET_MB)
+    assert working_set_floor(cfg) == (WORKING_SET_PAIRS, 0.0)
+    assert working_set_floor(replace(cfg, streaming=False)) == whole
+    assert working_set_floor(replace(cfg, scene_lines=0)) == whole
+    assert working_set_floor(replace(cfg, views=cfg.views[:1])) == whole
+    # IKONOS size, whole images, the default budget: start-up 300 MB, one pair in flight.
+    pair_mb = 738.0
+    need_mb = 300 + 2 * pair_mb + whole[1] + whole[0] * pair_mb
+    assert need_mb < 6144 * 0.95
+
+
+def test_floor_mb_counts_in_the_need(mem: Memory) -> None:
+    from parproj_ros.ros.node import HEADROOM, PairAdmission
+
+    adm = PairAdmission(
+        ["left", "right"], (100 + 2 * 4 + 10 + 1 * 4) / (1 - HEADROOM) + 0.01, LINES, mem.raw_held,
+        floor_pairs=1, floor_mb=10,
+    )  # fmt: skip
+    first_strip(adm, 0)
+    assert first_strip(adm, 1)[0]  # 100 + 2 x 4 + (10 + 4) = 122 fits
+    ok, issues, _ = first_strip(adm, 2)
+    assert not ok and "would need 126 MB" in issues[0].message

@@ -32,6 +32,7 @@ from parproj_ros.sim.synthetic import (
 from tools.harness import (
     ROOT,
     RssMonitor,
+    fast_dds,
     join_ros_domain,
     mem_available_mb,
     proc_status,
@@ -213,7 +214,7 @@ def bench_live(
         "pairs_ahead": cfg.pairs_ahead,
         "paced": cfg.paced,
         "shm": cfg.shm,
-        "fast_repair": cfg.fast_repair and not cfg.shm,
+        "fast_repair": cfg.fast_repair and not cfg.shm and fast_dds(),
         "latency_limit_s": cfg.latency_limit_s,
         "node_params": extra,
         "error": None,
@@ -612,7 +613,7 @@ def bench_transport(
             for rate in cfg.passthrough_rates
         ],
         "shm": cfg.shm,
-        "fast_repair": cfg.fast_repair and not cfg.shm,
+        "fast_repair": cfg.fast_repair and not cfg.shm and fast_dds(),
     }
 
 
