@@ -774,7 +774,12 @@ def test_node_stopped_mid_pass(node_restart: dict[str, Any]) -> None:
     ]
     assert len(stops) == 1 and level(stops[0]) == WARN, show(about(r["statuses"], case))
     assert "384 lines" in stops[0].message
-    same_pair(r["live"], r[case]["before"]["messages"], case)
+    try:
+        same_pair(r["live"], r[case]["before"]["messages"], case)
+    except AssertionError as err:
+        # Rare (3 times in 2 days): the flushed scene's parameters missing at the listener
+        # while its WARN arrived. Node A's log says whether its outputs were acknowledged.
+        raise AssertionError(f"{err}\nnode A's log (end):\n{r[case]['a_log'][-4000:]}") from err
     got = by_scene(r["live"]["parallel_projection"], case)
     assert got[f"{case}_{SCENES[1]}"][0].lines == 384
     clean = by_scene(r[case]["clean"]["messages"]["parallel_projection"], case)
