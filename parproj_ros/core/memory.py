@@ -130,7 +130,10 @@ def rss_bytes() -> int:
         return 0
 
 
-def held_bytes() -> int:
-    """What the node holds, bytes: its resident memory less the free heap glibc keeps for reuse."""
-    rss = rss_bytes()
+def held_bytes(rss: int | None = None) -> int:
+    """What the node holds, bytes: its resident memory less the free heap glibc keeps for reuse.
+
+    ``rss``: the resident memory already read (:func:`rss_bytes`), so as not to read it twice.
+    """
+    rss = rss_bytes() if rss is None else rss
     return max(0, rss - heap_free_bytes()) if rss else 0

@@ -389,9 +389,10 @@ class PairAdmission:
         Held: resident less the free heap glibc keeps for reuse (:func:`held_bytes`), which the
         next allocations take before the resident memory grows again.
         """
-        held = held_bytes()
+        rss = rss_bytes()
+        held = held_bytes(rss)
         raw = min(held, max(0, int(self.raw_held())))
-        return rss_bytes(), raw, held - raw
+        return rss, raw, held - raw
 
     def _group_of(self, ordinal: int) -> int:
         return ordinal // 2 if self.single else ordinal
@@ -429,11 +430,14 @@ class PairAdmission:
         """The budget less :data:`HEADROOM`, bytes: what admitted pairs may need."""
         return int(self.budget * (1 - HEADROOM))
 
+    def _work(self, pair: int) -> int:
+        """The working set counted for a pair of ``pair`` bytes: learnt, or the floor, bytes."""
+        return max(self.working_set, self.floor + int(self.floor_pairs * pair))
+
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
         pair = self.pair_bytes()
-        work = max(self.working_set, self.floor + int(self.floor_pairs * pair))
-        return self.base + max(raw, (in_flight + 1) * pair) + work
+        return self.base + max(raw, (in_flight + 1) * pair) + self._work(pair)
 
     def _decide(self) -> tuple[bool, str]:
         if rss_bytes() > self.budget:
@@ -456,7 +460,7 @@ class PairAdmission:
             else ""
         )
         if need > usable:
-            work = max(self.working_set, self.floor + int(self.floor_pairs * pair))
+            work = self._work(pair)
             return False, (
                 f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
                 f"(start-up {self.base / mb:.0f} MB + raw data "

@@ -35,7 +35,7 @@ def mem(monkeypatch: pytest.MonkeyPatch) -> Memory:
 
     m = Memory()
     monkeypatch.setattr(node, "rss_bytes", lambda: m.rss)
-    monkeypatch.setattr(node, "held_bytes", lambda: m.rss - m.free)
+    monkeypatch.setattr(node, "held_bytes", lambda rss=None: m.rss - m.free)
     monkeypatch.setattr(node, "malloc_trim", lambda: None)
     return m
 

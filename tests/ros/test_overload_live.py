@@ -38,13 +38,6 @@ from parproj_ros.sim.synthetic import VIEWS, make_platform
 
 pytestmark = pytest.mark.ros  # live node over DDS
 
-ROOT = Path(__file__).resolve().parents[2]
-#: The sensor's writers heartbeat every 100 ms (config/fastdds_fast_repair.xml), not every 3 s:
-#: a datagram lost in the burst otherwise stalls a reader for up to 3 s, and the sensor's own
-#: acknowledgement waits with it (README, Overload). Without it (4 runs, 2026-11-24): waits of
-#: 1.1-1.4 s in 2 runs, 7-9 pairs shed (2-5 with it), the catch-up failed once.
-FAST_REPAIR_PROFILE = ROOT / "config" / "fastdds_fast_repair.xml"
-
 LINES, DETECTORS, STRIP_LINES = 2048, 2048, 256
 PAIRS = 18
 #: (first pair, rate x the sensor's) of each phase: a warm-up at the sensor rate (the node
@@ -119,7 +112,7 @@ def overload(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
 
     from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
     from parproj_ros.sim.recording import node_parameters
-    from tools.harness import RssMonitor, proc_status
+    from tools.harness import FAST_REPAIR_PROFILE, ROOT, RssMonitor, proc_status
 
     plat = make_platform(LINES, DETECTORS)
     env = ros_environment(None, tmp_path / "ros_log")
@@ -192,6 +185,10 @@ def overload(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         "ack_window": 8,
     }
     sender_env = dict(env, RMW_IMPLEMENTATION="rmw_fastrtps_cpp")
+    # The sensor's writers heartbeat every 100 ms, not every 3 s: a datagram lost in the burst
+    # otherwise stalls a reader for up to 3 s, and the sensor's own acknowledgement waits with
+    # it (README, Overload). Without it (4 runs, 2026-11-24): waits of 1.1-1.4 s in 2 runs, 7-9
+    # pairs shed (2-5 with it), the catch-up failed once.
     sender_env["FASTDDS_DEFAULT_PROFILES_FILE"] = str(FAST_REPAIR_PROFILE)
     sender_env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     with (tmp_path / "sender.err").open("w") as err_file:
