@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 from ..core.config import PipelineConfig
-from ..core.memory import tune_malloc
+from ..core.memory import raw_pair_bytes, tune_malloc
 from ..core.pipeline import Pipeline
 from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
@@ -259,7 +259,9 @@ def process_bag(
 
     reader = BagReader(src)
     cfg = config or config_from_bag(reader, **(overrides or {}))
-    tune_malloc()  # freed strips and images reused, not given back (core/memory.py)
+    # Freed strips, blocks and images reused, not given back and faulted in again: up to two
+    # raw pairs of free heap kept (a pair's blocks freed at once; core/memory.py)
+    tune_malloc(2 * raw_pair_bytes(cfg))
     pipe = Pipeline(cfg)
     summary = ProcessSummary()
     strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}

@@ -25,6 +25,17 @@ MMAP_THRESHOLD_BYTES = 32 * 2**20
 TRIM_THRESHOLD_BYTES = 256 * 2**20
 
 
+def raw_pair_bytes(config: Any) -> int:
+    """One raw input pair of the configured scenes, bytes (0 without ``scene_lines``).
+
+    ``scene_lines`` x detectors x 2 bytes (uint16; an upper bound for 8-bit strips) summed
+    over ``config.views``: 738 MB for two IKONOS-size views (14000 x 13816).
+    """
+    if config.scene_lines <= 0:
+        return 0
+    return int(sum(config.scene_lines * vc.camera.detectors * 2 for vc in config.views))
+
+
 def _libc() -> Any:
     """The C library (glibc) through ctypes, or None (another one: no tuning)."""
     global _LIBC
@@ -48,7 +59,9 @@ def tune_malloc(keep_bytes: int = 0) -> bool:
     """Make glibc keep and reuse freed memory (:data:`MMAP_THRESHOLD_BYTES`, ...).
 
     ``keep_bytes``: free heap to keep at least (the ``prefault_mb`` reserve), besides
-    :data:`TRIM_THRESHOLD_BYTES`. Returns whether it was applied (glibc present).
+    :data:`TRIM_THRESHOLD_BYTES`.
+
+    Returns whether it was applied (glibc present).
     """
     lib = _libc()
     if lib is None:

@@ -43,6 +43,7 @@ import stat
 import struct
 import sys
 import threading
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from io import BytesIO
@@ -57,8 +58,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Chunk, Schema
-from mcap.stream_reader import CRCValidationError, get_chunk_data_stream
+from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
 from .cdr import CdrError, parse_image
@@ -103,6 +103,8 @@ _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _CHUNK_HEAD = struct.Struct("<QQQI")
+_U32 = struct.Struct("<I")
+_U64 = struct.Struct("<Q")
 
 
 #: Largest ``metadata.yaml`` read (bytes); rosbag2 writes a few kB per file and topic.
@@ -861,6 +863,7 @@ def _scan(
     """
     path = index.path
     size = path.stat().st_size
+    chunk_buf = _ReusedBuffer()
 
     def in_range(t: int) -> bool:
         return (start_ns is None or t >= start_ns) and (end_ns is None or t < end_ns)
@@ -913,7 +916,8 @@ def _scan(
                     f.seek(end)
                 else:
                     f.seek(pos + 9)
-                    yield from _chunk(f.read(length), handle, recovery, validate_crcs, path, pos)
+                    body = chunk_buf.read(f, length)
+                    yield from _chunk(body, handle, recovery, validate_crcs, path, pos)
             elif opcode == Opcode.DATA_END and stop_at_data_end:
                 return
             elif opcode == Opcode.FOOTER:
@@ -932,8 +936,29 @@ def _scan(
 _Handler = Callable[[int, memoryview], Iterator["_Msg"]]
 
 
+class _ReusedBuffer:
+    """Chunk records read one at a time into the same memory.
+
+    A 13 MB strip is a chunk of its own: read with ``f.read`` each would be a fresh 13 MB
+    allocation in the reading thread, whose pages the process may have to fault in afresh
+    (core/memory.py). A chunk's records are copied out (message bytes) or parsed before the
+    next chunk is read, so nothing refers to the memory when it is read into again.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def read(self, f: Any, n: int) -> memoryview:
+        """The next ``n`` bytes of ``f`` (fewer at its end), a view valid until the next read."""
+        if len(self._buf) < n:
+            self._buf = bytearray(n)
+        view = memoryview(self._buf)[:n]
+        got = f.readinto(view)
+        return view[: got or 0]
+
+
 def _chunk(
-    body: bytes,
+    body: bytes | memoryview,
     handle: _Handler,
     recovery: Recovery,
     validate_crcs: bool,
@@ -941,15 +966,56 @@ def _chunk(
     offset: int,
 ) -> Iterator[_Msg]:
     try:
-        chunk = Chunk.read(ReadDataStream(BytesIO(body)))
-        stream, n = get_chunk_data_stream(chunk, validate_crc=validate_crcs)
-        data = stream.read(n)
-    except (CRCValidationError, McapError, zstandard.ZstdError, ValueError, RuntimeError) as exc:
+        data = _chunk_records(body, validate_crcs)
+    except (McapError, zstandard.ZstdError, ValueError, RuntimeError) as exc:
         recovery.corrupt_chunks += 1
         recovery._fail(f"{path.name}: chunk at byte {offset} skipped: {exc}")
         return
     for opcode, rec in _records(data):
         yield from handle(opcode, rec)
+
+
+def _chunk_records(body: bytes | memoryview, validate_crc: bool) -> bytes | memoryview:
+    """The records of a Chunk record's ``body``: decompressed, or a view on ``body``.
+
+    mcap's ``Chunk.read`` copies the records out of the body first: 13 MB more per full-size
+    strip, into memory the process may have to fault in afresh (core/memory.py).
+
+    Raises:
+        ValueError: the record is cut off, or the records' CRC-32 is not the one recorded.
+        McapError: an unknown compression.
+        zstandard.ZstdError, RuntimeError: the compressed records do not decompress.
+    """
+    view = memoryview(body)
+    fixed = _CHUNK_HEAD.size
+    if len(view) < fixed + 4:
+        raise ValueError("chunk record too short")
+    _t0, _t1, size, crc = _CHUNK_HEAD.unpack_from(view)
+    (clen,) = _U32.unpack_from(view, fixed)
+    at = fixed + 4 + clen
+    if len(view) < at + 8:
+        raise ValueError("chunk record too short")
+    compression = bytes(view[fixed + 4 : at]).decode("utf-8", "replace")
+    (rlen,) = _U64.unpack_from(view, at)
+    packed = view[at + 8 : at + 8 + rlen]
+    if len(packed) != rlen:
+        raise ValueError(f"chunk records: {len(packed)} bytes of {rlen}")
+    data: bytes | memoryview
+    if compression == "":
+        data = packed
+    elif compression == "zstd":
+        data = zstandard.decompress(packed, max_output_size=size)
+    elif compression == "lz4":
+        import lz4.frame
+
+        data = lz4.frame.decompress(packed)
+    else:
+        raise McapError(f"unsupported chunk compression {compression!r}")
+    if len(data) != size:
+        raise ValueError(f"chunk records: {len(data)} bytes, {size} recorded")
+    if validate_crc and crc != 0 and (actual := zlib.crc32(data)) != crc:
+        raise ValueError(f"chunk CRC-32 {actual:#010x}, {crc:#010x} recorded")
+    return data
 
 
 def _salvage_chunk(available: bytes, handle: _Handler) -> Iterator[_Msg]:

@@ -58,6 +58,7 @@ from ..core.memory import (
     held_bytes,
     malloc_trim,
     prefault_heap,
+    raw_pair_bytes,
     rss_bytes,
     tune_malloc,
 )
@@ -76,10 +77,7 @@ def auto_prefault_mb(config: Any) -> float:
     the views, twice: 1476 MB for two IKONOS-size views (14000 x 13816), the reserve with
     which the node keeps up at the full rate (bench/BENCHMARKS.md).
     """
-    if config.scene_lines <= 0:
-        return 0.0
-    pair = sum(config.scene_lines * vc.camera.detectors * 2 for vc in config.views)
-    return float(2.0 * pair / 2**20)
+    return float(2.0 * raw_pair_bytes(config) / 2**20)
 
 
 def _read_strip(raw: bytes | Image) -> ImageView | Image:

@@ -41,7 +41,9 @@ class BenchConfig:
             sensor time whatever the node does.
         latency_limit_s: the keep-up target's bound on the latency from a pair's last strip to
             its StereoPair received, s.
-        min_sustained: the keep-up target's bound on the sustained real-time factor.
+        min_sustained: the keep-up target's bound on the sustained real-time factor: 1.0 in
+            the full run, as issue 11 asks; 0.95 in the quick run, whose 4 scenes of 0.32 s
+            each make the ratio of two time spans of about 1 s jitter by a few percent.
         passthrough_rates: sensor-rate multiples at which the pass-through node (the transport
             ceiling) is measured, open-loop.
         shm: run every process with the shared-memory profile config/fastdds_shm.xml.
@@ -95,6 +97,7 @@ FULL = BenchConfig(
     pairs=10,
     offline_pairs=3,
     strip_lines=500,
+    min_sustained=1.0,
     map_coordinates_rows=512,
     repeats=3,
     scaling=(

@@ -403,9 +403,25 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
                 f"{off['wall_s'] / io['wall_s']:.2f}x that."
             )
             yield ""
+        if mi.get("seconds") and off.get("sensor_s"):
+            # 2 scenes a pair, each resampled as the micro-benchmark's scene (same size).
+            alone = 2 * off["pairs"] * mi["seconds"]["resample"]
+            yield (
+                f"The resampling alone (resample() on both cores, as timed above, for the "
+                f"{2 * off['pairs']} scenes): {alone:.1f} s, real-time factor "
+                f"{off['sensor_s'] / alone:.2f}; the I/O and the resampling compete for the "
+                "same cores."
+            )
+            yield ""
+        if off.get("profiled_wall_s"):
+            yield (
+                f"Under cProfile (the breakdown below, a second run) the same took "
+                f"{off['profiled_wall_s']:.1f} s."
+            )
+            yield ""
         prof = off.get("profile") or {}
         for key, title in (
-            ("labelled", "Where the time goes (cProfile of that run's main thread, the pipeline;"
+            ("labelled", "Where the time goes (cProfile of the second run's main thread, the pipeline;"
              " the threads reading ahead and writing behind are not in it; cumulative, nested"
              " rows indented):"),
             ("top_own_time", "Functions with the most own time (cProfile):"),
@@ -519,7 +535,7 @@ DEFINITIONS = (
     "strip; raw input pair = two scenes of lines x detectors x 2 bytes; slope = least-squares "
     "slope of the per-pair peaks (between pair receptions; the first pair left out from 3 "
     "pairs on).",
-    "Offline: process_bag (what `parproj process` runs) on a zstd bag of the same strips and "
+    "Offline: process_bag (what `parproj process` runs) on a bag of the same strips and "
     "navigation; its real-time factor is sensor time over the wall time of process_bag "
     "(unpaced, so it can exceed 1).",
     "The machine is shared: with other processes running (their CPU share is under Run), the "
