@@ -219,7 +219,8 @@ def bench_offline(
             if k in PipelineConfig.__dataclass_fields__
         },
     }
-    # The figure: a run without the profiler (cProfile slows this path by about a third).
+    # The figure: a run without the profiler. It also pays for the memory the process touches
+    # first (core/memory.py); the profiled second run reuses it, so it is often faster.
     t0 = time.perf_counter()
     summary = process_bag(
         src,

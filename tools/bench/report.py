@@ -415,8 +415,8 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             yield ""
         if off.get("profiled_wall_s"):
             yield (
-                f"Under cProfile (the breakdown below, a second run) the same took "
-                f"{off['profiled_wall_s']:.1f} s."
+                f"Under cProfile (the breakdown below, a second run, in memory the first run "
+                f"faulted in) the same took {off['profiled_wall_s']:.1f} s."
             )
             yield ""
         prof = off.get("profile") or {}
