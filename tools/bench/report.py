@@ -421,9 +421,9 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
             yield ""
         prof = off.get("profile") or {}
         for key, title in (
-            ("labelled", "Where the time goes (cProfile of the second run's main thread, the pipeline;"
-             " the threads reading ahead and writing behind are not in it; cumulative, nested"
-             " rows indented):"),
+            ("labelled", "Where the time goes (cProfile of the second run's main thread, the"
+             " pipeline; the threads reading ahead and writing behind are not in it; cumulative,"
+             " nested rows indented):"),
             ("top_own_time", "Functions with the most own time (cProfile):"),
         ):  # fmt: skip
             if prof.get(key):
