@@ -105,6 +105,9 @@ _MESSAGE_HEAD = struct.Struct("<HIQQ")
 _CHUNK_HEAD = struct.Struct("<QQQI")
 _U32 = struct.Struct("<I")
 _U64 = struct.Struct("<Q")
+#: Largest uncompressed chunk read (bytes): a CDR message is under 4 GiB (32-bit lengths), and
+#: writers close a chunk at a few MB or at the one message larger than that.
+MAX_CHUNK_RECORDS = 2**32
 
 
 #: Largest ``metadata.yaml`` read (bytes); rosbag2 writes a few kB per file and topic.
@@ -996,6 +999,8 @@ def _chunk_records(body: bytes | memoryview, validate_crc: bool) -> bytes | memo
     if len(view) < at + 8:
         raise ValueError("chunk record too short")
     compression = bytes(view[fixed + 4 : at]).decode("utf-8", "replace")
+    if size > MAX_CHUNK_RECORDS:  # a damaged size would make the decompressor allocate it
+        raise ValueError(f"chunk declares {size} bytes of records, over {MAX_CHUNK_RECORDS}")
     (rlen,) = _U64.unpack_from(view, at)
     packed = view[at + 8 : at + 8 + rlen]
     if len(packed) != rlen:

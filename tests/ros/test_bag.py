@@ -583,6 +583,25 @@ def test_corrupt_chunk_is_skipped_and_reported(tmp_path: Path, compression: str)
         assert "CRC-32" in (reader.recovery.error or "")
 
 
+def test_chunk_declaring_a_huge_size_is_skipped(tmp_path: Path) -> None:
+    """A damaged uncompressed_size (2**40 bytes) is not handed to the decompressor."""
+    path = tmp_path / "rec"
+    write_sample(path, chunk_size=16 * 1024)
+    full = path / "rec_0.mcap"
+    with full.open("rb") as f:
+        summary = SeekingReader(f).get_summary()
+    assert summary is not None and len(summary.chunk_indexes) > 2
+    bad = summary.chunk_indexes[1]
+    data = bytearray(full.read_bytes())
+    struct.pack_into("<Q", data, bad.chunk_start_offset + 9 + 16, 2**40)  # uncompressed_size
+    full.write_bytes(bytes(data))
+    reader = BagReader(path)
+    got = list(reader.raw_messages())
+    assert 0 < len(got) < reader.recovery.messages_read
+    assert reader.recovery.corrupt_chunks == 1
+    assert "over 4294967296" in (reader.recovery.error or "")
+
+
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
 def test_chunks_of_changing_sizes_read_as_mcaps_reader_reads_them(
     tmp_path: Path, compression: str
