@@ -550,7 +550,8 @@ def test_watchdog_stalled_worker(watchdog: dict[str, Any]) -> None:
         s for s in r["a_statuses"] if s.name == SUMMARY and "has been processing" in s.message
     )
     v = values(s)
-    assert v["busy_with"] == "a GCP set (1 points)" and float(v["busy_s"]) > 1.0, v
+    # Reported once over worker_stall_s (1 s); busy_s is shown to 0.1 s, so 1.04 s reads 1.0.
+    assert v["busy_with"] == "a GCP set (1 points)" and float(v["busy_s"]) >= 1.0, v
     assert "(more than worker_stall_s, 1 s)" in s.message, s.message
 
 
