@@ -919,8 +919,9 @@ def _scan(
                     f.seek(end)
                 else:
                     f.seek(pos + 9)
-                    body = chunk_buf.read(f, length)
-                    yield from _chunk(body, handle, recovery, validate_crcs, path, pos)
+                    yield from _chunk(
+                        chunk_buf.read(f, length), handle, recovery, validate_crcs, path, pos
+                    )
             elif opcode == Opcode.DATA_END and stop_at_data_end:
                 return
             elif opcode == Opcode.FOOTER:
@@ -952,8 +953,12 @@ class _ReusedBuffer:
         self._buf = bytearray()
 
     def read(self, f: Any, n: int) -> memoryview:
-        """The next ``n`` bytes of ``f`` (fewer at its end), a view valid until the next read."""
-        if len(self._buf) < n:
+        """The next ``n`` bytes of ``f`` (fewer at its end), a view valid until the next read.
+
+        The memory grows to the largest chunk; after one over 64 MB (a whole image) it is
+        made smaller again for a chunk of under a quarter of it.
+        """
+        if len(self._buf) < n or (len(self._buf) > 64 * 2**20 and n < len(self._buf) // 4):
             self._buf = bytearray(n)
         view = memoryview(self._buf)[:n]
         got = f.readinto(view)
@@ -970,7 +975,7 @@ def _chunk(
 ) -> Iterator[_Msg]:
     try:
         data = _chunk_records(body, validate_crcs)
-    except (McapError, zstandard.ZstdError, ValueError, RuntimeError) as exc:
+    except (McapError, zstandard.ZstdError, ValueError, RuntimeError, MemoryError) as exc:
         recovery.corrupt_chunks += 1
         recovery._fail(f"{path.name}: chunk at byte {offset} skipped: {exc}")
         return
@@ -1009,10 +1014,15 @@ def _chunk_records(body: bytes | memoryview, validate_crc: bool) -> bytes | memo
     if compression == "":
         data = packed
     elif compression == "zstd":
+        # The frame's own content size, when it has one, is what zstandard allocates.
+        if zstandard.frame_content_size(packed) > size:
+            raise ValueError(f"zstd frame larger than the {size} bytes of records declared")
         data = zstandard.decompress(packed, max_output_size=size)
     elif compression == "lz4":
         import lz4.frame
 
+        if lz4.frame.get_frame_info(packed)["content_size"] > size:
+            raise ValueError(f"lz4 frame larger than the {size} bytes of records declared")
         data = lz4.frame.decompress(packed)
     else:
         raise McapError(f"unsupported chunk compression {compression!r}")

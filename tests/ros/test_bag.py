@@ -25,6 +25,7 @@ from parproj_ros.ros.bag import (
     BagError,
     BagReader,
     BagWriter,
+    _chunk_records,
     message_definition,
     qos_yaml,
 )
@@ -600,6 +601,27 @@ def test_chunk_declaring_a_huge_size_is_skipped(tmp_path: Path) -> None:
     assert 0 < len(got) < reader.recovery.messages_read
     assert reader.recovery.corrupt_chunks == 1
     assert "over 4294967296" in (reader.recovery.error or "")
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_compressed_frame_larger_than_its_chunk_is_refused(compression: str) -> None:
+    """A frame whose own header claims more than the chunk's uncompressed_size is refused
+    before decompression (the decompressor allocates what the frame claims); the chunk is then
+    skipped as damaged (``_chunk`` turns the ValueError into a skipped chunk, above)."""
+    import lz4.frame
+    import zstandard
+
+    records = b"\x05" + b"x" * 4999  # what the frame holds: 5000 bytes
+    packed = zstandard.compress(records) if compression == "zstd" else lz4.frame.compress(records)
+
+    def body(declared: int) -> bytes:
+        head = struct.pack("<QQQI", 0, 1, declared, 0)
+        name = compression.encode()
+        return head + struct.pack("<I", len(name)) + name + struct.pack("<Q", len(packed)) + packed
+
+    assert bytes(_chunk_records(body(5000), True)) == records
+    with pytest.raises(ValueError, match="frame larger than the 1000 bytes"):
+        _chunk_records(body(1000), True)
 
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])

@@ -246,7 +246,8 @@ def bench_offline(
     profiled_wall = time.perf_counter() - t1
     prof.dump_stats(str(workdir / "offline.pstats"))
     sensor_s = (pairs + plat.lag_scenes) * plat.scene_s
-    keep = 2 * len(plat.views) * cfg.lines * cfg.detectors * 2  # two raw pairs: process_bag's
+    # Two raw pairs of free heap kept, as process_bag keeps (its scenes: overrides' scene_lines).
+    keep = 2 * len(plat.views) * int(overrides["scene_lines"]) * cfg.detectors * 2
     io = io_bound(src, out_bytes, workdir / "io_bound", cfg.image_compression or "zstd", keep)
     io["realtime_factor"] = sensor_s / io["wall_s"]
     log(
