@@ -634,6 +634,13 @@ def restart_node(
     # 0.5-1.5 s later than they discover it (seen here with Fast DDS); reliable delivery
     # repairs what best effort would lose in that window, so the "rest" is exactly the rest.
     pfile, env = node_session(tmp, case, reliable=RELIABLE)
+    # The node's writers heartbeat every 100 ms (README, "Overload"): a datagram of the flushed
+    # outputs lost on UDP is repaired at once, not at the default 3 s heartbeat. Without it the
+    # stopped node's left/image_normalized was once not acknowledged within its 5 s wait at exit
+    # and the listener never got the pair (CI of ce1162e; 4 times in 3 days before, unexplained).
+    from tools.harness import FAST_REPAIR_PROFILE
+
+    env = dict(env, FASTDDS_DEFAULT_PROFILES_FILE=str(FAST_REPAIR_PROFILE))
     old_pubs, old_subs = listener.publisher_gids(), sources.subscriber_gids()
     a = NodeProcess(pfile, env, tmp / f"{case}_a.log")
     sent: Counter[str] = Counter()
@@ -729,6 +736,7 @@ def _restart_checks(r: dict[str, Any], case: str) -> None:
     res = r[case]
     assert res["b_alive"] and res["b_code"] == 0, res["b_log"]
     assert "Traceback" not in res["a_log"] + res["b_log"]
+    assert "XMLPARSER" not in res["a_log"] + res["b_log"]  # the heartbeat profile was read
     # Node B: the rest of the second scene is not a scene: skipped, with an ERROR saying why.
     second = f"pan/{case}_{SCENES[1]}"
     errors = [s for s in res["b_statuses"] if s.name == f"parproj_node: {second}"]
@@ -777,8 +785,8 @@ def test_node_stopped_mid_pass(node_restart: dict[str, Any]) -> None:
     try:
         same_pair(r["live"], r[case]["before"]["messages"], case)
     except AssertionError as err:
-        # Rare (3 times in 2 days): the flushed scene's parameters missing at the listener
-        # while its WARN arrived. Node A's log says whether its outputs were acknowledged.
+        # Rare (4 times in 3 days, before node A had the heartbeat profile): the flushed
+        # outputs missing at the listener. Node A's log says whether they were acknowledged.
         raise AssertionError(f"{err}\nnode A's log (end):\n{r[case]['a_log'][-4000:]}") from err
     got = by_scene(r["live"]["parallel_projection"], case)
     assert got[f"{case}_{SCENES[1]}"][0].lines == 384
