@@ -36,9 +36,8 @@ ATTACHED_MAX = 8
 #: OpenCV threads in the child. A block is about 27 small warpAffine calls (tiles of 512 x
 #: 256); on the 2-core machine, shared with the node's threads and the sensor, OpenCV's second
 #: thread cost more than it gave: at the full IKONOS rate (10 pairs, every default, SHM) the
-#: child took 51-60 % of a core with 2 threads and 42-43 % with 1, the worker waiting on it
-#: 31-33 % and 20-23 %, and the latency median went from 0.5-1.4 s to 0.05-0.15 s
-#: (bench/BENCHMARKS.md, 2026-11-24).
+#: child took 51-60 % of a core with 2 threads and 41-48 % with 1, the worker waiting on it
+#: 31-33 % and 20-24 % (bench/BENCHMARKS.md, 2026-11-24).
 RENDER_THREADS = 1
 
 
