@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shutil
 import struct
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -563,8 +564,14 @@ def test_file_without_summary_and_footer(tmp_path: Path) -> None:
     assert len(list(reader.messages())) == len(written) - 4  # all but the unknown type
 
 
-@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
-def test_corrupt_chunk_is_skipped_and_reported(tmp_path: Path, compression: str) -> None:
+def with_second_chunk_damaged(
+    tmp_path: Path, damage: Callable[[bytearray, int, int], None], compression: str = "zstd"
+) -> BagReader:
+    """The sample bag in 16 KiB chunks, its second chunk record damaged in place.
+
+    ``damage(data, start, length)``: changes the file's bytes; the chunk record starts at
+    ``start`` (its opcode) and is ``length`` bytes long.
+    """
     path = tmp_path / "rec"
     write_sample(path, chunk_size=16 * 1024, compression=compression)
     full = path / "rec_0.mcap"
@@ -573,9 +580,17 @@ def test_corrupt_chunk_is_skipped_and_reported(tmp_path: Path, compression: str)
     assert summary is not None and len(summary.chunk_indexes) > 2
     bad = summary.chunk_indexes[1]
     data = bytearray(full.read_bytes())
-    data[bad.chunk_start_offset + bad.chunk_length - 20] ^= 0xFF  # inside the (packed) records
+    damage(data, bad.chunk_start_offset, bad.chunk_length)
     full.write_bytes(bytes(data))
-    reader = BagReader(path)
+    return BagReader(path)
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4", "none"])
+def test_corrupt_chunk_is_skipped_and_reported(tmp_path: Path, compression: str) -> None:
+    def flip(data: bytearray, start: int, length: int) -> None:
+        data[start + length - 20] ^= 0xFF  # inside the (packed) records
+
+    reader = with_second_chunk_damaged(tmp_path, flip, compression)
     got = list(reader.raw_messages())
     assert 0 < len(got) < reader.recovery.messages_read
     assert not reader.recovery.complete and reader.recovery.corrupt_chunks == 1
@@ -586,17 +601,11 @@ def test_corrupt_chunk_is_skipped_and_reported(tmp_path: Path, compression: str)
 
 def test_chunk_declaring_a_huge_size_is_skipped(tmp_path: Path) -> None:
     """A damaged uncompressed_size (2**40 bytes) is not handed to the decompressor."""
-    path = tmp_path / "rec"
-    write_sample(path, chunk_size=16 * 1024)
-    full = path / "rec_0.mcap"
-    with full.open("rb") as f:
-        summary = SeekingReader(f).get_summary()
-    assert summary is not None and len(summary.chunk_indexes) > 2
-    bad = summary.chunk_indexes[1]
-    data = bytearray(full.read_bytes())
-    struct.pack_into("<Q", data, bad.chunk_start_offset + 9 + 16, 2**40)  # uncompressed_size
-    full.write_bytes(bytes(data))
-    reader = BagReader(path)
+
+    def huge(data: bytearray, start: int, length: int) -> None:
+        struct.pack_into("<Q", data, start + 9 + 16, 2**40)  # uncompressed_size
+
+    reader = with_second_chunk_damaged(tmp_path, huge)
     got = list(reader.raw_messages())
     assert 0 < len(got) < reader.recovery.messages_read
     assert reader.recovery.corrupt_chunks == 1

@@ -187,8 +187,11 @@ def bench_offline(
     profile breakdown.
     """
     from parproj_ros.apps.process import process_bag
+    from parproj_ros.core.memory import raw_pair_bytes
     from parproj_ros.core.pipeline import PipelineConfig
     from parproj_ros.core.results import Outputs
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.sim.recording import config_from_bag
 
     plat = make_platform(cfg.lines, cfg.detectors)
     pairs = cfg.offline_pairs
@@ -246,8 +249,8 @@ def bench_offline(
     profiled_wall = time.perf_counter() - t1
     prof.dump_stats(str(workdir / "offline.pstats"))
     sensor_s = (pairs + plat.lag_scenes) * plat.scene_s
-    # Two raw pairs of free heap kept, as process_bag keeps (its scenes: overrides' scene_lines).
-    keep = 2 * len(plat.views) * int(overrides["scene_lines"]) * cfg.detectors * 2
+    # Two raw pairs of free heap kept, as process_bag keeps for the same configuration.
+    keep = 2 * raw_pair_bytes(config_from_bag(BagReader(src), **overrides))
     io = io_bound(src, out_bytes, workdir / "io_bound", cfg.image_compression or "zstd", keep)
     io["realtime_factor"] = sensor_s / io["wall_s"]
     log(
