@@ -187,7 +187,7 @@ class HeightsStage:
     def __call__(self, out: Outputs) -> Outputs:
         """Add the heights (and their issues) of the pairs ``out`` completes, in place."""
         for blk in out.blocks:
-            self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
+            self.keep(blk)
         for pair in out.pairs:
             images = self._images(pair)
             if images is None:
@@ -203,6 +203,10 @@ class HeightsStage:
             out.heights.append(res)
             out.issues += issues
         return out
+
+    def keep(self, blk: BlockResult) -> None:
+        """Keep a streamed block (its pixels as they are: pass a copy of a borrowed view)."""
+        self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
 
     def _images(self, pair: PairResult) -> tuple[NDArray[np.generic], NDArray[np.generic]] | None:
         if pair.left_image is not None and pair.right_image is not None:

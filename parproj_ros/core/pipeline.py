@@ -24,7 +24,7 @@ an :class:`Issue` that says what was wrong and what was done (:mod:`parproj_ros.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -48,6 +48,7 @@ from .orientation import orient_scene, start_unseen
 from .pairing import Pairing
 from .render_process import RenderProcess
 from .results import (
+    BlockResult,
     GroundPoint,
     Issue,
     Level,
@@ -106,6 +107,24 @@ class Pipeline:
         self.streamer.renderer = renderer
         for asm in self.assemblers.values():
             asm.pool.allocate = renderer.allocate
+
+    def set_block_sink(self, sink: Callable[[BlockResult], None] | None) -> None:
+        """Hand each streamed block to ``sink`` as soon as it is rendered (the node publishes it).
+
+        The blocks are then no longer in the outputs; their pixels may be borrowed, valid only
+        during the call (:attr:`Streamer.block_sink`). With heights on, step 7 keeps a copy of
+        each. None: blocks come back in :attr:`Outputs.blocks` again.
+        """
+        if sink is None or self.heights is None:
+            self.streamer.block_sink = sink
+            return
+        heights, to = self.heights, sink
+
+        def keep_and_sink(blk: BlockResult) -> None:
+            heights.keep(replace(blk, image=blk.image.copy()))
+            to(blk)
+
+        self.streamer.block_sink = keep_and_sink
 
     def _z_range(self, pair: PairResult) -> tuple[float, float]:
         c = self.config

@@ -11,9 +11,12 @@ the tiles run in a child process, which has a GIL of its own: the worker waits o
 The scene lines are shared, not sent: the assemblers' line buffers are allocated in shared
 memory (:meth:`RenderProcess.allocate`, the allocator of
 :class:`~parproj_ros.imaging.assembly.BufferPool`), and a block's output comes back through
-one shared output buffer, copied out by the caller. A line buffer the child cannot see (not
-from :meth:`allocate`), a block larger than the output buffer, or a child that died: the block
-is rendered in the calling thread, as without this module, and :attr:`fallbacks` counts it.
+one of two shared output buffers. :meth:`RenderProcess.render_blocks` keeps one block ahead:
+while the caller publishes block k from one buffer, the child renders block k + 1 into the
+other, so the worker and the child no longer wait for each other block by block. A line
+buffer the child cannot see (not from :meth:`allocate`), a block larger than an output
+buffer, or a child that died: the block is rendered in the calling thread, as without this
+module, and :attr:`fallbacks` counts it.
 """
 
 from __future__ import annotations
@@ -22,14 +25,15 @@ import multiprocessing as mp
 import threading
 import weakref
 from collections import OrderedDict
+from collections.abc import Generator, Sequence
 from multiprocessing import shared_memory
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-#: Output buffer of the child, bytes: a block of 256 columns of a 14010-row uint16 grid is 7 MB;
-#: 64 MiB holds float32 blocks of 65,000 rows.
+#: Each of the two output buffers of the child, bytes: a block of 256 columns of a 14010-row
+#: uint16 grid is 7 MB; 64 MiB holds float32 blocks of 65,000 rows.
 OUTPUT_BYTES = 64 * 2**20
 #: Shared line buffers the child keeps attached (the most recently used).
 ATTACHED_MAX = 8
@@ -41,8 +45,8 @@ ATTACHED_MAX = 8
 RENDER_THREADS = 1
 
 
-def _child(conn: Any, out_name: str) -> None:
-    """The render loop: (segment, offset, shape, dtype, first line, block, ...) -> rendered."""
+def _child(conn: Any, out_names: list[str]) -> None:
+    """The render loop: (output, segment, offset, shape, dtype, first line, block, ...)."""
     import cv2
 
     from ..imaging.resample import render_block
@@ -51,14 +55,14 @@ def _child(conn: Any, out_name: str) -> None:
 
     # Attached segments are registered with the parent's resource tracker (a spawned child
     # shares it) under the names the parent registered: the parent's unlink unregisters them.
-    out_shm = shared_memory.SharedMemory(name=out_name)
+    outs = [shared_memory.SharedMemory(name=n) for n in out_names]
     segs: OrderedDict[str, shared_memory.SharedMemory] = OrderedDict()
     try:
         while True:
             req = conn.recv()
             if req is None:
                 return
-            name, offset, shape, dtype, first, block, height, nodata, interp = req
+            slot, name, offset, shape, dtype, first, block, height, nodata, interp = req
             try:
                 seg = segs.get(name)
                 if seg is None:
@@ -68,7 +72,7 @@ def _child(conn: Any, out_name: str) -> None:
                         segs.popitem(last=False)[1].close()
                 segs.move_to_end(name)
                 data = np.ndarray(shape, dtype=dtype, buffer=seg.buf, offset=offset)
-                out = np.ndarray((height, block.cols), dtype=dtype, buffer=out_shm.buf)
+                out = np.ndarray((height, block.cols), dtype=dtype, buffer=outs[slot].buf)
                 render_block(
                     block, data, first, None, nodata=nodata, interpolation=interp, out=out
                 )
@@ -81,7 +85,8 @@ def _child(conn: Any, out_name: str) -> None:
     finally:
         for seg in segs.values():
             seg.close()
-        out_shm.close()
+        for out_shm in outs:
+            out_shm.close()
 
 
 class RenderProcess:
@@ -92,10 +97,19 @@ class RenderProcess:
 
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")  # no fork of a process with DDS threads
-        self._out = shared_memory.SharedMemory(create=True, size=OUTPUT_BYTES)
+        self._outs: list[shared_memory.SharedMemory] = []
+        try:
+            for _ in range(2):
+                self._outs.append(shared_memory.SharedMemory(create=True, size=OUTPUT_BYTES))
+        except BaseException:
+            self._free_outputs()
+            raise
         self._conn, child_conn = ctx.Pipe()
         self._proc = ctx.Process(
-            target=_child, args=(child_conn, self._out.name), daemon=True, name="parproj_render"
+            target=_child,
+            args=(child_conn, [o.name for o in self._outs]),
+            daemon=True,
+            name="parproj_render",
         )
         self._proc.start()
         child_conn.close()
@@ -157,29 +171,81 @@ class RenderProcess:
         interpolation: int,
     ) -> NDArray[np.generic] | None:
         """The block rendered by the child (a new array), or None: render it yourself."""
+        for _, img in self.render_blocks(
+            [block], data, first_line, height, nodata=nodata, interpolation=interpolation
+        ):
+            return None if img is None else img.copy()
+        return None
+
+    def render_blocks(
+        self,
+        blocks: Sequence[Any],
+        data: NDArray[np.generic],
+        first_line: int,
+        height: int,
+        *,
+        nodata: float,
+        interpolation: int,
+    ) -> Generator[tuple[Any, NDArray[np.generic] | None], None, None]:
+        """(block, its pixels) for each of ``blocks`` in order, the child one block ahead.
+
+        The pixels are a view of an output buffer, valid until the next item is asked for
+        (copy them to keep them); None: render that block yourself (counted in
+        :attr:`fallbacks`). ``data`` (the lines from ``first_line``) must not change until the
+        iterator is exhausted or closed: close it (``contextlib.closing``) when leaving early,
+        so the block still in the child is waited for.
+        """
         where = self._locate(data) if self.alive else None
-        if where is None or height * block.cols * data.itemsize > OUTPUT_BYTES:
-            self.fallbacks += 1
-            return None
+        if where is None or height * max((b.cols for b in blocks), default=0) * data.itemsize > (
+            OUTPUT_BYTES
+        ):
+            for b in blocks:
+                self.fallbacks += 1
+                yield b, None
+            return
         name, offset = where
+        head = (name, offset, data.shape, data.dtype.str, first_line)
+        tail = (height, float(nodata), int(interpolation))
+        in_flight = False
+
+        def submit(k: int) -> bool:
+            """Ask the child for block k into output k % 2; False: the child is gone."""
+            try:
+                self._conn.send((k % 2, *head, blocks[k], *tail))
+            except (OSError, BrokenPipeError) as err:
+                self.error = f"render process gone: {type(err).__name__}: {err}"
+                return False
+            return True
+
+        def reply() -> bool:
+            """The child's answer to the block in flight: whether it rendered it."""
+            try:
+                answer = self._conn.recv()
+            except (EOFError, OSError, BrokenPipeError) as err:
+                self.error = f"render process gone: {type(err).__name__}: {err}"
+                return False
+            return answer is None
+
         try:
-            self._conn.send(
-                (name, offset, data.shape, data.dtype.str, first_line, block, height,
-                 float(nodata), int(interpolation))
-            )  # fmt: skip
-            reply = self._conn.recv()
-        except (EOFError, OSError, BrokenPipeError) as err:
-            self.error = f"render process gone: {type(err).__name__}: {err}"
-            self.fallbacks += 1
-            return None
-        if reply is not None:
-            self.fallbacks += 1
-            return None
-        out = np.ndarray((height, block.cols), dtype=data.dtype, buffer=self._out.buf)
-        img = out.copy()
-        del out
-        self.rendered += 1
-        return img
+            in_flight = bool(blocks) and submit(0)
+            for k, b in enumerate(blocks):
+                ok = False
+                if in_flight:
+                    in_flight = False
+                    ok = reply()
+                    if k + 1 < len(blocks) and self.error is None:
+                        in_flight = submit(k + 1)
+                if not ok:
+                    self.fallbacks += 1
+                    yield b, None
+                    continue
+                out = np.ndarray((height, b.cols), dtype=data.dtype, buffer=self._outs[k % 2].buf)
+                self.rendered += 1
+                yield b, out
+                del out
+        finally:
+            if in_flight:  # left early: the child's answer must not be read as the next one's
+                reply()
 
     def close(self) -> None:
         """Stop the child and free the output buffer (line buffers go with their arrays)."""
@@ -192,8 +258,15 @@ class RenderProcess:
             self._proc.kill()
             self._proc.join(timeout=5.0)
         self._conn.close()
-        self._out.close()
-        try:
-            self._out.unlink()
-        except FileNotFoundError:
-            pass
+        self._free_outputs()
+
+    def _free_outputs(self) -> None:
+        for out in self._outs:
+            try:
+                out.close()
+            except BufferError:  # a view still exported: the mapping goes with the process
+                pass
+            try:
+                out.unlink()
+            except FileNotFoundError:
+                pass

@@ -19,7 +19,8 @@ the decisions that change it; :func:`plan_blocks` and :func:`render_block` do th
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Generator, Mapping
+from contextlib import closing
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -179,6 +180,11 @@ class Streamer:
         self.no_stream: set[int] = set()
         #: Renders blocks out of the caller's GIL (the node's), or None: in the calling thread.
         self.renderer: RenderProcess | None = None
+        #: Takes each block as soon as it is rendered, instead of :attr:`Outputs.blocks`; its
+        #: pixels may be a view of the render process's output, valid only during the call
+        #: (copy them to keep them). With the render process the next block is rendered
+        #: meanwhile. None: blocks are returned in the outputs.
+        self.block_sink: Callable[[BlockResult], None] | None = None
         #: Pairs whose streaming decision waits for navigation (it lagged behind their first
         #: strips): pair index -> the scene start it must reach (see :meth:`_predict_scene`).
         self.wait: dict[int, int] = {}
@@ -520,24 +526,33 @@ class Streamer:
         complete: bool,
     ) -> Outputs:
         out = Outputs()
-        while side.next_block < len(side.blocks):
-            b = side.blocks[side.next_block]
+        ready = []
+        for b in side.blocks[side.next_block :]:
             if not complete and b.max_line >= received:
                 break
-            interp = interpolation_flag(self.config)
-            img = None
-            if self.renderer is not None:
-                img = self.renderer.render(
-                    b, data, first, side.grid.height, nodata=self.config.nodata,
-                    interpolation=interp,
-                )  # fmt: skip
-            if img is None:
-                img = render_block(
-                    b, data, first, side.grid, nodata=self.config.nodata, interpolation=interp
-                )
-            side.next_block += 1
-            out.blocks.append(
-                BlockResult(
+            ready.append(b)
+        if not ready:
+            return out
+        interp = interpolation_flag(self.config)
+        sink = self.block_sink
+        rendered: Generator[tuple[_Block, NDArray[np.generic] | None], None, None]
+        if self.renderer is not None:
+            rendered = self.renderer.render_blocks(
+                ready, data, first, side.grid.height, nodata=self.config.nodata,
+                interpolation=interp,
+            )  # fmt: skip
+        else:
+            rendered = ((b, None) for b in ready)
+        with closing(rendered):
+            for b, img in rendered:
+                if img is None:
+                    img = render_block(
+                        b, data, first, side.grid, nodata=self.config.nodata, interpolation=interp
+                    )
+                elif sink is None:
+                    img = img.copy()  # a view of the render process's output buffer
+                side.next_block += 1
+                blk = BlockResult(
                     stream.geometry.pair_id,
                     side.side,
                     side.next_block - 1,
@@ -547,7 +562,10 @@ class Streamer:
                     stream.stamp_ns,
                     side.next_block == len(side.blocks),
                 )
-            )
+                if sink is None:
+                    out.blocks.append(blk)
+                else:
+                    sink(blk)
         return out
 
     def advance(self, view: str) -> Outputs:

@@ -64,7 +64,7 @@ from ..core.memory import (
 )
 from ..core.pipeline import Issue, Outputs, Pipeline
 from ..core.render_process import RenderProcess
-from ..core.results import Level
+from ..core.results import BlockResult, Level
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
 from .cdr import CdrError, ImageView, parse_image
@@ -567,6 +567,9 @@ class ParprojNode(Node):
                         "streamed blocks are rendered in the worker thread",
                     )
                 )
+        # Streamed blocks are published as each is rendered (the render process renders the
+        # next one meanwhile), not gathered until the input's other outputs are made.
+        self.pipeline.set_block_sink(self._publish_block)
         self._prefault(config, float(vals["prefault_mb"]))
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.error_hold_s = float(vals["error_hold_s"])
@@ -1056,6 +1059,16 @@ class ParprojNode(Node):
                 f"max {mx:.3f} px",
             )
         self._report(out.issues)
+
+    def _publish_block(self, blk: BlockResult) -> None:
+        """Publish one streamed block as it is rendered (its pixels borrowed). Never raises."""
+        if self._closed:
+            return
+        topic = f"{blk.side}/normalized_block"
+        try:
+            self.pubs[topic].publish(conv.block_to_cdr(blk, frame_id=self.frame_id))
+        except Exception as err:
+            self.internal_error(f"block {blk.index} of pair {blk.pair_id} ({topic})", err)
 
     def _log(self, level: str, text: str) -> None:
         """Log ``text`` at ``level`` ("error", "warn", anything else: info).

@@ -9,8 +9,11 @@ from parproj_ros.core.render_process import RenderProcess
 from parproj_ros.ros.conversions import image_to_array, odometry_to_sample, stamp_to_ns
 
 
-def _stream(renderer: RenderProcess | None) -> list[np.ndarray]:
-    """Two pairs of the benchmark's fore/aft platform (2048 lines, 192 detectors); the blocks."""
+def _stream(renderer: RenderProcess | None, sink: bool = False) -> list[np.ndarray]:
+    """Two pairs of the benchmark's fore/aft platform (2048 lines, 192 detectors); the blocks.
+
+    ``sink``: the blocks are taken by a block sink as they are rendered (copied there).
+    """
     from parproj_ros.sim.synthetic import StripMessages, acquisition, make_platform, nav_message
 
     plat = make_platform(2048, 192)
@@ -20,6 +23,8 @@ def _stream(renderer: RenderProcess | None) -> list[np.ndarray]:
     if renderer is not None:
         pipe.use_render_process(renderer)
     blocks = []
+    if sink:
+        pipe.set_block_sink(lambda blk: blocks.append(blk.image.copy()))
     for e in events:
         if e.kind == "nav":
             out = pipe.add_navigation(odometry_to_sample(nav_message(plat, e.t_s)))
@@ -31,6 +36,7 @@ def _stream(renderer: RenderProcess | None) -> list[np.ndarray]:
                 m.header.frame_id,
                 image_to_array(m),
             )
+        assert not (sink and out.blocks)
         blocks += [b.image for b in out.blocks]
     return blocks
 
@@ -70,3 +76,43 @@ def test_private_buffers_are_rendered_in_the_thread() -> None:
         assert rp.fallbacks == 1
     finally:
         rp.close()
+
+
+def test_blocks_handed_to_a_sink_as_rendered() -> None:
+    """The node's way: each block to the sink from the child's output buffer, one ahead."""
+    ref = _stream(None)
+    rp = RenderProcess()
+    try:
+        got = _stream(rp, sink=True)
+        assert rp.alive and rp.rendered == len(got) and rp.fallbacks == 0
+    finally:
+        rp.close()
+    assert len(ref) == len(got) >= 16
+    assert all(np.array_equal(a, b) for a, b in zip(ref, got, strict=True))
+
+
+class _LeavesEarly(RenderProcess):
+    """Each batch of 2 or more blocks is first asked for and left after its first block."""
+
+    left = 0
+
+    def render_blocks(self, blocks, data, first_line, height, **kw):  # type: ignore[no-untyped-def]
+        if len(blocks) >= 2:
+            gen = super().render_blocks(blocks, data, first_line, height, **kw)
+            next(gen)  # block 0 handed over, block 1 in the child
+            gen.close()
+            self.left += 1
+        return super().render_blocks(blocks, data, first_line, height, **kw)
+
+
+def test_leaving_early_waits_for_the_block_in_flight() -> None:
+    """A consumer that stops mid-batch: the child's pending answer is read then, not taken
+    for the next batch's (which would hand over a block still being rendered)."""
+    ref = _stream(None)
+    rp = _LeavesEarly()
+    try:
+        got = _stream(rp, sink=True)
+        assert rp.alive and rp.left >= 2 and rp.fallbacks == 0
+    finally:
+        rp.close()
+    assert all(np.array_equal(a, b) for a, b in zip(ref, got, strict=True))

@@ -142,17 +142,36 @@ def test_streaming_through_the_live_node(tmp_path: Path) -> None:
     # topics, so strips can still overtake navigation (unpaced, or under machine load): the
     # node then holds the streaming decision until navigation reaches the scene start
     # (RELIABILITY.md, bug 16), and the pair must still stream.
-    out, counts, log = run_live(
-        BAGS / "airborne_foreaft", tmp_path / "output", rate=20.0, scene_lines=768
-    )
+    # Heights on: the node publishes each block as the render process hands it over (a view of
+    # its output buffer, the next block rendered meanwhile) and step 7 keeps a copy of each.
+    bag = BAGS / "airborne_foreaft"
+    out, counts, log = run_live(bag, tmp_path / "output", rate=20.0, scene_lines=768, heights=True)
     assert counts["stereo_pair"] == 1 and counts["parallel_projection"] == 2, log
     assert counts["left/image_normalized"] == 0, log
     assert counts["left/normalized_block"] >= 2 and counts["right/normalized_block"] >= 2
-    res = evaluate_bag(out, BAGS / "airborne_foreaft", matching=True)
+    assert counts["disparity"] == 1, log
+    res = evaluate_bag(out, bag, matching=True)
     (pair,) = res["pairs"]
     assert pair["streamed"]
     assert pair["geometric"]["y_parallax_px"]["rms"] <= 0.1
     assert pair["matching"]["y_parallax_px"]["median_abs"] <= 0.2
+    # The same blocks and disparity as offline, where blocks are rendered in the thread and
+    # returned in the outputs (no render process, no sink): equal to the bit.
+    process_bag(bag, tmp_path / "offline", progress=False,
+                overrides={"scene_lines": 768, "heights": True})  # fmt: skip
+    topics = ["left/normalized_block", "right/normalized_block", "disparity"]
+
+    def pixels(path: Path) -> dict[tuple[str, int], np.ndarray]:
+        got = {}
+        for m in BagReader(path).messages(topics=topics):
+            key = (m.topic, int(m.msg.index) if m.topic != "disparity" else 0)
+            got[key] = image_to_array(m.msg.image)
+        return got
+
+    on, off = pixels(out), pixels(tmp_path / "offline")
+    assert sorted(on) == sorted(off) and ("disparity", 0) in on
+    for key, arr in off.items():
+        assert np.array_equal(on[key], arr, equal_nan=True), key
 
 
 # ---- heights (issue 12) -------------------------------------------------------------------------

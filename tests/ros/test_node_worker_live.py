@@ -725,6 +725,36 @@ def test_reporting_cannot_fail(node_in_process: Any, capsys: pytest.CaptureFixtu
     assert "ValueError: boom" in err and node.counts["internal_errors"] == 1, err
 
 
+def test_a_block_that_cannot_be_published(node_in_process: Any) -> None:
+    """The node's block sink (blocks published as rendered, inside the streamer's loop): a
+    block whose publishing raises, or whose pixels no Image carries, is counted and reported,
+    and nothing is raised into the streamer; the next block is published."""
+    from dataclasses import replace
+
+    from parproj_ros.core.results import BlockResult
+    from parproj_ros.imaging.resample import OutputGrid
+
+    node = node_in_process
+    sent: list[Any] = []
+
+    def publish(raw: Any) -> None:
+        sent.append(raw)
+        if len(sent) == 1:
+            raise RuntimeError("writer gone")
+
+    node.pubs["left/normalized_block"].publish = publish
+    grid = OutputGrid(1.0, 0.0, 0.0, 8, 4)
+    blk = BlockResult(
+        "p0", "left", 0, 0, np.arange(8, dtype=np.uint16).reshape(4, 2), grid, 5, False
+    )
+    node._publish_block(blk)  # raises in publish
+    node._publish_block(replace(blk, index=1, image=np.zeros((4, 2), np.complex64)))
+    node._publish_block(replace(blk, index=2, col0=2))
+    assert node.counts["internal_errors"] == 2, node.counts
+    assert len(sent) == 2 and isinstance(sent[1], bytes | bytearray | memoryview), sent
+    assert node._worker.is_alive()
+
+
 def test_worker_and_callbacks_survive_exceptions(node_in_process: Any) -> None:
     """An exception in the pipeline (the worker), a message a callback cannot read, a flush
     that raises: each counted and reported; the worker is alive and serves the next input."""
