@@ -492,8 +492,9 @@ GAP_NOTES = (
     "What the node adds (issue 11; bench/BENCHMARKS.md, 'Issue 11 at the full rate'): each "
     "strip taken as CDR bytes by the executor (one copy) and copied into its scene's line "
     "buffer (SceneAssembler.add), the resampling (the render process, about half a core at the "
-    "IKONOS rate), each block copied out of the render process and into its CDR bytes, and DDS "
-    "on both sides; the simulated sensor shares the same 2 cores. A node that falls behind "
+    "IKONOS rate, the next block rendered while the worker publishes one), each block copied "
+    "from the render process's output buffer into its CDR bytes, and DDS on both sides; the "
+    "simulated sensor shares the same 2 cores. A node that falls behind "
     "grows a backlog past the prefault_mb reserve into memory touched afresh (2.2 ms per MB "
     "here), which slows it further.",
 )
