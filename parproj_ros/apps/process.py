@@ -185,6 +185,7 @@ class ProcessSummary:
         messages_in: input messages read.
         recovery: the input reader's recovery report (cut-off bags).
         skipped_topics: topics of unknown types, with counts.
+        direct: whether the output bag was written past the page cache (O_DIRECT).
     """
 
     scenes: int = 0
@@ -193,6 +194,7 @@ class ProcessSummary:
     messages_in: int = 0
     recovery: Any = None
     skipped_topics: dict[str, int] = field(default_factory=dict)
+    direct: bool = False
 
 
 def _bag_issues(reader: BagReader, name: str) -> Outputs:
@@ -247,13 +249,17 @@ def process_bag(
     on_outputs: Callable[[Outputs], None] | None = None,
     compression: str = "zstd",
     image_compression: str | None = None,
+    direct: bool = True,
 ) -> ProcessSummary:
     """Run the pipeline over the bag ``src`` and write its outputs to the bag ``dst``.
 
     ``compression`` is the output bag's chunk compression ("zstd", "lz4", "none");
     ``image_compression``, when given, that of the topics carrying images (normalized images,
     anaglyph, column blocks, StereoPair): zstd spends most of the writing time on them
-    (BagWriter's ``topic_compression``; README, "Recording large images").
+    (BagWriter's ``topic_compression``; README, "Recording large images"). ``direct``: the
+    output bag is written past the page cache (``O_DIRECT``, where the file system allows it;
+    ``summary.direct`` tells): a large output then takes no fresh memory for its pages
+    (io/direct.py).
     """
     from tqdm import tqdm
 
@@ -269,8 +275,9 @@ def process_bag(
         {t: image_compression for t in IMAGE_TOPICS} if image_compression is not None else None
     )
     with BagWriter(
-        dst, compression=compression, topic_compression=per_topic, overwrite=True
+        dst, compression=compression, topic_compression=per_topic, overwrite=True, direct=direct
     ) as bw:
+        summary.direct = bw.direct
         for topic, msgtype in conv.OUTPUT_TOPICS.items():
             bw.add_topic(topic, msgtype, "reliable")
 

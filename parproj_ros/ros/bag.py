@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, NamedTuple
+from typing import Any, Literal, NamedTuple, cast
 
 import mcap
 import yaml
@@ -61,6 +61,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
+from ..io.direct import DirectFile
 from .cdr import CdrError, parse_image
 
 __all__ = [
@@ -439,6 +440,10 @@ class BagWriter:
             and ``.mcap`` files). Otherwise an existing ``path`` is an error.
         ros_distro: Recorded in the metadata; default ``$ROS_DISTRO`` or ``"kilted"``.
         custom_data: Free key/value strings recorded in the metadata (``custom_data``).
+        direct: Write the MCAP file past the page cache (``O_DIRECT``,
+            :class:`~parproj_ros.io.direct.DirectFile`), where the file system allows it
+            (:attr:`direct` tells): for large outputs, which otherwise take fresh memory for
+            every page written.
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False or it is not a bag.
@@ -456,6 +461,7 @@ class BagWriter:
         overwrite: bool = False,
         ros_distro: str | None = None,
         custom_data: Mapping[str, str] | None = None,
+        direct: bool = False,
     ) -> None:
         self.path = Path(path)
         kinds = _COMPRESSIONS
@@ -485,8 +491,12 @@ class BagWriter:
         self._start_ns: int | None = None
         self._end_ns: int | None = None
         self._closed = False
-        self._file = self.mcap_path.open("xb")
-        self._writer = Writer(self._file, chunk_size=chunk_size, compression=kinds[compression])
+        self._file: Any = DirectFile(self.mcap_path) if direct else self.mcap_path.open("xb")
+        #: Whether the MCAP file is written past the page cache (``direct`` and allowed).
+        self.direct = bool(getattr(self._file, "direct", False))
+        self._writer = Writer(
+            cast(Any, self._file), chunk_size=chunk_size, compression=kinds[compression]
+        )
         self._writer.start(profile="ros2", library=f"parproj_ros bag.py; mcap-python {_mcap_v()}")
 
     def __enter__(self) -> BagWriter:

@@ -290,6 +290,18 @@ def test_internal_error_is_exit_3(
     assert not out.exists() and not list(tmp_path.iterdir())  # nothing left, not even .partial
 
 
+def test_process_past_the_page_cache_or_through_it(tmp_path: Path, capsys: Any) -> None:
+    """``parproj process`` writes its output past the page cache by default (O_DIRECT) and
+    through it with ``--no-direct``: the same messages either way."""
+    got = []
+    for opt in ([], ["--no-direct"]):
+        out = tmp_path / ("cached" if opt else "direct")
+        code, _, err = run(["process", str(BAG), "-o", str(out), *FAST, *opt], capsys)
+        assert code == 0, err
+        got.append([(m.topic, m.log_time_ns, len(m.data)) for m in BagReader(out).raw_messages()])
+    assert got[0] == got[1] and len(got[0]) >= 5
+
+
 # ---- options ------------------------------------------------------------------------------------
 
 OPTION_CASES = [

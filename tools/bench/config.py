@@ -59,6 +59,8 @@ class BenchConfig:
             ``ros2 bag record`` writes by default and the only one that keeps up with the
             sensor's 360 MB/s on one core here (zstd writes 184 MB/s; README, "Recording large
             images"); "zstd" or "lz4" to measure what reading them costs.
+        direct_output: the offline output bag (and the I/O bound's) written past the page
+            cache (``process_bag``'s ``direct``, its default); False: through it.
     """
 
     name: str
@@ -88,6 +90,7 @@ class BenchConfig:
     image_compression: str | None = None
     input_compression: str = "none"
     live_rate: float = 1.0
+    direct_output: bool = True
 
 
 FULL = BenchConfig(

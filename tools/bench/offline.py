@@ -82,14 +82,20 @@ def _uncompressed_bytes(bag: Path) -> int:
 
 
 def io_bound(
-    src: Path, out_bytes: int, path: Path, compression: str, keep_bytes: int = 0
+    src: Path,
+    out_bytes: int,
+    path: Path,
+    compression: str,
+    keep_bytes: int = 0,
+    direct: bool = True,
 ) -> dict[str, Any]:
     """The I/O alone, what ``parproj process`` cannot beat on this disk.
 
     Reads every message of the bag ``src`` and writes ``out_bytes`` of them (what
     ``process_bag`` wrote, uncompressed) to a bag at ``path``, chunk compression
     ``compression``; then deletes it. Memory is kept for reuse as ``process_bag`` keeps it
-    (``keep_bytes`` of free heap: ``core/memory.tune_malloc``).
+    (``keep_bytes`` of free heap: ``core/memory.tune_malloc``), and written as it writes
+    (``direct``: past the page cache).
 
     Returns wall_s (s), read_mb and written_mb (uncompressed MB), bag_mb (on disk).
     """
@@ -99,7 +105,7 @@ def io_bound(
     tune_malloc(keep_bytes)  # as process_bag does
     read = written = 0
     t0 = time.perf_counter()
-    with BagWriter(path, compression=compression, overwrite=True) as bw:
+    with BagWriter(path, compression=compression, overwrite=True, direct=direct) as bw:
         bw.add_topic("copy", "sensor_msgs/msg/Image")
         last = b""
         for m in BagReader(src).raw_messages():
@@ -232,6 +238,7 @@ def bench_offline(
         overrides=overrides,
         on_outputs=on_outputs,
         image_compression=cfg.image_compression,
+        direct=cfg.direct_output,
     )
     wall = time.perf_counter() - t0
     size = sum(f.stat().st_size for f in dst.iterdir()) / 2**20 if dst.exists() else 0.0
@@ -243,7 +250,12 @@ def bench_offline(
     t1 = time.perf_counter()
     prof.enable()
     process_bag(
-        src, dst, progress=False, overrides=overrides, image_compression=cfg.image_compression
+        src,
+        dst,
+        progress=False,
+        overrides=overrides,
+        image_compression=cfg.image_compression,
+        direct=cfg.direct_output,
     )
     prof.disable()
     profiled_wall = time.perf_counter() - t1
@@ -251,7 +263,14 @@ def bench_offline(
     sensor_s = (pairs + plat.lag_scenes) * plat.scene_s
     # Two raw pairs of free heap kept, as process_bag keeps for the same configuration.
     keep = 2 * raw_pair_bytes(config_from_bag(BagReader(src), **overrides))
-    io = io_bound(src, out_bytes, workdir / "io_bound", cfg.image_compression or "zstd", keep)
+    io = io_bound(
+        src,
+        out_bytes,
+        workdir / "io_bound",
+        cfg.image_compression or "zstd",
+        keep,
+        direct=cfg.direct_output,
+    )
     io["realtime_factor"] = sensor_s / io["wall_s"]
     log(
         f"offline: I/O bound (read the input, write {out_bytes / 2**20:.0f} MB) "
@@ -261,6 +280,7 @@ def bench_offline(
         "pairs": pairs,
         "image_compression": cfg.image_compression or "zstd",
         "input_compression": cfg.input_compression,
+        "direct_output": summary.direct,
         "output_mb_uncompressed": out_bytes / 2**20,
         "io_bound": io,
         "pairs_out": summary.pairs,

@@ -126,6 +126,7 @@ def run_and_report(
     input_compression: str = "none",
     live_rate: float = 1.0,
     fast_repair: bool = True,
+    direct_output: bool = True,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -142,6 +143,7 @@ def run_and_report(
         image_compression=image_compression,
         input_compression=input_compression,
         live_rate=live_rate,
+        direct_output=direct_output,
     )
     res = run_bench(
         cfg,
@@ -243,6 +245,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="the live sensor at this multiple of the IKONOS rate (2: the 2x headroom stretch)",
     )
+    p.add_argument(
+        "--no-direct-output",
+        action="store_true",
+        help="write the offline output bag (and the I/O bound's) through the page cache "
+        "(default: past it, as parproj process does)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -273,5 +281,6 @@ def main(argv: list[str] | None = None) -> int:
         image_compression=args.image_compression,
         input_compression=args.input_compression,
         live_rate=args.live_rate,
+        direct_output=not args.no_direct_output,
     )
     return 1 if (res.get("live") or {}).get("error") else 0

@@ -71,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
     check_input_bag(bag)
     overrides = overrides_from(args)
     with staged_output(out, force=args.force) as work:
-        summary = process_bag(bag, work, overrides=overrides, progress=not args.quiet)
+        summary = process_bag(
+            bag, work, overrides=overrides, progress=not args.quiet, direct=args.direct
+        )
     for iss in summary.issues:
         print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
     rec = summary.recovery
@@ -91,5 +93,13 @@ def add_parser(sub: Any) -> None:
     p.add_argument("--force", action="store_true", help="replace an existing output bag")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
     add_parameter_options(p)
+    p.add_argument(
+        "--direct",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="write the output bag past the page cache (O_DIRECT, where the file system allows "
+        "it): no memory taken for its pages; --no-direct keeps it in the cache, for a reader "
+        "right after; default on",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
