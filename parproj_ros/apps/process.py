@@ -277,7 +277,6 @@ def process_bag(
     with BagWriter(
         dst, compression=compression, topic_compression=per_topic, overwrite=True, direct=direct
     ) as bw:
-        summary.direct = bw.direct
         for topic, msgtype in conv.OUTPUT_TOPICS.items():
             bw.add_topic(topic, msgtype, "reliable")
 
@@ -343,4 +342,5 @@ def process_bag(
         writer.close()
     summary.recovery = reader.recovery
     summary.skipped_topics = dict(reader.skipped)
+    summary.direct = bw.direct  # once written: a file system may refuse at the first write
     return summary

@@ -112,8 +112,10 @@ class Pipeline:
         """Hand each streamed block to ``sink`` as soon as it is rendered (the node publishes it).
 
         The blocks are then no longer in the outputs; their pixels may be borrowed, valid only
-        during the call (:attr:`Streamer.block_sink`). With heights on, step 7 keeps a copy of
-        each. None: blocks come back in :attr:`Outputs.blocks` again.
+        during the call (:attr:`Streamer.block_sink`). ``sink`` must not raise (the streamer
+        would stop mid-input). With heights on, a copy of each block is kept for step 7 once
+        ``sink`` has taken it; if there is no memory for the copy, that pair's heights are
+        reported as incomplete. None: blocks come back in :attr:`Outputs.blocks` again.
         """
         if sink is None or self.heights is None:
             self.streamer.block_sink = sink
@@ -121,8 +123,11 @@ class Pipeline:
         heights, to = self.heights, sink
 
         def keep_and_sink(blk: BlockResult) -> None:
-            heights.keep(replace(blk, image=blk.image.copy()))
             to(blk)
+            try:
+                heights.keep(replace(blk, image=blk.image.copy()))
+            except MemoryError:  # step 7 then finds the pair's images incomplete: a WARN
+                pass
 
         self.streamer.block_sink = keep_and_sink
 

@@ -111,7 +111,13 @@ class RenderProcess:
             daemon=True,
             name="parproj_render",
         )
-        self._proc.start()
+        try:
+            self._proc.start()
+        except BaseException:
+            self._conn.close()
+            child_conn.close()
+            self._free_outputs()
+            raise
         child_conn.close()
         self._segments: dict[int, tuple[int, str]] = {}  # buffer address -> (size, name)
         self._lock = threading.Lock()

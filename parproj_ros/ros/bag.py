@@ -492,12 +492,15 @@ class BagWriter:
         self._end_ns: int | None = None
         self._closed = False
         self._file: Any = DirectFile(self.mcap_path) if direct else self.mcap_path.open("xb")
-        #: Whether the MCAP file is written past the page cache (``direct`` and allowed).
-        self.direct = bool(getattr(self._file, "direct", False))
         self._writer = Writer(
             cast(Any, self._file), chunk_size=chunk_size, compression=kinds[compression]
         )
         self._writer.start(profile="ros2", library=f"parproj_ros bag.py; mcap-python {_mcap_v()}")
+
+    @property
+    def direct(self) -> bool:
+        """Whether the MCAP file is written past the page cache (``direct`` and allowed)."""
+        return bool(getattr(self._file, "direct", False))
 
     def __enter__(self) -> BagWriter:
         return self

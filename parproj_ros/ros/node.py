@@ -1068,7 +1068,9 @@ class ParprojNode(Node):
         try:
             self.pubs[topic].publish(conv.block_to_cdr(blk, frame_id=self.frame_id))
         except Exception as err:
-            self.internal_error(f"block {blk.index} of pair {blk.pair_id} ({topic})", err)
+            self.internal_error(
+                f"block {blk.index} of pair {blk.pair_id} ({topic}; only that block is lost)", err
+            )
 
     def _log(self, level: str, text: str) -> None:
         """Log ``text`` at ``level`` ("error", "warn", anything else: info).

@@ -272,6 +272,8 @@ def test_direct_writing_gives_the_same_bag(tmp_path: Path) -> None:
     write_sample(tmp_path / "b" / "sample", direct=True)
     with BagWriter(tmp_path / "probe", direct=True) as probe:
         assert probe.direct  # this machine's disk takes O_DIRECT
+    with BagWriter(tmp_path / "cached") as cached:
+        assert not cached.direct
     got = []
     for d in ("a", "b"):
         path = tmp_path / d / "sample"
