@@ -146,14 +146,7 @@ class RenderProcess:
     def _release(self, addr: int, shm: shared_memory.SharedMemory) -> None:
         with self._lock:
             self._segments.pop(addr, None)
-        try:
-            shm.close()
-        except BufferError:  # a view still exported: the mapping goes with the process
-            pass
-        try:
-            shm.unlink()
-        except FileNotFoundError:
-            pass
+        _free(shm)
 
     def _locate(self, data: NDArray[np.generic]) -> tuple[str, int] | None:
         """(segment name, byte offset) of ``data`` if it lies in a segment of ours."""
@@ -268,11 +261,16 @@ class RenderProcess:
 
     def _free_outputs(self) -> None:
         for out in self._outs:
-            try:
-                out.close()
-            except BufferError:  # a view still exported: the mapping goes with the process
-                pass
-            try:
-                out.unlink()
-            except FileNotFoundError:
-                pass
+            _free(out)
+
+
+def _free(shm: shared_memory.SharedMemory) -> None:
+    """Close and unlink a segment of ours."""
+    try:
+        shm.close()
+    except BufferError:  # a view still exported: the mapping goes with the process
+        pass
+    try:
+        shm.unlink()
+    except FileNotFoundError:
+        pass
