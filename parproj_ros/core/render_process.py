@@ -159,23 +159,6 @@ class RenderProcess:
                     return name, addr - base
         return None
 
-    def render(
-        self,
-        block: Any,
-        data: NDArray[np.generic],
-        first_line: int,
-        height: int,
-        *,
-        nodata: float,
-        interpolation: int,
-    ) -> NDArray[np.generic] | None:
-        """The block rendered by the child (a new array), or None: render it yourself."""
-        for _, img in self.render_blocks(
-            [block], data, first_line, height, nodata=nodata, interpolation=interpolation
-        ):
-            return None if img is None else img.copy()
-        return None
-
     def render_blocks(
         self,
         blocks: Sequence[Any],
@@ -211,7 +194,7 @@ class RenderProcess:
             """Ask the child for block k into output k % 2; False: the child is gone."""
             try:
                 self._conn.send((k % 2, *head, blocks[k], *tail))
-            except (OSError, BrokenPipeError) as err:
+            except OSError as err:
                 self.error = f"render process gone: {type(err).__name__}: {err}"
                 return False
             return True
@@ -220,7 +203,7 @@ class RenderProcess:
             """The child's answer to the block in flight: whether it rendered it."""
             try:
                 answer = self._conn.recv()
-            except (EOFError, OSError, BrokenPipeError) as err:
+            except (EOFError, OSError) as err:
                 self.error = f"render process gone: {type(err).__name__}: {err}"
                 return False
             return answer is None

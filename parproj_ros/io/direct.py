@@ -107,9 +107,7 @@ class DirectFile:
         stays in the buffer, to be written again with what follows.
         """
         self._check()
-        whole = self._fill - self._fill % ALIGN
-        if whole:
-            self._write_out(whole)
+        self._write_aligned()
         if not self._fill:
             return
         if self.direct:
@@ -130,6 +128,12 @@ class DirectFile:
             raise ValueError("I/O on a closed DirectFile")
         if self.failed is not None:
             raise OSError(f"an earlier write to {self.path} failed: {self.failed}")
+
+    def _write_aligned(self) -> None:
+        """Write the whole aligned blocks in the buffer; less than one block stays."""
+        whole = self._fill - self._fill % ALIGN
+        if whole:
+            self._write_out(whole)
 
     def _write_out(self, nbytes: int) -> None:
         """Write the first ``nbytes`` of the buffer; the rest moves to its start."""
@@ -162,9 +166,7 @@ class DirectFile:
             return
         try:
             if self.failed is None:
-                whole = self._fill - self._fill % ALIGN
-                if whole:
-                    self._write_out(whole)
+                self._write_aligned()
                 if self._fill:  # less than one aligned block: not with O_DIRECT
                     if self.direct:
                         self._set_direct(False)

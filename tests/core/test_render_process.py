@@ -72,7 +72,9 @@ def test_private_buffers_are_rendered_in_the_thread() -> None:
     rp = RenderProcess()
     try:
         data = np.zeros((10, 4), np.uint16)
-        assert rp.render(None, data, 0, 10, nodata=0.0, interpolation=1) is None
+        assert list(rp.render_blocks([None], data, 0, 10, nodata=0.0, interpolation=1)) == [
+            (None, None)
+        ]
         assert rp.fallbacks == 1
     finally:
         rp.close()

@@ -513,8 +513,7 @@ DEFINITIONS = (
     "constant latency, within the jitter of the first and last pair's latencies divided by the "
     "time between them (0.9988-1.0003 in 8 of 9 runs of 2e2b686-206430b, every pair at most "
     "0.25 s late): the full run's target is 0.995 (0.1 s over 21 s), the quick run's 0.95. One "
-    "that "
-    "falls behind scores its throughput over the sensor's. "
+    "that falls behind scores its throughput over the sensor's. "
     "End to end: sensor time of the data ((pairs + 1) scenes) over the wall time to the last "
     "StereoPair (< 1 by the last latency). Sustained: scene time over the time between "
     "consecutive pairs.",
