@@ -81,7 +81,7 @@ from ..rpc import (
     read_rpc,
 )
 from . import raster
-from .dem import srtm_height
+from .dem import MIN_COVERAGE, DemError, DemHeights, Geoid, coverage_text, load_dem
 from .raster import SceneImportError
 
 FloatArray = NDArray[np.float64]
@@ -474,6 +474,7 @@ def height_range(img: ImportedImage, heights: Heights, dem_margin: float) -> tup
     """
     if not callable(heights):
         return float(heights[0]), float(heights[1])
+    check_dem_coverage(img, heights)
     gl, gs = _grid(img, 5, 5)
     g = _ground(img, gl, gs, heights, np.zeros(gl.shape))[:, 2]
     g = g[np.isfinite(g)]
@@ -691,12 +692,48 @@ def pair_truth_points(
 # The bag
 
 
-def dem_from_path(path: str | Path, *, geoid_undulation: float = 0.0) -> HeightFunction:
-    """A DEM file as a height function: an SRTM ``.hgt`` tile (heights + geoid undulation, m)."""
-    p = Path(path)
-    if p.suffix.lower() != ".hgt":
-        raise SceneImportError(f"{p}: only SRTM .hgt tiles are supported as DEM")
-    return srtm_height(p, geoid_undulation=geoid_undulation)
+def dem_from_path(
+    path: str | Path | Sequence[str | Path],
+    *,
+    geoid_undulation: float = 0.0,
+    geoid: Geoid = None,
+) -> HeightFunction:
+    """DEM files (any raster GDAL reads, see :func:`parproj_ros.io.dem.load_dem`) as heights.
+
+    ``geoid`` (a grid file, a model name, a constant) if given, else ``geoid_undulation``
+    (metres added to the DEM's heights; 0: used as they are).
+    """
+    return load_dem(path, geoid=geoid if geoid is not None else float(geoid_undulation))
+
+
+def check_dem_coverage(img: ImportedImage, heights: HeightFunction) -> None:
+    """Refuse a DEM that gives no ground under :data:`MIN_COVERAGE` of an image's 11 x 11 grid.
+
+    The points whose localization at the RPC's height offset fails are left to
+    :func:`check_image` (the RPC's fault, not the DEM's).
+
+    Raises:
+        DemError: one line naming the DEM (or geoid grid), the area needed and covered.
+
+    """
+    gl, gs = _grid(img, 11, 11)
+    rpc = img.rpc
+    lon, lat = rpc.localize(gl, gs, np.full(gl.shape, rpc.height_off), outside="nan")
+    ok = np.isfinite(lon) & np.isfinite(lat)
+    if not ok.any():
+        return
+    g = _ground(img, gl[ok], gs[ok], heights, np.zeros(int(ok.sum())))[:, 2]
+    fraction = float(np.isfinite(g).mean())
+    if fraction >= MIN_COVERAGE:
+        return
+    what = f"{img.path.name}'s ground"
+    if isinstance(heights, DemHeights):
+        heights.check_covers(lon, lat, what)  # names the geoid grid when it is at fault
+        name, box = heights.name, heights.bounds_lonlat()
+    else:
+        name, box = "the DEM", None
+    need = (float(lon[ok].min()), float(lat[ok].min()), float(lon[ok].max()), float(lat[ok].max()))
+    raise DemError(name, coverage_text(fraction, what, need, box))
 
 
 def default_heights(img: ImportedImage) -> tuple[float, float]:

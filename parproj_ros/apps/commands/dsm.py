@@ -6,17 +6,18 @@ import argparse
 import json
 from typing import Any
 
-from ...io.files import check_output, input_path, number, staged_output
+from ...io.dem import add_dem_arguments
+from ...io.files import check_output, input_path, staged_output
 from .common import FORCE_HELP, report
 
 
 def run(args: argparse.Namespace) -> int:
     """Export every DSM of the bag; print one line per pair (or JSON)."""
     from ...eval.heights import scenario_terrain
-    from ...io.dem import srtm_height
+    from ...io.dem import dem_from_args
     from ..export import export_dsms
 
-    args.inputs = [args.output_bag, args.dem]
+    args.inputs = [args.output_bag, *(args.dem or [])]
     bag = input_path(args.output_bag, "bag")
     out = check_output(args.output, inputs=[bag], force=args.force, kind="folder")
     args.outputs = [out]
@@ -26,11 +27,11 @@ def run(args: argparse.Namespace) -> int:
         from ...sim.scenarios import SCENARIOS
 
         raise InputError("--scenario", f"unknown; known: {', '.join(SCENARIOS)}")
-    dem = None
-    if args.dem:
-        dem = srtm_height(input_path(args.dem, "file"), geoid_undulation=args.geoid_undulation)
+    dem = dem_from_args(args)
     with staged_output(out, force=args.force, kind="folder") as work:
         rows = export_dsms(bag, work, target=args.target, truth=truth, dem=dem)
+        if dem is not None:
+            dem.check_usage("the DSMs' cells")
         (work / "dsm.json").write_text(json.dumps(rows, indent=1, default=float))
 
     def show(res: dict[str, Any]) -> None:
@@ -63,13 +64,7 @@ def add_parser(sub: Any) -> None:
         help="CRS of a real pair's DSM: its UTM zone, or a local transverse Mercator",
     )
     p.add_argument("--scenario", help="simulated bag: the scenario whose terrain is the truth")
-    p.add_argument("--dem", help="real pair: an SRTM .hgt tile as the (coarse) truth")
-    p.add_argument(
-        "--geoid-undulation",
-        type=number(-200.0, 200.0),
-        default=0.0,
-        help="metres added to the DEM heights (geoid -> WGS84 ellipsoid; about 50 at Ventoux)",
-    )
+    add_dem_arguments(p, "real pair: the (coarse) truth")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=run)

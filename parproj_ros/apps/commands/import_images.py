@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from ...io.dem import add_dem_arguments, dem_from_args
 from ...io.files import (
     InputError,
     check_output,
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     images = [args.left, args.right, *args.more]
     rpcs = _rpc_files(args, images)
     offsets = _crop_origins(args.crop_origin, images)
-    files = [*images, *rpcs, args.dem]
+    files = [*images, *rpcs, *(args.dem or [])]
     args.inputs = [f for f in files if f]
     for f in args.inputs:
         input_path(f, "file")
@@ -108,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
     if len(ids) != len(images) or len(set(ids)) != len(ids) or not all(i.strip() for i in ids):
         raise InputError("--ids", f"one distinct, non-empty scene id per image needed, got {ids}")
     pairs = parse_pairs(args.pairs or "bh", ids) if select else None
+    dem = dem_from_args(args)
     out = check_output(args.output, inputs=args.inputs, force=args.force)
     args.outputs = [out]
     with staged_output(out, force=args.force) as work:
@@ -119,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
             scene_ids=ids,
             rpcs=rpcs,
             offsets=offsets,
-            dem=args.dem,
+            dem=dem,
             geoid_undulation=args.geoid_undulation,
             heights=tuple(args.heights) if args.heights else None,
             band=args.band,
@@ -157,13 +159,7 @@ def add_parser(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, help="bag folder to create")
     p.add_argument("--rpc-left", help="RPC of the left full scene (default: tag 50844, sidecars)")
     p.add_argument("--rpc-right", help="RPC of the right full scene (see also --rpc)")
-    p.add_argument("--dem", help="SRTM .hgt tile: virtual points on the ground +- 100 m")
-    p.add_argument(
-        "--geoid-undulation",
-        type=number(-200.0, 200.0),
-        default=0.0,
-        help="metres added to the DEM heights (geoid -> WGS84 ellipsoid; about 50 at Ventoux)",
-    )
+    add_dem_arguments(p, "virtual points on the ground +- 100 m")
     p.add_argument(
         "--heights",
         type=number(-1e4, 1e5),
