@@ -147,9 +147,10 @@ PARAMS: tuple[Param, ...] = (
     Param(
         "frame_id",
         "string",
-        "map",
-        "object frame (local Cartesian, Z up, metres) of navigation and GCP; the frame of the "
-        "outputs",
+        "",
+        "object frame (local Cartesian, Z up, metres) of the outputs; '' = the frame of the "
+        "inputs (header.frame_id of the first GCP or navigation message), 'map' until one "
+        "names it; an input in another frame is a WARN naming both",
     ),
     _p(
         "scene_lines",
@@ -284,8 +285,20 @@ PARAMS: tuple[Param, ...] = (
         "string",
         "overlap",
         "columns of the normalized pair: 'overlap' (the ground both scenes see, at the heights "
-        "of the pair's GCP, else z_avg +- height_range) or 'union' (both footprints whole)",
+        "of the pair's terrain: see terrain) or 'union' (both footprints whole)",
         choices=("overlap", "union"),
+        offline=True,
+    ),
+    _p(
+        "terrain",
+        "string",
+        "tie_points",
+        "heights of a pair's ground, for the dense matching's disparity range and the "
+        "'overlap' output extent: 'tie_points' (measured from the pair: tie points matched on a "
+        "reduced normalized pair, robust percentiles plus a margin; the prior below when too "
+        "few agree, with a WARN) or 'prior' (the span of the pair's GCP, else z_avg +- "
+        "height_range)",
+        choices=("tie_points", "prior"),
         offline=True,
     ),
     _p(
@@ -657,6 +670,7 @@ class PipelineConfig:
     output_extent: Literal["overlap", "union"] = _default("output_extent")
     max_output_pixels: int = _default("max_output_pixels")
     streaming: bool = _default("streaming")
+    terrain: Literal["tie_points", "prior"] = _default("terrain")
     tie_points: bool = _default("tie_points")
     tie_threshold_px: float = _default("tie_threshold_px")
     heights: bool = _default("heights")

@@ -15,7 +15,6 @@ an :class:`~.results.Issue` that says so; it never raises for image content.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,6 +31,7 @@ from ..imaging.dense import (
 from ..imaging.heights import GroundMapping, make_dsm, orthoimage
 from .config import PipelineConfig
 from .results import BlockResult, HeightsResult, Issue, Level, Outputs, PairResult
+from .terrain import Terrain, TerrainSource, measure_terrain
 
 Float32Array = NDArray[np.float32]
 
@@ -51,6 +51,10 @@ class HeightsOptions:
         max_fill_cells: largest hole filled, in cells.
         tile_px: side of the matching tiles, pixels (memory: a few tiles at a time).
         nodata: pixel value meaning "no data" in the normalized images.
+        measure_terrain: measure each pair's terrain from tie points between its normalized
+            images when it does not come measured (parameter ``terrain`` "tie_points").
+        prior_m: the heights assumed for a pair that carries none (``z_avg`` +-
+            ``height_range``), metres.
     """
 
     margin_px: float = 8.0
@@ -59,13 +63,15 @@ class HeightsOptions:
     max_fill_cells: float = 1.0
     tile_px: int = 1024
     nodata: float = 0.0
+    measure_terrain: bool = False
+    prior_m: tuple[float, float] = (-500.0, 500.0)
 
 
 def measure_heights(
     pair: PairResult,
     left: NDArray[np.generic],
     right: NDArray[np.generic],
-    z_range_m: tuple[float, float],
+    z_range_m: tuple[float, float] | Terrain,
     options: HeightsOptions | None = None,
 ) -> tuple[HeightsResult, list[Issue]]:
     """Disparity, heights, DSM and ortho-image of a normalized pair (module docstring).
@@ -74,7 +80,8 @@ def measure_heights(
         pair: the pair (its grids, normalization, A1..A8 and height relation).
         left: its left normalized image (rows, cols).
         right: its right normalized image (same rows; same shape as made by the pipeline).
-        z_range_m: the heights the pair may hold (lowest, highest), metres.
+        z_range_m: the heights the pair may hold (lowest, highest), metres, or its
+            :class:`Terrain` (then kept in the result and named in the OK line).
         options: see :class:`HeightsOptions`.
 
     Returns:
@@ -82,6 +89,9 @@ def measure_heights(
         with the figures otherwise).
     """
     opt = options or HeightsOptions()
+    terrain = z_range_m if isinstance(z_range_m, Terrain) else None
+    if isinstance(z_range_m, Terrain):
+        z_range_m = z_range_m.range_m
     a, b = pair.height_per_disparity_px, pair.height_offset_m
     where = f"pair {pair.pair_id}"
     shape = left.shape[:2]
@@ -91,7 +101,19 @@ def measure_heights(
         status: DenseStatus, message: str, rng: tuple[int, int]
     ) -> tuple[HeightsResult, list[Issue]]:
         res = HeightsResult(
-            pair.pair_id, pair.stamp_ns, status, message, rng, 0.0, empty, empty, None, None, a, b
+            pair.pair_id,
+            pair.stamp_ns,
+            status,
+            message,
+            rng,
+            0.0,
+            empty,
+            empty,
+            None,
+            None,
+            a,
+            b,
+            terrain=terrain,
         )
         return res, [Issue(Level.WARN, where, f"no heights ({status}): {message}")]
 
@@ -141,9 +163,11 @@ def measure_heights(
         a,
         b,
         opt.max_fill_cells if opt.fill == "nearest" else 0.0,
+        terrain,
     )
+    searched = f"{terrain.describe()}: " if terrain is not None else ""
     text = (
-        f"heights: disparity {res.d_range[0]}..{res.d_range[1]} px, "
+        f"heights: {searched}disparity {res.d_range[0]}..{res.d_range[1]} px, "
         f"{100 * res.valid_share:.1f} % matched; DSM {dsm.grid.width} x {dsm.grid.height} cells "
         f"of {dsm.grid.cell:.3g} m, {100 * valid.mean():.1f} % with a height "
         f"({int(dsm.filled.sum())} filled)"
@@ -160,6 +184,8 @@ def options_of(config: PipelineConfig) -> HeightsOptions:
         max_fill_cells=config.heights_max_fill_cells,
         tile_px=config.heights_tile_px,
         nodata=float(config.nodata),
+        measure_terrain=config.terrain == "tie_points",
+        prior_m=(config.z_avg - config.height_range, config.z_avg + config.height_range),
     )
 
 
@@ -172,16 +198,17 @@ class HeightsStage:
     them when the pair is complete. A pair whose images are incomplete gets a WARN, no
     heights.
 
+    The heights searched are the pair's :attr:`PairResult.terrain`; when it was not measured
+    from the pair (a streamed pair, or tie points that did not refine a whole one) and
+    ``options.measure_terrain`` is on, tie points between the pair's normalized images measure
+    it here (:func:`pair_terrain`).
+
     Args:
         options: how heights are made.
-        z_range: the heights a pair may hold (lowest, highest), metres.
     """
 
-    def __init__(
-        self, options: HeightsOptions, z_range: Callable[[PairResult], tuple[float, float]]
-    ) -> None:
+    def __init__(self, options: HeightsOptions) -> None:
         self.options = options
-        self.z_range = z_range
         self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
 
     def __call__(self, out: Outputs) -> Outputs:
@@ -199,10 +226,43 @@ class HeightsStage:
                     )
                 )
                 continue
-            res, issues = measure_heights(pair, *images, self.z_range(pair), self.options)
+            terrain, issues = self.pair_terrain(pair, *images)
+            res, more = measure_heights(pair, *images, terrain, self.options)
             out.heights.append(res)
-            out.issues += issues
+            out.issues += issues + more
         return out
+
+    def pair_terrain(
+        self, pair: PairResult, left: NDArray[np.generic], right: NDArray[np.generic]
+    ) -> tuple[Terrain, list[Issue]]:
+        """The terrain to search for ``pair`` (its own, or measured now), and its issues.
+
+        A WARN when only the prior is known although a measurement was asked for.
+        """
+        opt = self.options
+        terrain = pair.terrain or Terrain(*opt.prior_m, TerrainSource.PRIOR)
+        if not opt.measure_terrain or terrain.source == TerrainSource.TIE_POINTS:
+            return terrain, []
+        measured = measure_terrain(
+            left,
+            right,
+            pair.left_grid,
+            pair.right_grid,
+            pair.normalization,
+            terrain,
+            nodata=opt.nodata,
+        )
+        if measured.source == TerrainSource.TIE_POINTS:
+            return measured, []
+        return terrain, [
+            Issue(
+                Level.WARN,
+                f"pair {pair.pair_id}",
+                "too few tie points agree to measure the terrain from the pair: the heights "
+                f"searched are the prior, {terrain.describe()} (if the ground lies outside it, "
+                "few pixels match: give a DEM at import, or set z_avg / height_range)",
+            )
+        ]
 
     def keep(self, blk: BlockResult) -> None:
         """Keep a streamed block (its pixels as they are: pass a copy of a borrowed view)."""

@@ -27,17 +27,22 @@ from .config import PipelineConfig
 from .gcp_store import GcpStore
 from .orientation import scene_from_gcp
 from .results import Issue, Level, Method, Outputs, PairGeometry, SceneResult, YParallaxSource
+from .terrain import Terrain, TerrainSource, measure_terrain, reduction_factor
 
 FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
 class NormalizedPair:
-    """A pair's geometry and its two normalized images (output grid pixels, the scenes' dtype)."""
+    """A pair's geometry, its two normalized images and the terrain of its output extent.
+
+    The images are in output grid pixels, of the scenes' dtype.
+    """
 
     geometry: PairGeometry
     left_image: NDArray[np.generic]
     right_image: NDArray[np.generic]
+    terrain: Terrain
 
 
 def interpolation_flag(config: PipelineConfig) -> int:
@@ -45,17 +50,52 @@ def interpolation_flag(config: PipelineConfig) -> int:
     return cv2.INTER_CUBIC if config.interpolation == "cubic" else cv2.INTER_LINEAR
 
 
-def pair_geometry(
-    left: SceneResult,
-    right: SceneResult,
-    lines: tuple[int, int],
-    config: PipelineConfig,
-    gcps: GcpStore,
-) -> PairGeometry | Issue:
-    """Normalization and output grids of a pair (scenes of ``lines`` lines each).
+@dataclass(frozen=True)
+class PairFrame:
+    """A pair's normalization and the two scenes' footprints on the normalized plane.
 
-    An ERROR issue instead when the pair cannot be normalized: degenerate geometry, no overlap,
-    or output images over ``max_output_pixels``.
+    Attributes:
+        pair_id: "<left scene id>+<right scene id>".
+        normalization: paper 2 Eq 8.
+        left_geom: the left scene's geometry on the normalized plane.
+        right_geom: the right scene's.
+        left_footprint: the left scene's border in normalized metres, (n, 2).
+        right_footprint: the right scene's, (n, 2).
+        pixel: output pixel, normalized metres.
+        rows: (lowest, highest) normalized y both scenes cover, metres.
+        z_ref: the zero-disparity height of the output grids, metres (``z_avg``, or the
+            middle of the measured terrain when ``z_avg`` lies outside it: :func:`pair_grids`).
+    """
+
+    pair_id: str
+    normalization: Normalization
+    left_geom: SceneGeometry
+    right_geom: SceneGeometry
+    left_footprint: FloatArray
+    right_footprint: FloatArray
+    pixel: float
+    rows: tuple[float, float]
+    z_ref: float
+
+    @property
+    def shift(self) -> float:
+        """The right grid's x relative to the left one: ``k z_ref + offset``, metres."""
+        n = self.normalization
+        return float(n.parallax_per_height * self.z_ref + n.parallax_offset)
+
+    def union_columns(self) -> tuple[float, float]:
+        """Normalized x range (left image metres) of both footprints whole."""
+        fl, fr, s = self.left_footprint, self.right_footprint, self.shift
+        return min(fl[:, 0].min(), fr[:, 0].min() + s), max(fl[:, 0].max(), fr[:, 0].max() + s)
+
+
+def pair_frame(
+    left: SceneResult, right: SceneResult, lines: tuple[int, int], config: PipelineConfig
+) -> PairFrame | Issue:
+    """Normalization and footprints of a pair (scenes of ``lines`` lines each).
+
+    An ERROR issue instead when the pair cannot be normalized: degenerate geometry, or no
+    overlap across the epipolar lines.
     """
     pair_id = f"{left.scene.scene_id}+{right.scene.scene_id}"
     try:
@@ -77,38 +117,70 @@ def pair_geometry(
             f"pair {pair_id}",
             "the scenes do not overlap across the epipolar lines: pair skipped",
         )
-    shift = norm.parallax_per_height * config.z_avg + norm.parallax_offset
-    xo_l = min(fl[:, 0].min(), fr[:, 0].min() + shift)
-    x1 = max(fl[:, 0].max(), fr[:, 0].max() + shift)
+    return PairFrame(pair_id, norm, gl, gr, fl, fr, pix, (float(y0), float(y1)), config.z_avg)
+
+
+def pair_grids(
+    frame: PairFrame, config: PipelineConfig, heights: tuple[float, float]
+) -> PairGeometry | Issue:
+    """The output grids of a pair: its rows, and its columns by ``config.output_extent``.
+
+    ``heights`` (m): the pair's terrain, at which ``overlap`` keeps the columns both scenes
+    see. An ERROR issue when no column is left or the images would exceed
+    ``max_output_pixels``. The zero-disparity height is ``frame.z_ref``.
+    """
+    norm, shift, pix = frame.normalization, frame.shift, frame.pixel
+    xo_l, x1 = frame.union_columns()
     if config.output_extent == "overlap":
-        heights = pair_heights(left, right, config, gcps)
-        span = overlap_columns(norm, fl, fr, shift, heights, config.z_avg)
+        span = overlap_columns(
+            norm, frame.left_footprint, frame.right_footprint, shift, heights, frame.z_ref
+        )
         if span is None:
             return Issue(
                 Level.ERROR,
-                f"pair {pair_id}",
+                f"pair {frame.pair_id}",
                 "the scenes do not overlap along the epipolar lines at any height of the "
-                "pair (output_extent overlap): pair skipped",
+                f"pair ({heights[0]:.0f}..{heights[1]:.0f} m; output_extent overlap): pair "
+                "skipped",
             )
         xo_l, x1 = max(xo_l, span[0]), min(x1, span[1])
+    y0, y1 = frame.rows
     width = int(np.floor((x1 - xo_l) / pix)) + 1
     height = int(np.floor((y1 - y0) / pix)) + 1
     if width * height > config.max_output_pixels:
         return Issue(
             Level.ERROR,
-            f"pair {pair_id}",
+            f"pair {frame.pair_id}",
             f"normalized images would be {width} x {height} px (> max_output_pixels "
             f"{config.max_output_pixels}): pair skipped",
         )
     grid_l = OutputGrid(pix, xo_l, y0, width, height)
     grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
-    return PairGeometry(pair_id, norm, gl, gr, grid_l, grid_r)
+    return PairGeometry(frame.pair_id, norm, frame.left_geom, frame.right_geom, grid_l, grid_r)
 
 
-def pair_heights(
+def pair_geometry(
+    left: SceneResult,
+    right: SceneResult,
+    lines: tuple[int, int],
+    config: PipelineConfig,
+    gcps: GcpStore,
+) -> PairGeometry | Issue:
+    """Normalization and output grids of a pair at the heights its GCP (or the prior) give.
+
+    An ERROR issue instead when the pair cannot be normalized: degenerate geometry, no overlap,
+    or output images over ``max_output_pixels``.
+    """
+    frame = pair_frame(left, right, lines, config)
+    if isinstance(frame, Issue):
+        return frame
+    return pair_grids(frame, config, pair_terrain(left, right, config, gcps).range_m)
+
+
+def pair_terrain(
     left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
-) -> tuple[float, float]:
-    """Heights (m) of the pair's ground: its GCP and check points, else z_avg +- height_range.
+) -> Terrain:
+    """The heights the pipeline assumes for a pair: its GCP and check points, else the prior.
 
     With at least ``min_gcp`` points observed in either scene, their height span widened
     by 10 % of it (at least 1 m) on each side; otherwise ``z_avg`` +- ``height_range``.
@@ -116,8 +188,57 @@ def pair_heights(
     z = gcps.heights((left.scene.scene_id, right.scene.scene_id))
     if z.size >= config.min_gcp:
         pad = max(0.1 * float(np.ptp(z)), 1.0)
-        return float(z.min()) - pad, float(z.max()) + pad
-    return config.z_avg - config.height_range, config.z_avg + config.height_range
+        return Terrain(float(z.min()) - pad, float(z.max()) + pad, TerrainSource.GCP)
+    return Terrain(
+        config.z_avg - config.height_range, config.z_avg + config.height_range, TerrainSource.PRIOR
+    )
+
+
+def pair_heights(
+    left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
+) -> tuple[float, float]:
+    """(lowest, highest) height (m) of :func:`pair_terrain`."""
+    return pair_terrain(left, right, config, gcps).range_m
+
+
+def zero_disparity_height(z_avg: float, terrain: Terrain) -> float:
+    """The zero-disparity height of a pair's grids: ``z_avg`` on a measured terrain holding it.
+
+    Otherwise (the terrain measured elsewhere, e.g. an imported pair whose frame lies at the
+    RPC's height offset, hundreds of metres above the ground) the middle of the measured
+    terrain, to the metre: conjugate points then lie near the same column of both images, as
+    a stereo user expects, and the images hold the same ground.
+    """
+    if terrain.source != TerrainSource.TIE_POINTS or terrain.low_m <= z_avg <= terrain.high_m:
+        return z_avg
+    return float(round(0.5 * (terrain.low_m + terrain.high_m)))
+
+
+def terrain_prepass(
+    frame: PairFrame, left: SceneResult, right: SceneResult, config: PipelineConfig, prior: Terrain
+) -> Terrain:
+    """The pair's terrain measured on a reduced normalized pair covering both footprints whole.
+
+    Both scenes are resampled at a reduced resolution (the longer side at most 1024 px) onto
+    the union of their footprints, whatever heights are assumed, so that tie points are found
+    even when the prior heights are far from the ground (an output extent chosen at them
+    would hold little or no common ground); their heights give the terrain
+    (:func:`~parproj_ros.core.terrain.measure_terrain`). ``prior`` when too few agree.
+    """
+    x0, x1 = frame.union_columns()
+    y0, y1 = frame.rows
+    full_w = int(np.floor((x1 - x0) / frame.pixel)) + 1
+    full_h = int(np.floor((y1 - y0) / frame.pixel)) + 1
+    f = reduction_factor(full_w, full_h)
+    pix = frame.pixel * f
+    w, h = int(np.floor((x1 - x0) / pix)) + 1, int(np.floor((y1 - y0) / pix)) + 1
+    grid_l = OutputGrid(pix, x0, y0, w, h)
+    grid_r = OutputGrid(pix, x0 - frame.shift, y0, w, h)
+    img_l = resample_scene(left, frame.left_geom, grid_l, config)
+    img_r = resample_scene(right, frame.right_geom, grid_r, config)
+    return measure_terrain(
+        img_l, img_r, grid_l, grid_r, frame.normalization, prior, nodata=config.nodata
+    )
 
 
 def overlap_columns(
@@ -163,13 +284,25 @@ def resample_scene(
 def normalize_pair(
     left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
 ) -> NormalizedPair | Issue:
-    """A pair of whole scenes normalized: geometry (:func:`pair_geometry`), both resampled."""
-    geo = pair_geometry(left, right, (left.scene.lines, right.scene.lines), config, gcps)
+    """A pair of whole scenes normalized: geometry (:func:`pair_geometry`), both resampled.
+
+    With ``terrain`` "tie_points" the output extent is chosen at the terrain measured from the
+    pair (:func:`terrain_prepass`), which :attr:`NormalizedPair.terrain` then holds; otherwise
+    at the heights of its GCP or the prior (:func:`pair_terrain`).
+    """
+    frame = pair_frame(left, right, (left.scene.lines, right.scene.lines), config)
+    if isinstance(frame, Issue):
+        return frame
+    terrain = pair_terrain(left, right, config, gcps)
+    if config.terrain == "tie_points":
+        terrain = terrain_prepass(frame, left, right, config, terrain)
+        frame = replace(frame, z_ref=zero_disparity_height(config.z_avg, terrain))
+    geo = pair_grids(frame, config, terrain.range_m)
     if isinstance(geo, Issue):
         return geo
     img_l = resample_scene(left, geo.left_geom, geo.left_grid, config)
     img_r = resample_scene(right, geo.right_geom, geo.right_grid, config)
-    return NormalizedPair(geo, img_l, img_r)
+    return NormalizedPair(geo, img_l, img_r, terrain)
 
 
 def y_parallax(

@@ -40,7 +40,7 @@ from .normalization import (
     cut_into_segments,
     interpolation_flag,
     normalize_pair,
-    pair_heights,
+    pair_terrain,
     resample_scene,
     y_parallax,
 )
@@ -59,6 +59,7 @@ from .results import (
     YParallaxSource,
 )
 from .streaming import Streamer
+from .terrain import Terrain, terrain_from_heights
 from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavSample, TrajectoryBuffer
 
@@ -94,9 +95,7 @@ class Pipeline:
             publish_pair=self._publish_pair,
         )
         self.pairs_done = 0
-        #: The height range (m) of each published pair, kept for step 7 (its GCP are gone).
-        self._z_ranges: dict[str, tuple[float, float]] = {}
-        self.heights = HeightsStage(options_of(config), self._z_range) if config.heights else None
+        self.heights = HeightsStage(options_of(config)) if config.heights else None
 
     def use_render_process(self, renderer: RenderProcess) -> None:
         """Render streamed blocks in ``renderer``'s process; line buffers in its shared memory.
@@ -130,12 +129,6 @@ class Pipeline:
                 pass
 
         self.streamer.block_sink = keep_and_sink
-
-    def _z_range(self, pair: PairResult) -> tuple[float, float]:
-        c = self.config
-        return self._z_ranges.pop(
-            pair.pair_id, (c.z_avg - c.height_range, c.z_avg + c.height_range)
-        )
 
     def _step7(self, out: Outputs) -> Outputs:
         """7. heights of the pairs ``out`` finishes (``heights`` on); ``out`` itself."""
@@ -441,6 +434,7 @@ class Pipeline:
             out.issues.append(normalized)
             return out
         geo, img_l, img_r = normalized.geometry, normalized.left_image, normalized.right_image
+        terrain = normalized.terrain
         stamp = max(left.scene.last_line_ns, right.scene.last_line_ns)
         # 5. refine: tie points correct the right normalization (its rows).
         tie: TieRefinement | None = None
@@ -460,8 +454,16 @@ class Pipeline:
                 geo = tie.geometry
                 img_r = resample_scene(right, geo.right_geom, geo.right_grid, self.config)
                 out.issues.append(Issue(Level.OK, f"pair {geo.pair_id}", tie.summary))
-        # 6. publish: the pair result, with its y-parallax.
-        pair = self._publish_pair(left, right, geo, (img_l, img_r), stamp)
+                if self.config.terrain == "tie_points":
+                    # The full-resolution tie points measure the terrain more finely than the
+                    # reduced pair the extent was chosen on.
+                    terrain = terrain_from_heights(
+                        tie.heights_m,
+                        terrain,
+                        metres_per_px=geo.left_grid.pixel / geo.normalization.parallax_per_height,
+                    )
+        # 6. publish: the pair result, with its y-parallax and terrain.
+        pair = self._publish_pair(left, right, geo, (img_l, img_r), stamp, terrain)
         if tie is not None:
             pair = replace(
                 pair, y_parallax_px=tie.residual_px, y_parallax_source=YParallaxSource.TIE_POINTS
@@ -476,15 +478,20 @@ class Pipeline:
         geo: PairGeometry,
         images: tuple[NDArray[np.generic] | None, NDArray[np.generic] | None],
         stamp_ns: int,
+        terrain: Terrain | None = None,
     ) -> PairResult:
-        """The :class:`PairResult` of a normalized pair; its scenes' GCP are forgotten."""
+        """The :class:`PairResult` of a normalized pair; its scenes' GCP are forgotten.
+
+        ``terrain``: the pair's terrain when measured; else that of its GCP or the prior
+        (:func:`pair_terrain`), taken before the GCP are forgotten.
+        """
         ypar, source = y_parallax(
             left, right, geo.left_geom, geo.right_geom, self.gcps, self.config
         )
         k = geo.normalization.parallax_per_height
         self.pairs_done += 1
-        if self.heights is not None:
-            self._z_ranges[geo.pair_id] = pair_heights(left, right, self.config, self.gcps)
+        if terrain is None:
+            terrain = pair_terrain(left, right, self.config, self.gcps)
         ids = (left.scene.scene_id, right.scene.scene_id)
         self.gcps.forget(ids, keep=self.pairing.selected_scene_ids())
         self.streamer.pair_done(left.scene.index)
@@ -503,4 +510,5 @@ class Pipeline:
             / k,
             ypar,
             source,
+            terrain,
         )

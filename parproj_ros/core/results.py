@@ -31,6 +31,7 @@ from ..imaging.assembly import Scene, SceneEnd
 from ..imaging.dense import DenseStatus
 from ..imaging.heights import Dsm
 from ..imaging.resample import OutputGrid, SceneGeometry
+from .terrain import Terrain
 
 __all__ = [
     "METHODS",
@@ -238,6 +239,8 @@ class PairResult:
         height_offset_m: b, metres.
         y_parallax_px: signed y-parallax samples used for the statistics, pixels.
         y_parallax_source: where they come from (a plain string is accepted).
+        terrain: the heights of the pair's ground (for its heights step) and where they come
+            from; None: not known yet (a streamed pair: measured on its images at step 7).
     """
 
     pair_id: str
@@ -253,6 +256,7 @@ class PairResult:
     height_offset_m: float
     y_parallax_px: FloatArray
     y_parallax_source: YParallaxSource
+    terrain: Terrain | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "y_parallax_source", YParallaxSource(self.y_parallax_source))
@@ -310,6 +314,7 @@ class HeightsResult:
         height_per_disparity_px: a, metres per pixel.
         height_offset_m: b, metres.
         max_fill_cells: largest hole filled in the DSM, cells (0: none filled).
+        terrain: the heights searched (``d_range`` before its margin) and where they come from.
     """
 
     pair_id: str
@@ -325,6 +330,7 @@ class HeightsResult:
     height_per_disparity_px: float
     height_offset_m: float
     max_fill_cells: float = 0.0
+    terrain: Terrain | None = None
 
     @property
     def ok(self) -> bool:

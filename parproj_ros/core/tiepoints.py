@@ -37,6 +37,8 @@ class TieRefinement:
         correction: (a, b, c) of dy = a + b x_n + c y_n, metres / dimensionless.
         before_px: inliers' y-parallax before the correction, pixels.
         residual_px: inliers' y-parallax after it, pixels.
+        heights_m: inliers' heights from their x-parallax, ``Z = (x_l - x_r - offset) / k``
+            (the correction changes rows only), metres in the object frame.
     """
 
     geometry: PairGeometry
@@ -45,6 +47,7 @@ class TieRefinement:
     correction: tuple[float, float, float]
     before_px: FloatArray
     residual_px: FloatArray
+    heights_m: FloatArray
 
     @property
     def summary(self) -> str:
@@ -123,6 +126,8 @@ def refine_with_tie_points(
     right_geom = SceneGeometry(rg.frame, new_right, rg.psi, rg.principal_distance)
     residual = dy - design @ coef
     pix = gl.pixel
+    par = geo.normalization
+    heights = (nl[inl, 0] - nr[inl, 0] - par.parallax_offset) / par.parallax_per_height
     return TieRefinement(
         replace(geo, normalization=norm, right_geom=right_geom),
         len(m),
@@ -130,4 +135,5 @@ def refine_with_tie_points(
         (a, b, c),
         dy / pix,
         residual / pix,
+        heights,
     )

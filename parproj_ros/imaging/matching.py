@@ -134,6 +134,7 @@ def match_normalized(
     min_corr: float = 0.85,
     max_y_px: float | None = 50.0,
     detector: str = "sift",
+    whole: bool = False,
 ) -> Matches:
     """Tie points between two normalized images of equal size (pixels, sub-pixel refined).
 
@@ -151,6 +152,9 @@ def match_normalized(
             all (images that are not yet epipolar).
         detector: "sift", or "orb" for key points independent of SIFT's (an evaluation that
             must not reuse the tie points).
+        whole: one window over the whole image, whatever its shape (``window`` and ``grid``
+            ignored): conjugate points may then lie anywhere along the rows (a small, reduced
+            image whose disparities are not known yet).
     """
     h, w = left.shape
     lim_l, lim_r = stretch_limits(left, nodata), stretch_limits(right, nodata)
@@ -161,15 +165,18 @@ def match_normalized(
     else:
         feat = cv2.SIFT.create(nfeatures=4 * max_per_window)
         matcher = cv2.BFMatcher(cv2.NORM_L2)
-    ws = min(window, h, w)
-    r0s = np.unique(np.linspace(0, h - ws, grid).round().astype(int)) if h > ws else [0]
-    c0s = np.unique(np.linspace(0, w - ws, grid).round().astype(int)) if w > ws else [0]
+    wr = wc = min(window, h, w)
+    min_valid = 0.3  # share of a window with data in both images
+    if whole:
+        wr, wc, min_valid = h, w, 0.02
+    r0s = np.unique(np.linspace(0, h - wr, grid).round().astype(int)) if h > wr else [0]
+    c0s = np.unique(np.linspace(0, w - wc, grid).round().astype(int)) if w > wc else [0]
     out: list[tuple[float, float, float, float, float]] = []
     for r0 in r0s:
         for c0 in c0s:
-            sl = np.s_[r0 : r0 + ws, c0 : c0 + ws]
+            sl = np.s_[r0 : r0 + wr, c0 : c0 + wc]
             a, b = to_uint8(left[sl], nodata, lim_l), to_uint8(right[sl], nodata, lim_r)
-            if (a > 0).mean() < 0.3 or (b > 0).mean() < 0.3:
+            if (a > 0).mean() < min_valid or (b > 0).mean() < min_valid:
                 continue
             ka, da = feat.detectAndCompute(a, (a > 0).astype(np.uint8))
             kb, db = feat.detectAndCompute(b, (b > 0).astype(np.uint8))

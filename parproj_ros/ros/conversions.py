@@ -561,6 +561,10 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
     m.matched_share = float(h.valid_share)
     m.height_per_disparity_px = float(h.height_per_disparity_px)
     m.height_offset_m = float(h.height_offset_m)
+    if h.terrain is not None:
+        m.terrain_min_m, m.terrain_max_m = (float(v) for v in h.terrain.range_m)
+        m.terrain_source = str(h.terrain.source)
+        m.terrain_points = int(h.terrain.points)
     out.append(("dsm", m, h.stamp_ns))
     return out
 

@@ -74,7 +74,11 @@ def test_overlap_keeps_every_common_point_and_drops_the_rest() -> None:
 
 @pytest.mark.ros
 def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
-    """The real pair: 949 -> 507 columns; every truth point inside both images."""
+    """The real pair: 949 -> 507 columns; every truth point inside both images.
+
+    At the heights of the pair's GCP (``terrain`` prior): the truth points lie up to 100 m
+    above and below the DEM's ground, outside the terrain measured from the images.
+    """
     bag = BAGS / "ventoux"
     sizes = {}
     for extent in ("union", "overlap"):
@@ -82,7 +86,7 @@ def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
             bag,
             tmp_path / extent,
             progress=False,
-            overrides={"tie_points": False, "output_extent": extent},
+            overrides={"tie_points": False, "output_extent": extent, "terrain": "prior"},
         )
         assert s.pairs == 1, s.issues
         sp = next(BagReader(tmp_path / extent).messages(topics=["stereo_pair"])).msg

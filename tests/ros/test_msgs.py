@@ -158,6 +158,10 @@ EXPECTED_FIELDS: dict[type, dict[str, str]] = {
         "matched_share": "float",
         "height_per_disparity_px": "double",
         "height_offset_m": "double",
+        "terrain_min_m": "double",
+        "terrain_max_m": "double",
+        "terrain_source": "string",
+        "terrain_points": "uint32",
     },
 }
 
