@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..io import raster
+from ..io.rpc_ties import import_ties
 from ..io.scene_import import (
     DEM_MARGIN,
     LINE_PERIOD,
@@ -285,6 +286,8 @@ def import_scenes(
     dem_margin: float = DEM_MARGIN,
     truth_points: int = TRUTH_POINTS,
     overwrite: bool = False,
+    adjust: bool | None = None,
+    tie_points: bool = True,
     log: Callable[[str], None] = print,
 ) -> dict[str, Any]:
     """Write the input bag of two or more images with RPC (module docstring); return a summary.
@@ -319,6 +322,10 @@ def import_scenes(
         dem_margin: half height range of the virtual points about the DEM, metres.
         truth_points: number of truth points per pair.
         overwrite: replace an existing bag.
+        adjust: estimate and apply one image bias per view from tie points seen in three or
+            more views (:mod:`parproj_ros.io.rpc_ties`); None: with three or more images.
+        tie_points: match the original images at all (terrain, biases); False: the RPC span
+            (or ``heights`` / ``dem``) and the RPCs as given, as before issue 24.
         log: where to report.
 
     Returns:
@@ -380,6 +387,11 @@ def import_scenes(
             f"({img.offset_source}); round trip {c['round_trip_px']:.1e} px, "
             f"{c['round_trip_deg']:.1e} deg"
         )
+    # issue 24: tie points between the original images -> RPC biases, measured terrain
+    images, h, ties = import_ties(
+        images, h, measure_terrain=dem is None and heights is None, adjust=adjust,
+        tie_points=tie_points, log=log,
+    )  # fmt: skip
     frame = make_frame(images[0], h)
     frame_id = frame_id_of(frame)
     gcp = gcp_points(images, h, dem_margin)
@@ -402,6 +414,13 @@ def import_scenes(
         "rpc": "; ".join(img.rpc_source for img in images),
         "crop_offsets_line_sample": "; ".join(str(img.offset) for img in images),
     }
+    if ties.get("heights_note"):
+        custom["heights"] = str(ties["heights_note"])
+    if ties.get("adjustment"):
+        custom["rpc_bias_line_sample_px"] = "; ".join(
+            f"{k} ({v['bias_line_sample_px'][0]:+.3f}, {v['bias_line_sample_px'][1]:+.3f})"
+            for k, v in ties["adjustment"]["views"].items()
+        )
     if pairs is not None:
         custom["pairs"] = ", ".join(
             f"{r['left']}:{r['right']} (B/H {r['base_to_height']:.3f})"
@@ -483,6 +502,7 @@ def import_scenes(
         "gcp_in_both": sum(1 for o in gcp.observations if len(o) >= 2),
         "truth": len(truth.ids),
         "heights": "DEM" if callable(h) else list(h),
+        "tie_points": ties,
     }
     log(
         f"wrote {output} ({size / 1e6:.2f} MB): scenes "

@@ -127,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
             band=args.band,
             principal_distance=args.principal_distance,
             pixel_size=args.pixel_size,
+            adjust=False if args.no_adjust else None,
+            tie_points=not args.no_tie_points,
             overwrite=False,
             log=shown(work, out),
         )
@@ -205,5 +207,18 @@ def add_parser(sub: Any) -> None:
         metavar=("IMAGE", "FILE"),
         help="RPC file of IMAGE's full scene (its path or file name; any image; repeatable); "
         "--rpc-left / --rpc-right are the same for the first two images",
+    )
+    # issue 24: tie points between the original images (parproj_ros/io/rpc_ties.py)
+    p.add_argument(
+        "--no-adjust",
+        action="store_true",
+        help="keep the RPCs as given (default with 3+ images: one image bias per view estimated "
+        "from tie points seen in 3+ views, so that every pair shares one object space)",
+    )
+    p.add_argument(
+        "--no-tie-points",
+        action="store_true",
+        help="match nothing at import: no bias adjustment, and without --heights / --dem the "
+        "virtual points span the RPC's height range instead of the measured terrain",
     )
     p.set_defaults(func=run)
