@@ -195,11 +195,8 @@ def test_heights_published_and_read_by_independent_reader(live: dict) -> None:
 
     c = live["counts"]
     assert c["disparity"] == 1 and c["height"] == 1, live["log"]
-    if live["name"] == "airborne_foreaft":
-        # navigation only, z_avg +- height_range (500 m) is 4,600 px of disparity on a 768 px
-        # image: no DSM, and the WARN says why (test_dsm_accuracy narrows the range)
-        assert c.get("dsm", 0) == 0 and "no heights (range_too_wide)" in live["log"]
-        return
+    # airborne_foreaft too: its prior, z_avg +- height_range (500 m), is 4,600 px of disparity
+    # on a 768 px image; the terrain measured from the pair is what gives it a DSM.
     assert c["dsm"] == 1, live["log"]
     with AnyReader([live["out"]]) as reader:
         conns = {x.topic: x for x in reader.connections}
@@ -219,6 +216,10 @@ def test_heights_published_and_read_by_independent_reader(live: dict) -> None:
     h = image_to_array(ours["dsm"].heights)
     hb = np.frombuffer(bytes(dsm.heights.data), dtype=np.float32).reshape(h.shape)
     assert np.array_equal(h, hb, equal_nan=True)
+    # Which heights were searched, and where they came from (issue 24): measured from the pair.
+    assert dsm.terrain_source == "tie_points" and dsm.terrain_points >= 100, dsm
+    assert dsm.terrain_min_m < dsm.terrain_max_m
+    assert "from" in live["log"] and " tie points (percentiles" in live["log"]
 
 
 def test_dsm_accuracy(live: dict, tmp_path: Path) -> None:
@@ -229,14 +230,6 @@ def test_dsm_accuracy(live: dict, tmp_path: Path) -> None:
     from parproj_ros.ros.conversions import elevation_grid_from_msg
 
     out = live["out"]
-    if live["name"] == "airborne_foreaft":  # the terrain's relief as the height range (offline)
-        from parproj_ros.sim.scenarios import SCENARIOS
-
-        scn = SCENARIOS["airborne_foreaft"]()
-        out = tmp_path / "narrow"
-        process_bag(live["bag"], out, progress=False,
-                    overrides={"heights": True, "z_avg": scn.z_avg,
-                               "height_range": 1.1 * scn.relief_m})  # fmt: skip
     (m,) = [x.msg for x in BagReader(out).messages(topics=["dsm"])]
     heights, grid, ortho = elevation_grid_from_msg(m)
     assert ortho is not None and ortho.shape == heights.shape
@@ -258,15 +251,20 @@ def test_dsm_accuracy(live: dict, tmp_path: Path) -> None:
 
 def test_offline_heights_equal_live(live: dict, tmp_path: Path) -> None:
     process_bag(live["bag"], tmp_path / "offline", progress=False, overrides={"heights": True})
-    if live["name"] == "airborne_foreaft":  # no DSM offline either, the same disparity range
-        dm = [m.msg for m in BagReader(tmp_path / "offline").messages(topics=["disparity"])]
-        (dl,) = [m.msg for m in BagReader(live["out"]).messages(topics=["disparity"])]
-        assert not list(BagReader(tmp_path / "offline").messages(topics=["dsm"]))
-        assert (dm[0].min_disparity, dm[0].max_disparity) == (dl.min_disparity, dl.max_disparity)
-        return
     off = {m.topic: m.msg for m in BagReader(tmp_path / "offline").messages(topics=["dsm"])}
     on = {m.topic: m.msg for m in BagReader(live["out"]).messages(topics=["dsm"])}
-    for k in ("x0", "y0", "cell_size", "disparity_min", "disparity_max", "filled_cells"):
+    for k in (
+        "x0",
+        "y0",
+        "cell_size",
+        "disparity_min",
+        "disparity_max",
+        "filled_cells",
+        "terrain_min_m",
+        "terrain_max_m",
+        "terrain_source",
+        "terrain_points",
+    ):
         assert getattr(off["dsm"], k) == getattr(on["dsm"], k), k
     assert np.array_equal(
         image_to_array(off["dsm"].heights), image_to_array(on["dsm"].heights), equal_nan=True
