@@ -1,0 +1,171 @@
+"""imaging/fusion.py: pair DSMs of one area fused into one DSM with count and spread layers.
+
+Synthetic DSMs of one surface, each with its own noise, holes, blunders and level: the fused DSM
+is at least as complete as the best pair's and no worse against the truth; count and spread
+are exact on a hand-made case; the pairs' level offsets are measured and removed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from parproj_ros.imaging.fusion import (
+    common_grid,
+    fuse,
+    level_offsets,
+    mutual_offsets,
+    on_grid,
+    sample_bilinear,
+)
+from parproj_ros.imaging.heights import DsmGrid
+
+NAN = np.nan
+
+
+def truth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The surface, Z metres: a slope, hills and a 12 m block (a building or a quarry bench)."""
+    z = 0.05 * x - 0.03 * y + 4.0 * np.sin(x / 25.0) * np.cos(y / 30.0)
+    return z + 12.0 * ((np.abs(x - 60.0) < 15.0) & (np.abs(y + 80.0) < 10.0))
+
+
+def nmad(d: np.ndarray) -> float:
+    v = d[np.isfinite(d)]
+    return 1.4826 * float(np.median(np.abs(v - np.median(v))))
+
+
+def pair_dsm(
+    grid: DsmGrid, sigma: float, holes: float, blunders: float, level: float, seed: int
+) -> np.ndarray:
+    """Truth + N(0, sigma) + level, a share of cells empty and a share off by 10-40 m."""
+    rng = np.random.default_rng(seed)
+    x, y = grid.centres()
+    z = truth(x, y) + level + rng.normal(0.0, sigma, x.shape)
+    bad = rng.random(x.shape) < blunders
+    z[bad] += rng.choice([-1.0, 1.0], int(bad.sum())) * rng.uniform(10.0, 40.0, int(bad.sum()))
+    # holes: random cells and one occlusion strip of its own
+    z[rng.random(x.shape) < holes] = NAN
+    c0 = 20 + 40 * seed
+    z[:, c0 : c0 + 12] = NAN
+    return z.astype(np.float32)
+
+
+def test_fused_is_more_complete_and_no_worse_than_the_best_pair() -> None:
+    # three pairs on grids of one 0.5 m lattice with different extents
+    grids = [
+        DsmGrid(0.0, 0.0, 0.5, 300, 300),
+        DsmGrid(5.0, -3.0, 0.5, 300, 300),
+        DsmGrid(-4.0, 2.5, 0.5, 310, 290),
+    ]
+    specs = [(0.5, 0.10, 0.02, 0.0), (0.7, 0.05, 0.03, 0.0), (0.6, 0.15, 0.01, 0.0)]
+    dsms = [
+        (pair_dsm(g, *s, seed=i), g) for i, (g, s) in enumerate(zip(grids, specs, strict=True))
+    ]
+    res = fuse(dsms, tolerance_m=3.0)
+    out = res.grid
+    assert out == common_grid(grids)
+    x, y = out.centres()
+    t = truth(x, y)
+    layers = [on_grid(h, g, out) for h, g in dsms]
+    # inputs on the lattice of the output grid: resampling is the identity
+    r0, c0 = round((out.y0 - grids[0].y0) / 0.5), round((grids[0].x0 - out.x0) / 0.5)
+    assert (r0, c0) == (5, 8)
+    assert np.array_equal(layers[0][r0 : r0 + 300, c0 : c0 + 300], dsms[0][0], equal_nan=True)
+    best_comp = max(float(np.isfinite(a).mean()) for a in layers)
+    best_nmad = min(nmad(a - t) for a in layers)
+    assert res.completeness >= best_comp
+    assert nmad(res.heights - t) <= best_nmad
+    # with three samples the mean of the two or three kept beats the best pair by about
+    # sqrt(2..3); blunders (10-40 m) are rejected where the good samples are more (a median),
+    # and where one good sample faces one blunder (the local consensus): no fused error there
+    # beyond the tolerance plus 4 sigma. A cell where one pair alone has a height, or where
+    # blunders are the majority (about 0.1 % of the cells here), keeps a blunder.
+    assert nmad(res.heights - t) < 0.8 * best_nmad
+    err = np.abs(res.heights - t)
+    blunders = np.stack([np.abs(a - t) > 9.0 for a in layers]).sum(axis=0)
+    good = res.samples.astype(int) - blunders
+    saved = (good > blunders) | ((good == 1) & (blunders == 1))
+    assert np.nanmax(err[saved]) < 3.0 + 4 * 0.7
+    assert not np.any((err > 9.0) & ~((blunders > 0) & ~saved))
+    assert ((blunders > 0) & ~saved & (res.samples > 1)).mean() < 0.002
+    # count and spread: count <= samples, spread within 2 x tolerance, 0 for one sample
+    assert np.all(res.count <= res.samples)
+    assert np.all((res.count > 0) == np.isfinite(res.heights))
+    assert np.all(res.spread[res.count == 1] == 0.0)
+    assert np.nanmax(res.spread) <= 2 * 3.0 + 1e-5
+    assert np.array_equal(res.samples, np.isfinite(np.stack(layers)).sum(axis=0))
+
+
+def test_count_spread_and_split_cells_exact() -> None:
+    g = DsmGrid(0.0, 0.0, 1.0, 7, 7)
+    base = np.full((7, 7), 100.0, dtype=np.float32)
+    a, b, c = base.copy(), base.copy(), base.copy()
+    # cell (1, 1): 100, 100.5, 120 -> median 100.5, 120 rejected: mean 100.25, count 2
+    b[1, 1], c[1, 1] = 100.5, 120.0
+    # cell (2, 2): one sample only
+    b[2, 2] = c[2, 2] = NAN
+    a[2, 2] = 101.0
+    # cell (3, 3): none
+    a[3, 3] = b[3, 3] = c[3, 3] = NAN
+    # cell (4, 4): two samples 30 m apart: the one near its neighbours (100) is kept
+    c[4, 4] = NAN
+    a[4, 4], b[4, 4] = 130.0, 100.2
+    # cell (5, 5): three samples within the tolerance: all kept
+    a[5, 5], b[5, 5], c[5, 5] = 99.0, 100.0, 101.5
+    res = fuse([(a, g), (b, g), (c, g)], tolerance_m=3.0, align=False)
+    assert res.grid == g
+    h, n, s = res.heights, res.count, res.spread
+    assert h[1, 1] == pytest.approx(100.25) and n[1, 1] == 2 and s[1, 1] == pytest.approx(0.5)
+    assert h[2, 2] == pytest.approx(101.0) and n[2, 2] == 1 and s[2, 2] == 0.0
+    assert np.isnan(h[3, 3]) and n[3, 3] == 0 and np.isnan(s[3, 3]) and res.samples[3, 3] == 0
+    assert h[4, 4] == pytest.approx(100.2) and n[4, 4] == 1 and res.split_cells == 1
+    assert h[5, 5] == pytest.approx(100.1666667, abs=1e-5) and n[5, 5] == 3
+    assert s[5, 5] == pytest.approx(2.5)
+    assert h[0, 0] == 100.0 and n[0, 0] == 3 and s[0, 0] == 0.0
+
+
+def test_levels_measured_and_removed() -> None:
+    g = DsmGrid(0.0, 0.0, 0.5, 200, 200)
+    x, y = g.centres()
+    t = truth(x, y).astype(np.float32)
+    rng = np.random.default_rng(3)
+    levels = (0.0, 2.4, 4.9)  # the Marseille pairs 1-2, 1-3, 2-3 (data README)
+    dsms = [((t + lv + rng.normal(0, 0.3, t.shape)).astype(np.float32), g) for lv in levels]
+    med, cells, _ = mutual_offsets([d for d, _ in dsms])
+    assert med[0, 1] == pytest.approx(-2.4, abs=0.02) and med[2, 0] == pytest.approx(4.9, abs=0.02)
+    assert cells[0, 1] == 200 * 200
+    off = level_offsets(med, cells)
+    assert off.sum() == pytest.approx(0.0, abs=1e-9)
+    assert off - off[0] == pytest.approx([0.0, 2.4, 4.9], abs=0.02)
+    res = fuse(dsms, tolerance_m=1.5)
+    assert np.abs(res.median_after[np.isfinite(res.median_after)]).max() < 0.02
+    assert res.median_before[1, 2] == pytest.approx(-2.5, abs=0.02)
+    # fused at the pairs' mean level, nearly complete: no cell lost to the 4.9 m spread
+    assert np.nanmedian(res.heights - t) == pytest.approx(np.mean(levels), abs=0.02)
+    assert res.completeness == 1.0
+    assert np.mean(res.count == 3) > 0.999  # N(0, 0.3 m) noise: 1.5 m is 5 sigma
+    # without alignment, a 1.5 m tolerance about the median (the 2.4 m pair) rejects the
+    # other two: the fused DSM is that pair nearly alone, its noise not averaged
+    raw = fuse(dsms, tolerance_m=1.5, align=False)
+    assert np.all(raw.offsets == 0.0)
+    assert np.nanmedian(raw.heights - t) == pytest.approx(2.4, abs=0.02)
+    # (the 0 m pair comes within 1.5 m of the 2.4 m one where their noises differ by 0.9 m,
+    # 2.1 sigma of the difference: about 2 % of the cells)
+    assert np.mean(raw.count == 1) > 0.95
+
+
+def test_sampling_keeps_nodata_out_and_refuses_too_few() -> None:
+    g = DsmGrid(0.0, 1.0, 1.0, 2, 2)  # centres x 0, 1; y 1, 0
+    v = np.array([[0.0, 10.0], [NAN, 30.0]])
+    s = sample_bilinear(
+        v, g, np.array([0.5, 0.5, 0.0, 2.0, 0.1]), np.array([0.5, 1.0, 0.0, 0.5, 0.1])
+    )
+    # (0.5, 0.5): three valid of weight 0.25 each -> (0 + 10 + 30) / 3
+    assert s[0] == pytest.approx(40.0 / 3.0)
+    assert s[1] == pytest.approx(5.0)  # top edge, both valid
+    assert np.isnan(s[2])  # on the empty cell itself: weight 0 of valid cells
+    assert np.isnan(s[3])  # outside the box of the centres
+    # (0.1, 0.1): valid weight 0.1 * 0.9 + 0.9 * 0.9... = 1 - 0.81 = 0.19 < 0.5
+    assert np.isnan(s[4])
+    with pytest.raises(ValueError, match="two or more"):
+        fuse([(v, g)])
