@@ -18,7 +18,7 @@ from ..core.pipeline import Pipeline
 from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
-from ..sim.recording import FRAME_ID, config_from_bag
+from ..sim.recording import config_from_bag, frame_from_bag
 
 T = TypeVar("T")
 
@@ -243,7 +243,7 @@ def process_bag(
     dst: Path,
     *,
     config: PipelineConfig | None = None,
-    frame_id: str = FRAME_ID,
+    frame_id: str = "",
     progress: bool = True,
     overrides: dict[str, Any] | None = None,
     on_outputs: Callable[[Outputs], None] | None = None,
@@ -259,12 +259,16 @@ def process_bag(
     (BagWriter's ``topic_compression``; README, "Recording large images"). ``direct``: the
     output bag is written past the page cache (``O_DIRECT``, where the file system allows it;
     ``summary.direct`` tells): a large output then takes no fresh memory for its pages
-    (io/direct.py).
+    (io/direct.py). ``frame_id`` labels the outputs; "" (default): the frame of the bag's
+    GCP / truth / navigation messages, else ``map`` (:func:`~parproj_ros.sim.recording.
+    frame_from_bag`; an input in another frame is a WARN naming both).
     """
     from tqdm import tqdm
 
     reader = BagReader(src)
     cfg = config or config_from_bag(reader, **(overrides or {}))
+    frame, frame_issues = frame_from_bag(reader, frame_id)
+    frame_id = frame.frame_id
     # Freed strips, blocks and images reused, not given back and faulted in again: up to two
     # raw pairs of free heap kept (a pair's blocks freed at once; core/memory.py)
     tune_malloc(2 * raw_pair_bytes(cfg))
@@ -326,6 +330,9 @@ def process_bag(
                         out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
                 except conv.ConversionError as err:
                     out.issues.append(Issue(Level.WARN, item.topic, f"{err}: message dropped"))
+                if frame_issues:  # inputs in another frame: with the first outputs
+                    out.issues[:0] = frame_issues
+                    frame_issues = []
                 emit(out, item.log_time_ns)
             emit(_bag_issues(reader, Path(src).name), last)
             emit(pipe.flush(), last)

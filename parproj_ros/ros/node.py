@@ -55,6 +55,7 @@ from sensor_msgs.msg import Image
 from stereo_msgs.msg import DisparityImage
 
 from ..core.config import PARAMS, VIEW_PARAMS, Param, config_from_values
+from ..core.frames import ObjectFrame
 from ..core.memory import (
     held_bytes,
     malloc_trim,
@@ -564,7 +565,8 @@ class ParprojNode(Node):
             vals |= {f"{view}.{p.name}": self._declare(f"{view}.{p.name}", p) for p in VIEW_PARAMS}
             key = f"{view}.mounting_rpy_deg"
             vals[key] = check_mounting(key, vals[key])
-        self.frame_id = str(vals["frame_id"])
+        # outputs in the frame_id parameter, or ("") in the frame of the inputs (core/frames.py)
+        self._frame = ObjectFrame(str(vals["frame_id"]))
         config = config_from_values(vals)
         self.pipeline = Pipeline(config)
         self.renderer: RenderProcess | None = None
@@ -748,6 +750,11 @@ class ParprojNode(Node):
             f"buffers touched in {time.monotonic() - t0:.1f} s",
         )
 
+    @property
+    def frame_id(self) -> str:
+        """The outputs' object frame: the parameter, else the inputs' (core/frames.py)."""
+        return self._frame.frame_id
+
     # ---- callbacks: convert and queue ----------------------------------------------------
     def _on_nav(self, msg: Odometry) -> None:
         self._nav_one(msg)
@@ -776,6 +783,7 @@ class ParprojNode(Node):
         except Exception as err:
             self.internal_error("a navigation message (callback)", err)
             return
+        self._report(self._frame.observe("navigation", msg.header.frame_id))
         self._enqueue((InputKind.NAV, sample))
         self._count("nav")
 
@@ -827,6 +835,7 @@ class ParprojNode(Node):
 
     def _on_gcp(self, msg: GroundControlPoints) -> None:
         try:
+            self._report(self._frame.observe("gcp", msg.header.frame_id))
             points = conv.gcp_from_msg(msg)
         except Exception as err:
             self.internal_error("a GCP message (callback)", err)

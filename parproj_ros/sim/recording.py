@@ -20,7 +20,8 @@ from typing import Any
 import numpy as np
 
 from ..core.config import PipelineConfig, ViewConfig, view_values
-from ..core.results import GroundPoint
+from ..core.frames import DEFAULT_FRAME, ObjectFrame
+from ..core.results import GroundPoint, Issue
 from ..core.trajectory import NavSample
 from ..geometry import GeometryError, LineCamera, quaternion_to_rotation
 from ..ros.bag import BagError, BagReader, BagWriter
@@ -34,7 +35,10 @@ from ..ros.conversions import (
 )
 from .scenarios import Scenario, ground_points
 
-FRAME_ID = "map"
+#: The object frame of simulated bags (a local Cartesian frame, metres, Z up).
+FRAME_ID = DEFAULT_FRAME
+#: Input topics whose header.frame_id names the object frame, in the order they are read.
+FRAME_TOPICS = ("gcp", "truth/points", "navigation")
 
 #: Topics of an input bag and their types (``*`` stands for a view name).
 INPUT_TOPICS = {
@@ -314,3 +318,35 @@ def node_parameters(views: tuple[ViewConfig, ...], **extra: Any) -> dict[str, An
 def config_from_bag(reader: BagReader, **overrides: Any) -> PipelineConfig:
     """Pipeline settings for a bag: its cameras plus ``overrides`` (PipelineConfig fields)."""
     return PipelineConfig(views=views_from_bag(reader), **overrides)
+
+
+def frame_from_bag(reader: BagReader, given: str = "") -> tuple[ObjectFrame, list[Issue]]:
+    """The object frame of a bag's outputs (:mod:`parproj_ros.core.frames`).
+
+    Reads the ``header.frame_id`` of the first message of each of :data:`FRAME_TOPICS` present
+    (GCP, truth points, navigation), in log-time order: the first that names a frame is the
+    outputs' frame unless ``given`` is.
+
+    Args:
+        reader: the input bag.
+        given: the frame the user asked for ("" = the inputs').
+
+    Returns:
+        (frame, issues): ``frame.frame_id`` is the outputs' frame; a WARN for each input in
+        another frame, naming both.
+    """
+    frame = ObjectFrame(given)
+    issues: list[Issue] = []
+    present = [t for t in FRAME_TOPICS if t in reader.topics()]
+    firsts: dict[str, tuple[int, str]] = {}
+    if present:
+        # Only the chunks holding these topics are read, up to the first message of each.
+        for item in reader.messages(topics=present):
+            if item.topic not in firsts:
+                firsts[item.topic] = (item.log_time_ns, str(item.msg.header.frame_id))
+            if len(firsts) == len(present):
+                break
+    order = sorted(firsts.items(), key=lambda kv: (kv[1][0], FRAME_TOPICS.index(kv[0])))
+    for topic, (_, frame_id) in order:
+        issues += frame.observe(topic, frame_id)
+    return frame, issues

@@ -72,7 +72,12 @@ def run(args: argparse.Namespace) -> int:
     overrides = overrides_from(args)
     with staged_output(out, force=args.force) as work:
         summary = process_bag(
-            bag, work, overrides=overrides, progress=not args.quiet, direct=args.direct
+            bag,
+            work,
+            overrides=overrides,
+            progress=not args.quiet,
+            direct=args.direct,
+            frame_id=args.frame_id,
         )
     for iss in summary.issues:
         print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
@@ -92,6 +97,14 @@ def add_parser(sub: Any) -> None:
     p.add_argument("-o", "--output", required=True, help="output bag folder")
     p.add_argument("--force", action="store_true", help="replace an existing output bag")
     p.add_argument("--no-gcp", action="store_true", help="ignore GCP (navigation only)")
+    p.add_argument(
+        "--frame-id",
+        default="",
+        metavar="FRAME",
+        help="object frame the outputs are labelled with; default: that of the bag's GCP, "
+        "truth or navigation messages (an imported pair's enu_wgs84:..., which parproj dsm "
+        "turns into a CRS), else map",
+    )
     add_parameter_options(p)
     p.add_argument(
         "--direct",
