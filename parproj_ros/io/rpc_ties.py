@@ -267,6 +267,8 @@ class TieResult:
         padded: the virtual points' range from ``measured`` (:func:`padded_range`), or None.
         seconds: wall time, s.
         rows: per pair, a summary for the import summary.
+        observations: (n, V, 2) the chained tie points (:func:`tracks`), pixels, NaN where a
+            view does not see one (empty unless the adjustment ran).
 
     """
 
@@ -278,6 +280,7 @@ class TieResult:
     padded: tuple[float, float] | None = None
     seconds: float = 0.0
     rows: list[dict[str, Any]] = field(default_factory=list)
+    observations: FloatArray = field(default_factory=lambda: np.zeros((0, 0, 2)))
 
 
 def measure(
@@ -327,9 +330,9 @@ def measure(
         if len(images) < 3:
             out.adjust_note = "two views cannot fix their relative bias"
         else:
-            obs = tracks(feats, out.pairs)
+            out.observations = tracks(feats, out.pairs)
             try:
-                out.adjustment = adjust_biases(rpcs, obs)
+                out.adjustment = adjust_biases(rpcs, out.observations)
             except ValueError as err:
                 out.adjust_note = str(err)
     if out.adjustment is not None:
