@@ -11,9 +11,10 @@ import re
 import signal
 import sys
 import traceback
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterator, Sequence
 from types import FrameType
-from typing import Any, NoReturn
+from typing import Any, NoReturn, TextIO
 
 from ..io.files import (
     STOP_REQUESTED,
@@ -106,6 +107,40 @@ def describe(err: BaseException, inputs: Sequence[Any] = (), outputs: Sequence[A
     return f"{named}: {text}" if named else text
 
 
+#: Python warnings that say nothing to a ``parproj`` user, silenced (message regex, why):
+#: rasterio's NotGeoreferencedWarning on every image without a map georeferencing, which is
+#: the rule for images with RPC (their grid is the RPC's; the crop origin is read separately).
+QUIET_WARNINGS = (r"Dataset has no geotransform, gcps, or rpcs",)
+
+
+@contextlib.contextmanager
+def one_line_warnings(name: str) -> Iterator[None]:
+    """Python warnings as one line each, ``<name>: note: <message>`` on stderr; some silenced.
+
+    Python prints a warning as ``file.py:123: SomeWarning: text`` and the source line that
+    raised it (rasterio, numpy, ...): a traceback-like pair of lines that names our code's
+    innards, not the input. Inside this block each warning is one line saying what it says
+    (Python's filters decide which are shown); :data:`QUIET_WARNINGS` are not shown at all.
+    """
+
+    def show(
+        message: Warning | str,
+        category: type[Warning],
+        filename: str,
+        lineno: int,
+        file: TextIO | None = None,
+        line: str | None = None,
+    ) -> None:
+        text = " ".join(str(message).split())
+        print(f"{name}: note: {text}", file=sys.stderr if file is None else file)
+
+    with warnings.catch_warnings():  # Python's filters stay (DeprecationWarning: ignored)
+        for pattern in QUIET_WARNINGS:
+            warnings.filterwarnings("ignore", message=pattern)
+        warnings.showwarning = show
+        yield
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``parproj`` console script; returns the exit code (README)."""
     args = build_parser().parse_args(argv)
@@ -114,7 +149,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     with contextlib.suppress(ValueError):  # not the main thread: leave SIGTERM alone
         signal.signal(signal.SIGTERM, _on_sigterm)
     try:
-        return int(args.func(args))
+        with contextlib.nullcontext() if args.debug else one_line_warnings(name):
+            return int(args.func(args))
     except KeyboardInterrupt as err:
         if args.debug:
             traceback.print_exc()

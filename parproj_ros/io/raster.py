@@ -27,8 +27,10 @@ convention, so the translation is also the centre-to-centre offset.
 from __future__ import annotations
 
 import math
+import re
 import shutil
 import tempfile
+import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,18 +99,90 @@ def _env() -> Any:
 
 def _open(path: str | Path) -> Any:
     import rasterio
-    from rasterio.errors import RasterioIOError
+    from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 
     p = Path(path)
     if not p.is_file():
         raise SceneImportError(f"{p}: no such file")
     try:
-        return rasterio.open(p)
+        with warnings.catch_warnings():  # no geotransform is the rule for an image with RPC
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return rasterio.open(p)
     except RasterioIOError as err:
+        cut = truncation(p)
+        if cut:
+            raise SceneImportError(f"{p}: {cut}; GDAL: {gdal_error(err)}") from None
         raise SceneImportError(
-            f"{p}: not a raster GDAL reads ({str(err).splitlines()[0][:160]}); supported: "
+            f"{p}: not a raster GDAL reads ({gdal_error(err)[:160]}); supported: "
             "GeoTIFF, JPEG 2000, NITF, PNG and the other GDAL raster formats"
         ) from None
+
+
+def gdal_error(err: BaseException) -> str:
+    """GDAL's own words for a failed read, from the chain of exceptions rasterio raises.
+
+    rasterio's ``RasterioIOError("Read failed. See previous exception for details.")`` hides
+    GDAL's messages in its ``__cause__`` chain: the block that failed (``IReadBlock failed at X
+    offset 0, Y offset 31``) and the driver's reason (``TIFFReadEncodedStrip:Read error at
+    scanline ...; got 1364 bytes, expected 8000``). Returns the outermost and the innermost of
+    them (one line, at most about 300 characters).
+    """
+    texts: list[str] = []
+    seen: set[int] = set()
+    e: BaseException | None = err
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        t = " ".join(str(e).split())
+        if t and "See previous exception" not in t and t not in texts:
+            texts.append(t)
+        e = e.__cause__ or e.__context__
+    picked = texts[:1] + [t for t in texts[-1:] if texts and t not in texts[0]]
+    return "; ".join(picked)[:300] or type(err).__name__
+
+
+#: GDAL drivers' words for a file that ends too early (libjpeg, libtiff, generic readers).
+_CUT_OFF = re.compile(r"premature end|unexpected end|got \d+ bytes, expected \d+", re.I)
+
+
+def truncation(path: str | Path) -> str | None:
+    """``truncated: ...`` when a TIFF's directory points past the end of the file, else None.
+
+    Reads the TIFF directories only (tifffile); None for other formats or an unreadable header.
+    """
+    p = Path(path)
+    try:
+        size = p.stat().st_size
+        with p.open("rb") as fh:
+            magic = fh.read(4)
+        if magic not in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+            return None
+        import tifffile
+
+        with tifffile.TiffFile(p) as tif:
+            end = max(
+                (
+                    int(o) + int(c)
+                    for page in tif.pages
+                    for o, c in zip(page.dataoffsets, page.databytecounts, strict=False)
+                ),
+                default=0,
+            )
+    except Exception:  # a damaged header: GDAL's message says it all
+        return None
+    if end <= size:
+        return None
+    return (
+        f"truncated: the file has {size} bytes, its TIFF directory puts image data up to byte "
+        f"{end} ({100.0 * size / end:.0f} % present; copy or download it again)"
+    )
+
+
+def _read_error(path: str | Path, what: str, err: BaseException) -> SceneImportError:
+    """The error of a failed pixel read: the file, truncation when found, GDAL's words."""
+    words = gdal_error(err)
+    cut = truncation(path) or ("truncated (the data ends early)" if _CUT_OFF.search(words) else "")
+    head = f"{path}: {cut}; " if cut else f"{path}: damaged or cut off: "
+    return SceneImportError(f"{head}GDAL cannot read {what}: {words}")
 
 
 def raster_info(path: str | Path) -> RasterInfo:
@@ -118,28 +192,22 @@ def raster_info(path: str | Path) -> RasterInfo:
         SceneImportError: no such file, or not a raster GDAL reads.
 
     """
-    import warnings
-
-    from rasterio.errors import NotGeoreferencedWarning
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NotGeoreferencedWarning)
-        with _open(path) as src:
-            t = src.transform
-            return RasterInfo(
-                path=Path(path),
-                driver=str(src.driver),
-                lines=int(src.height),
-                samples=int(src.width),
-                bands=int(src.count),
-                dtype=str(src.dtypes[0]),
-                nodata=None if src.nodata is None else float(src.nodata),
-                transform=(t.a, t.b, t.c, t.d, t.e, t.f),
-                # an engineering (local) CRS, as JPEG 2000 writers leave, is no georeferencing
-                has_crs=src.crs is not None and (src.crs.is_geographic or src.crs.is_projected),
-                rpc_metadata=dict(src.tags(ns="RPC")),
-                files=tuple(str(f) for f in src.files),
-            )
+    with _open(path) as src:
+        t = src.transform
+        return RasterInfo(
+            path=Path(path),
+            driver=str(src.driver),
+            lines=int(src.height),
+            samples=int(src.width),
+            bands=int(src.count),
+            dtype=str(src.dtypes[0]),
+            nodata=None if src.nodata is None else float(src.nodata),
+            transform=(t.a, t.b, t.c, t.d, t.e, t.f),
+            # an engineering (local) CRS, as JPEG 2000 writers leave, is no georeferencing
+            has_crs=src.crs is not None and (src.crs.is_geographic or src.crs.is_projected),
+            rpc_metadata=dict(src.tags(ns="RPC")),
+            files=tuple(str(f) for f in src.files),
+        )
 
 
 def rpc_from_metadata(tags: dict[str, str], source: str | Path) -> RPCModel:
@@ -178,6 +246,34 @@ def rpc_from_metadata(tags: dict[str, str], source: str | Path) -> RPCModel:
     return _model(scalars, coeffs, source, **extra)
 
 
+#: Drivers beside whose images GDAL reads RPC sidecars, and which ones (GDAL 3.10, checked by
+#: tests/apps/test_import_errors.py on every driver listed there): GeoTIFF and JPEG 2000 read
+#: ``.RPB`` and ``_RPC.TXT``, NITF ``_RPC.TXT`` only; PNG, JPEG, BMP, GIF, ENVI, HFA, ... none.
+SIDECAR_DRIVERS: dict[str, tuple[str, ...]] = {
+    "GTiff": (".RPB", "_RPC.TXT"),
+    "COG": (".RPB", "_RPC.TXT"),
+    "JP2OpenJPEG": (".RPB", "_RPC.TXT"),
+    "JP2KAK": (".RPB", "_RPC.TXT"),
+    "JP2ECW": (".RPB", "_RPC.TXT"),
+    "JP2MrSID": (".RPB", "_RPC.TXT"),
+    "JPEG2000": (".RPB", "_RPC.TXT"),
+    "NITF": ("_RPC.TXT",),
+}
+
+
+def sidecar_read(driver: str, suffix: str) -> bool:
+    """Whether GDAL reads an RPC sidecar ending in ``suffix`` beside an image of ``driver``."""
+    return suffix.upper() in SIDECAR_DRIVERS.get(driver, ())
+
+
+def sidecar_readers(suffix: str) -> str:
+    """The image formats beside which GDAL reads an RPC sidecar ending in ``suffix`` (text)."""
+    family = {"GTiff": "GeoTIFF", "COG": "GeoTIFF", "NITF": "NITF"}
+    names = {family.get(d, "JPEG 2000") for d, s in SIDECAR_DRIVERS.items() if suffix.upper() in s}
+    ordered = [n for n in ("GeoTIFF", "JPEG 2000", "NITF") if n in names]
+    return " and ".join([", ".join(ordered[:-1]), ordered[-1]] if len(ordered) > 1 else ordered)
+
+
 def describe_rpc_source(info: RasterInfo) -> str:
     """Where GDAL found the RPC of a raster, for messages and the bag's metadata."""
     name = info.path.name
@@ -213,13 +309,16 @@ def read_rpc_file(path: str | Path) -> tuple[RPCModel, str]:
     if fmt in ("rpb", "rpc_txt"):
         # GDAL reads these only as sidecars of a raster: give it a 1 x 1 placeholder.
         import rasterio
+        from rasterio.errors import NotGeoreferencedWarning
 
         with tempfile.TemporaryDirectory(prefix="parproj_rpc_") as tmp:
             img = Path(tmp) / "x.tif"
-            with rasterio.open(
-                img, "w", driver="GTiff", width=1, height=1, count=1, dtype="uint8"
-            ) as dst:
-                dst.write(np.zeros((1, 1, 1), np.uint8))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", NotGeoreferencedWarning)
+                with rasterio.open(
+                    img, "w", driver="GTiff", width=1, height=1, count=1, dtype="uint8"
+                ) as dst:
+                    dst.write(np.zeros((1, 1, 1), np.uint8))
             shutil.copy(p, Path(tmp) / ("x.RPB" if fmt == "rpb" else "x_RPC.TXT"))
             tags = raster_info(img).rpc_metadata
         if not tags:
@@ -246,10 +345,21 @@ def crop_origin(info: RasterInfo) -> tuple[float, float] | None:
     if info.has_crs or (a, b, c, d, e, f) == (1.0, 0.0, 0.0, 0.0, 1.0, 0.0):
         return None
     if (a, b, d, e) != (1.0, 0.0, 0.0, 1.0) or not (math.isfinite(c) and math.isfinite(f)):
+        gt = ", ".join(f"{v:g}" for v in (a, b, c, d, e, f))
+        if b == 0.0 and d == 0.0 and a > 0 and e > 0 and (a, e) != (1.0, 1.0):
+            kind = (
+                f"pixels of {a:g} x {e:g} units (a reduced-resolution product, or map units "
+                "without a CRS)"
+            )
+        else:
+            kind = "a rotation or a flip (map units without a CRS?)"
         raise SceneImportError(
-            f"{info.path}: its geotransform (ModelTransformationTag or tie point) "
-            f"{[a, b, c, d, e, f]} is not a crop offset (unit scale, no rotation, no CRS); "
-            "give the crop origin with --crop-origin"
+            f"{info.path}: its geotransform (ModelTransformationTag or tie point) [{gt}] has "
+            f"{kind}: not a crop offset (unit scale, no rotation, no CRS), and no --crop-origin "
+            "can scale or turn pixels. If its RPC was fitted to this image's own pixels (as GDAL "
+            f"rescales the RPC of a reduced-resolution copy), give --crop-origin {info.path.name}"
+            " 0 0; if the RPC is the full-resolution scene's, import the full-resolution image "
+            "(or an RPC fitted to this grid with --rpc IMAGE FILE)"
         )
     return float(f), float(c)
 
@@ -286,9 +396,7 @@ def band_summary(path: str | Path, band: int, max_side: int = 1024) -> tuple[flo
         try:
             data = src.read(band, out_shape=shape, masked=True).astype(np.float64)
         except RasterioError as err:
-            raise SceneImportError(
-                f"{path}: GDAL cannot read band {band}: {str(err).splitlines()[0][:160]}"
-            ) from None
+            raise _read_error(path, f"band {band}", err) from None
     valid = np.ma.masked_invalid(data).compressed()
     if valid.size == 0:
         return math.nan, math.nan, 0
@@ -316,10 +424,7 @@ def read_rows(
                 data = src.read(band, window=win)
                 mask = src.read_masks(band, window=win) == 0
             except RasterioError as err:  # a truncated or corrupt file, found while reading
-                raise SceneImportError(
-                    f"{path}: GDAL cannot read rows {r0}..{r0 + n - 1} of band {band}: "
-                    f"{str(err).splitlines()[0][:160]}"
-                ) from None
+                raise _read_error(path, f"rows {r0}..{r0 + n - 1} of band {band}", err) from None
             if data.dtype.kind == "f":
                 mask |= ~np.isfinite(data)
             out = np.zeros((n, w), dt)
@@ -333,15 +438,20 @@ def read_band(path: str | Path, band: int = 1) -> NDArray[np.generic]:
 
 
 __all__ = [
+    "SIDECAR_DRIVERS",
     "RasterInfo",
     "SceneImportError",
     "band_summary",
     "crop_origin",
     "describe_rpc_source",
+    "gdal_error",
     "map_footprint",
     "raster_info",
     "read_band",
     "read_rows",
     "read_rpc_file",
     "rpc_from_metadata",
+    "sidecar_read",
+    "sidecar_readers",
+    "truncation",
 ]

@@ -114,6 +114,10 @@ DEM_MARGIN = 100.0
 FRAME_PREFIX = "enu_wgs84"
 #: GeoTIFF ModelTransformationTag.
 MODEL_TRANSFORMATION_TAG = 34264
+#: Fewest rows and columns of an image, pixels: one correlation patch of the tie-point matcher
+#: (2 x 10 + 1 px, parproj_ros/imaging/matching.py ``half``) and its +-3 px search; a smaller
+#: image (one row, one column) cannot be matched, and leaves the model's terms undetermined.
+MIN_IMAGE_SIDE = 2 * (10 + 3) + 1
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,6 +171,12 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
         if c.is_file():
             # GDAL skips a sidecar it cannot parse: say what is wrong with it
             read_rpc(c)  # raises RPCFormatError naming the file and the key
+            if not raster.sidecar_read(info.driver, suffix):
+                raise RPCFormatError(
+                    f"{c}: GDAL reads no {suffix.upper()} sidecar beside a {info.driver} image "
+                    f"(only beside {raster.sidecar_readers(suffix)} images); pass it "
+                    f"explicitly: --rpc {p.name} {c}"
+                )
             raise RPCFormatError(
                 f"{c}: GDAL reads no RPC from this sidecar of {p.name}, though it parses as "
                 "one; check its syntax against GDAL's .RPB / _RPC.TXT"
@@ -280,6 +290,12 @@ def load_image(
     """
     p = Path(path)
     info = raster.raster_info(p)
+    if min(info.lines, info.samples) < MIN_IMAGE_SIDE:
+        raise SceneImportError(
+            f"{p}: image too small: {info.lines} x {info.samples} px (rows x columns), at least "
+            f"{MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} needed (one tie-point correlation window and "
+            "its search); import a larger crop"
+        )
     notes: list[str] = []
     if band is None:
         band = 1
@@ -512,6 +528,13 @@ def check_image(
     lon, lat = rpc.localize(ll, ss, hh, outside="nan")
     failed = ~(np.isfinite(lon) & np.isfinite(lat))
     if failed.any():
+        # the usual cause of a failed localization: a denominator vanishing over the image
+        why = rpc.image_denominator_check(ll, ss, hh)
+        if why is not None:
+            raise SceneImportError(
+                f"{name}: {why}: the RPC is unusable over this image ({img.rpc_source}: "
+                "damaged coefficients, or not this image's RPC; check --rpc and --crop-origin)"
+            )
         k = int(np.flatnonzero(failed)[0])
         raise SceneImportError(
             f"{name}: localization through its RPC does not converge at {int(failed.sum())} of "
@@ -521,7 +544,10 @@ def check_image(
         )
     why = rpc.denominator_check(lon, lat, hh)
     if why is not None:
-        raise SceneImportError(f"{name}: {why}: the RPC is unusable over this image")
+        raise SceneImportError(
+            f"{name}: RPC {why.removeprefix('the ')}: the RPC is unusable over this image "
+            f"({img.rpc_source})"
+        )
     pl, ps = rpc.project(lon, lat, hh, outside="nan")
     img_err = float(np.nanmax(np.hypot(pl - ll, ps - ss)))
     lon2, lat2 = rpc.localize(pl, ps, hh, outside="nan")

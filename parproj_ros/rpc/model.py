@@ -406,6 +406,111 @@ class RPCModel:
                 )
         return None
 
+    def linear_ground(
+        self, line: ArrayLike, sample: ArrayLike, h_m: ArrayLike
+    ) -> tuple[FloatArray, FloatArray]:
+        """Ground of image points by the numerators' linear terms alone (denominators taken as 1).
+
+        The start of :meth:`localize`'s Newton iteration: a rough footprint (lon, lat degrees)
+        that needs no convergence, so it also exists where the full model fails.
+        """
+        li, sa, hh = np.broadcast_arrays(
+            np.asarray(line, dtype=np.float64),
+            np.asarray(sample, dtype=np.float64),
+            np.asarray(h_m, dtype=np.float64),
+        )
+        ln = (li - self.line_off) / self.line_scale
+        sn = (sa - self.samp_off) / self.samp_scale
+        H = (hh - self.height_off) / self.height_scale
+        L, P = self._linear_start(ln, sn, H)
+        return L * self.long_scale + self.long_off, P * self.lat_scale + self.lat_off
+
+    def _linear_start(
+        self, ln: FloatArray, sn: FloatArray, H: FloatArray
+    ) -> tuple[FloatArray, FloatArray]:
+        """Normalized (L, P) solving the numerators' linear part for normalized line, sample."""
+        a, b = self.line_num_coeff, self.samp_num_coeff
+        det0 = a[1] * b[2] - a[2] * b[1]
+        if det0 == 0.0:
+            return np.zeros_like(ln), np.zeros_like(ln)
+        rl = ln - a[0] - a[3] * H
+        rs = sn - b[0] - b[3] * H
+        return (rl * b[2] - rs * a[2]) / det0, (a[1] * rs - b[1] * rl) / det0
+
+    def image_denominator_check(
+        self, line: ArrayLike, sample: ArrayLike, h_m: ArrayLike, *, lattice: int = 41
+    ) -> str | None:
+        """Why a denominator makes the model unusable over an image, with where; or None.
+
+        ``line``, ``sample``, ``h_m`` (pixels, metres; broadcast) are test points spread over the
+        image and its heights. The ground they cover is taken from what localizes (converged
+        points) and from the numerators' linear terms (:meth:`linear_ground`, which needs no
+        convergence); both denominators are evaluated on a ``lattice`` x ``lattice`` grid over
+        that lon/lat box at each test height. A denominator whose coefficients are all zero, one
+        that changes sign over the box or comes within 1e-6 of zero (relative to its largest
+        magnitude) is reported with the ground point nearest its zero and the test point of the
+        image nearest to that (a projection through such a model passes through infinity, so
+        localization fails or lands on the wrong branch there).
+        """
+        li, sa, hh = np.broadcast_arrays(
+            np.asarray(line, dtype=np.float64),
+            np.asarray(sample, dtype=np.float64),
+            np.asarray(h_m, dtype=np.float64),
+        )
+        li, sa, hh = li.ravel(), sa.ravel(), hh.ravel()
+        for name, coeff in (("line", self.line_den_coeff), ("sample", self.samp_den_coeff)):
+            if not np.any(coeff):
+                key = "LINE_DEN_COEFF" if name == "line" else "SAMP_DEN_COEFF"
+                return f"RPC {name} denominator zero everywhere (its 20 {key} are all 0)"
+        with np.errstate(all="ignore"):
+            lon0, lat0 = self.linear_ground(li, sa, hh)
+            lon1, lat1 = self.localize(li, sa, hh, outside="nan")
+        ok0 = np.isfinite(lon0) & np.isfinite(lat0)
+        if not ok0.any():
+            return None
+        # converged points widen the box where the linear terms are rough, but a far branch
+        # of a broken model (beyond the linear footprint by more than its size) does not
+        box = [(float(v[ok0].min()), float(v[ok0].max())) for v in (lon0, lat0)]
+        with np.errstate(invalid="ignore"):
+            ok1 = np.ones(lon1.shape, dtype=bool)
+            for v, (lo, hi) in zip((lon1, lat1), box, strict=True):
+                ok1 &= (v >= 2 * lo - hi) & (v <= 2 * hi - lo)
+        lon = np.concatenate([lon0, lon1])
+        lat = np.concatenate([lat0, lat1])
+        ok = np.concatenate([ok0, ok1])
+        heights = np.unique(hh[np.isfinite(hh)])
+        if heights.size == 0:
+            return None
+        g_lon, g_lat, g_h = np.meshgrid(
+            np.linspace(lon[ok].min(), lon[ok].max(), lattice),
+            np.linspace(lat[ok].min(), lat[ok].max(), lattice),
+            heights,
+            indexing="ij",
+        )
+        g_lon, g_lat, g_h = g_lon.ravel(), g_lat.ravel(), g_h.ravel()
+        for name, d in zip(("line", "sample"), self.denominators(g_lon, g_lat, g_h), strict=True):
+            good = np.isfinite(d)
+            if not good.any():
+                continue
+            dg = d[good]
+            big = float(np.abs(dg).max())
+            tiny = float(np.abs(dg).min()) <= 1e-6 * big
+            if not (dg.min() < 0.0 < dg.max() or tiny):
+                continue
+            k = int(np.flatnonzero(good)[np.argmin(np.abs(dg))])
+            # the image test point whose ground (linear or localized) is nearest that zero
+            src = np.concatenate([np.arange(li.size), np.arange(li.size)])
+            dist = np.hypot(lon - g_lon[k], lat - g_lat[k])
+            dist[~ok] = np.inf
+            j = int(src[int(np.argmin(dist))])
+            what = "zero" if tiny and not dg.min() < 0.0 < dg.max() else "changes sign"
+            return (
+                f"RPC {name} denominator {what} over the image at line {li[j]:.0f}, sample "
+                f"{sa[j]:.0f}, h {hh[j]:.0f} m (lon {g_lon[k]:.6f}, lat {g_lat[k]:.6f}; "
+                f"from {float(dg.min()):.3g} to {float(dg.max()):.3g} over the image's ground)"
+            )
+        return None
+
     def normalized_image_range(
         self, lines: tuple[float, float], samples: tuple[float, float]
     ) -> tuple[tuple[float, float], tuple[float, float]]:
@@ -469,16 +574,7 @@ class RPCModel:
             bad_in = ~(np.isfinite(ln) & np.isfinite(sn) & np.isfinite(H))
         _handle(bad_in, outside, RPCDomainError, "(line, sample, h) are outside the domain")
         # Start: the linear part of the numerators (denominators ~ 1), solved for L, P.
-        a, b = self.line_num_coeff, self.samp_num_coeff
-        det0 = a[1] * b[2] - a[2] * b[1]
-        if det0 == 0.0:
-            L = np.zeros_like(ln)
-            P = np.zeros_like(ln)
-        else:
-            rl = ln - a[0] - a[3] * H
-            rs = sn - b[0] - b[3] * H
-            L = (rl * b[2] - rs * a[2]) / det0
-            P = (a[1] * rs - b[1] * rl) / det0
+        L, P = self._linear_start(ln, sn, H)
         err = np.full(ln.shape, np.inf)  # re-projection error of the best iterate, px
         best_l, best_p = L, P
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):

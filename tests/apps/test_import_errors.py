@@ -6,6 +6,7 @@ Inputs are made in tmp_path from the Ventoux pair (tests/data/ventoux), through 
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from testkit.rasters import DATA, crop_rpcs, pixels, to_rasterio, write
 from parproj_ros import rpc
 from parproj_ros.apps import cli
 from parproj_ros.apps.importer import import_pair
-from parproj_ros.io.scene_import import SceneImportError
+from parproj_ros.io.scene_import import SceneImportError, check_image, load_image
 from parproj_ros.rpc import RPCFormatError, RPCModel
 
 QUIET: dict[str, Any] = {"log": lambda _: None}
@@ -47,7 +48,7 @@ def test_unsupported_raster(pair: tuple[Path, Path], tmp_path: Path) -> None:
     cut = tmp_path / "cut.tif"
     data = pair[0].read_bytes()
     cut.write_bytes(data[: len(data) // 2])  # header and RPC intact, pixels cut off
-    with pytest.raises(SceneImportError, match=r"cut\.tif: (GDAL cannot read|not a raster)"):
+    with pytest.raises(SceneImportError, match=r"cut\.tif: truncated: .* GDAL cannot read"):
         import_pair(cut, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
@@ -153,7 +154,7 @@ def test_denominator_crossing_zero(pair: tuple[Path, Path], tmp_path: Path) -> N
     assert bad.denominator_check(lon, lat, np.full(2, 1000.0)) is not None
     img = tmp_path / "den.tif"
     write(img, pixels("left"), bad)
-    with pytest.raises(SceneImportError, match=r"den\.tif: .*(denominator|not converge)"):
+    with pytest.raises(SceneImportError, match=r"den\.tif: RPC line denominator changes sign"):
         import_pair(img, pair[1], tmp_path / "o", heights=(500, 1500), **QUIET)
 
 
@@ -253,3 +254,295 @@ def test_named_assumption_without_origin(pair: tuple[Path, Path], tmp_path: Path
     args = ["import", str(pair[0]), str(pair[1]), "-o", str(tmp_path / "o2"), "--heights"]
     args += ["500", "1500", "--rpc-left", str(tmp_path / "full.geom")]
     assert cli.main([*args, "--crop-origin", "left.tif", "5000", "5000"]) == 0
+
+
+# ---- issue 24, item 6: messages that name the real cause ----------------------------------------
+# Each bad input is made here from the Ventoux crops; the checks run through load_image and
+# check_image (no bag), and test_one_line_exit_2 runs every case through `parproj import`.
+
+
+def _checked(path: Path, **kw: Any) -> None:
+    """The import's reading and checks of one image (no bag is written)."""
+    img = load_image(path, "x", **kw)
+    check_image(img, (500.0, 1500.0))
+
+
+def _sign_changing(model: RPCModel) -> tuple[RPCModel, float]:
+    """``model`` with a line denominator 1 - L / L_mid (zero at the image's middle longitude)."""
+    lon, lat = model.localize([0.0, 499.0], [0.0, 499.0], 1000.0)
+    L, _, _ = model.normalize_ground(lon, lat, 1000.0)
+    mid = 0.5 * float(L[0] + L[1])
+    v = model.as_vector()
+    v[12 + 20 : 12 + 40] = 0.0
+    v[12 + 20], v[12 + 21] = 1.0, -1.0 / mid
+    return RPCModel.from_vector(v), mid
+
+
+def test_denominator_changing_sign_is_named(tmp_path: Path) -> None:
+    """Not "does not converge": which denominator, and where in the image it vanishes."""
+    good = crop_rpcs()[0]
+    bad, mid = _sign_changing(good)
+    img = tmp_path / "den.tif"
+    write(img, pixels("left"), bad)
+    with pytest.raises(SceneImportError) as err:
+        _checked(img)
+    msg = str(err.value)
+    m = re.search(
+        r"RPC line denominator changes sign over the image "
+        r"at line (\d+), sample (\d+), h (\d+) m",
+        msg,
+    )
+    assert m is not None and "does not converge" not in msg, msg
+    line, sample, h = (float(g) for g in m.groups())
+    # the true zero on that line and height: the column whose longitude is L_mid (good model)
+    cols = np.arange(0.0, 500.0, 0.25)
+    lon, lat = good.localize(np.full(cols.shape, line), cols, np.full(cols.shape, h))
+    L, _, _ = good.normalize_ground(lon, lat, h)
+    zero = float(cols[np.argmin(np.abs(L - mid))])
+    step = 499.0 / 10  # the check's test points: an 11 x 11 grid over the image
+    assert abs(sample - zero) <= step, (sample, zero)
+
+
+def test_denominator_all_zero_is_named(tmp_path: Path) -> None:
+    v = crop_rpcs()[0].as_vector()
+    v[12 + 60 : 12 + 80] = 0.0  # SAMP_DEN_COEFF
+    img = tmp_path / "den0.tif"
+    write(img, pixels("left"), RPCModel.from_vector(v))
+    with pytest.raises(
+        SceneImportError,
+        match=r"den0\.tif: RPC sample denominator zero everywhere "
+        r"\(its 20 SAMP_DEN_COEFF are all 0\)",
+    ):
+        _checked(img)
+
+
+def test_truncated_raster_names_the_cut(tmp_path: Path) -> None:
+    """Not rasterio's "Read failed. See previous exception": the size, and GDAL's own words."""
+    from parproj_ros.io.raster import read_band
+
+    src = tmp_path / "whole.tif"
+    write(src, pixels("left"), crop_rpcs()[0])
+    data = src.read_bytes()
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(SceneImportError) as err:
+        read_band(cut)
+    msg = str(err.value)
+    assert msg.startswith(f"{cut}: truncated: the file has {len(data) // 2} bytes, ") and (
+        f"image data up to byte {len(data)} (50 % present" in msg
+    ), msg
+    assert "TIFFReadEncodedStrip" in msg and "See previous exception" not in msg, msg
+    # a JPEG cut short: libjpeg's words, and "truncated"
+    jpg = tmp_path / "j.jpg"
+    with rasterio.open(
+        jpg, "w", driver="JPEG", width=500, height=500, count=1, dtype="uint8"
+    ) as d:
+        d.write((pixels("left") // 16).astype(np.uint8), 1)
+    jcut = tmp_path / "jcut.jpg"
+    jcut.write_bytes(jpg.read_bytes()[: jpg.stat().st_size // 2])
+    with pytest.raises(SceneImportError, match=r"jcut\.jpg: truncated .*Premature end of JPEG"):
+        read_band(jcut)
+
+
+def test_image_too_small(tmp_path: Path) -> None:
+    """One row, one column: the image's size and the minimum, not an RPC problem."""
+    import inspect
+
+    from parproj_ros.imaging.matching import match_normalized
+    from parproj_ros.io.scene_import import MIN_IMAGE_SIDE
+
+    sig = inspect.signature(match_normalized).parameters
+    assert MIN_IMAGE_SIDE == 2 * (sig["half"].default + sig["search"].default) + 1
+    full = pixels("left")
+    for name, block in (("row", full[:1]), ("col", full[:, :1]), ("small", full[:26, :40])):
+        p = tmp_path / f"{name}.tif"
+        write(p, block, crop_rpcs()[0])
+        size = f"{block.shape[0]} x {block.shape[1]} px"
+        with pytest.raises(
+            SceneImportError, match=rf"{name}\.tif: image too small: {size} .*at least 27 x 27"
+        ):
+            load_image(p, "x")
+    ok = tmp_path / "ok.tif"
+    write(ok, full[:MIN_IMAGE_SIDE, :MIN_IMAGE_SIDE], crop_rpcs()[0])
+    assert load_image(ok, "x").lines == MIN_IMAGE_SIDE
+
+
+#: Image formats and whether GDAL (3.10) reads (.RPB, _RPC.TXT) sidecars beside them.
+SIDECAR_CASES = {
+    "GTiff": "tif", "PNG": "png", "JPEG": "jpg", "JP2OpenJPEG": "jp2", "NITF": "ntf",
+    "BMP": "bmp", "GIF": "gif", "ENVI": "bin", "HFA": "img",
+}  # fmt: skip
+
+
+def test_sidecar_drivers_match_gdal(tmp_path: Path) -> None:
+    """raster.SIDECAR_DRIVERS says for each driver what GDAL itself does with the sidecars."""
+    from parproj_ros.io.raster import raster_info, sidecar_read
+
+    img = (pixels("left")[:64, :64] // 16).astype(np.uint8)
+    for driver, ext in SIDECAR_CASES.items():
+        for suffix in (".RPB", "_RPC.TXT"):
+            f = tmp_path / f"{driver}{suffix[1:4]}.{ext}"
+            with rasterio.open(
+                f, "w", driver=driver, width=64, height=64, count=1, dtype="uint8"
+            ) as dst:
+                dst.write(img, 1)
+            side = f.with_suffix(".RPB") if suffix == ".RPB" else f.with_name(f.stem + suffix)
+            (rpc.write_rpb if suffix == ".RPB" else rpc.write_rpc_txt)(side, crop_rpcs()[0])
+            got = bool(raster_info(f).rpc_metadata)
+            assert got == sidecar_read(driver, suffix), (driver, suffix, got)
+
+
+def test_sidecar_beside_a_format_gdal_ignores(tmp_path: Path) -> None:
+    """A PNG / JPEG with a good _RPC.TXT / .RPB: not "bad syntax", but where GDAL reads them."""
+    model = crop_rpcs()[0]
+    png = tmp_path / "p.png"
+    write(png, pixels("left"), None)
+    rpc.write_rpc_txt(tmp_path / "p_RPC.TXT", model)
+    with pytest.raises(RPCFormatError) as err:
+        load_image(png, "x")
+    msg = str(err.value)
+    assert msg == (
+        f"{tmp_path / 'p_RPC.TXT'}: GDAL reads no _RPC.TXT sidecar beside a PNG image (only "
+        "beside GeoTIFF, JPEG 2000 and NITF images); pass it explicitly: "
+        f"--rpc p.png {tmp_path / 'p_RPC.TXT'}"
+    ), msg
+    jpg = tmp_path / "j.jpg"
+    with rasterio.open(
+        jpg, "w", driver="JPEG", width=500, height=500, count=1, dtype="uint8"
+    ) as d:
+        d.write((pixels("left") // 16).astype(np.uint8), 1)
+    rpc.write_rpb(tmp_path / "j.RPB", model)
+    with pytest.raises(
+        RPCFormatError,
+        match=r"no \.RPB sidecar beside a JPEG image \(only beside GeoTIFF and JPEG 2000 "
+        r"images\); pass it explicitly: --rpc j\.jpg ",
+    ):
+        load_image(jpg, "x")
+    # the advice works: the same file given with --rpc is read, the footprint that of the TIFF
+    img = load_image(png, "x", rpc_path=tmp_path / "p_RPC.TXT")
+    ref = tmp_path / "ref.tif"
+    write(ref, pixels("left"), model)
+    a = check_image(img, (500.0, 1500.0))["footprint_lon_lat"]
+    b = check_image(load_image(ref, "x"), (500.0, 1500.0))["footprint_lon_lat"]
+    np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def _decimated(model: RPCModel, k: int) -> RPCModel:
+    """The RPC of the image reduced k times (k x k pixels -> 1), as GDAL rescales overviews.
+
+    Pixel centre j of the reduced image is at k (j + 0.5) - 0.5 of the full image's grid.
+    """
+    v = model.as_vector()
+    for off, scale in ((2, 7), (3, 8)):  # LINE_OFF, LINE_SCALE; SAMP_OFF, SAMP_SCALE
+        v[off] = (v[off] + 0.5) / k - 0.5
+        v[scale] = v[scale] / k
+    return RPCModel.from_vector(v)
+
+
+def test_scaled_geotransform_is_refused_with_safe_advice(tmp_path: Path) -> None:
+    """A 2 px/px geotransform (a reduced-resolution product): refused; the advice it gives, for
+    an RPC fitted to the reduced grid, lands on the full-resolution footprint (and the advice it
+    replaced, a bare --crop-origin with the full scene's RPC, would halve it)."""
+    from rasterio.transform import Affine
+
+    full = crop_rpcs()[0]
+    px = pixels("left")[:500, :500].astype(np.float64)
+    small = px.reshape(250, 2, 250, 2).mean(axis=(1, 3)).astype(np.uint16)
+    p = tmp_path / "s2.tif"
+    write(p, small, _decimated(full, 2), transform=Affine(2.0, 0.0, 0.0, 0.0, 2.0, 0.0))
+    with pytest.raises(SceneImportError) as err:
+        load_image(p, "x")
+    msg = str(err.value)
+    assert "pixels of 2 x 2 units (a reduced-resolution product" in msg, msg
+    assert "give --crop-origin s2.tif 0 0" in msg and "not a crop offset" in msg, msg
+    # following it: the footprint is the full-resolution image's, to a full-resolution pixel
+    img = load_image(p, "x", offset=(0.0, 0.0))
+    got = np.array(check_image(img, (500.0, 1500.0))["footprint_lon_lat"])
+    ref = tmp_path / "full.tif"
+    write(ref, pixels("left"), full)
+    want = np.array(check_image(load_image(ref, "x"), (500.0, 1500.0))["footprint_lon_lat"])
+    deg_per_px = 0.7 / 111_320.0  # Pleiades 0.7 m pixels
+    np.testing.assert_allclose(got, want, atol=deg_per_px)
+    # the full scene's RPC on the reduced pixels: half the footprint, what the old advice gave
+    write(tmp_path / "s2b.tif", small, full)
+    wrong = np.array(
+        check_image(load_image(tmp_path / "s2b.tif", "x"), (500.0, 1500.0))["footprint_lon_lat"]
+    )
+    ratio = (wrong[2] - wrong[0]) / (want[2] - want[0])
+    assert 0.4 < ratio < 0.6, ratio
+
+
+def test_one_line_warnings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    """Python warnings inside a command: one line each, no ``file.py:123:`` source lines; the
+    NotGeoreferencedWarning of images without a geotransform not at all."""
+    import warnings
+
+    with cli.one_line_warnings("parproj import"):
+        warnings.warn("GDAL said\nsomething", RuntimeWarning, stacklevel=1)
+        png = tmp_path / "p.png"
+        write(png, pixels("left"), None)  # rasterio warns: no geotransform
+        with rasterio.open(png) as src:
+            src.read(1)
+    err = capsys.readouterr().err
+    assert err == "parproj import: note: GDAL said something\n", err
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize(
+    "case",
+    ["den", "den0", "cut", "row", "col", "png_sidecar", "jpeg_sidecar", "scale2"],
+)
+def test_one_line_exit_2(
+    case: str, pair: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Every case of item 6 through ``parproj import``: exit 2, one line naming file and cause."""
+    from rasterio.transform import Affine
+
+    model, right = crop_rpcs()[0], str(pair[1])
+    extra: list[str] = []
+    if case == "den":
+        path = tmp_path / "den.tif"
+        write(path, pixels("left"), _sign_changing(model)[0])
+        want = r"RPC line denominator changes sign over the image at line \d+, sample \d+"
+    elif case == "den0":
+        v = model.as_vector()
+        v[12 + 20 : 12 + 40] = 0.0
+        path = tmp_path / "den0.tif"
+        write(path, pixels("left"), RPCModel.from_vector(v))
+        want = r"RPC line denominator zero everywhere"
+    elif case == "cut":
+        path = tmp_path / "cut.tif"
+        data = pair[0].read_bytes()
+        path.write_bytes(data[: len(data) // 2])
+        want = r"truncated: the file has \d+ bytes.*GDAL cannot read band 1: .*Read error"
+    elif case in ("row", "col"):
+        path = tmp_path / f"{case}.tif"
+        write(path, pixels("left")[:1] if case == "row" else pixels("left")[:, :1], model)
+        want = r"image too small: (1 x 500|500 x 1) px \(rows x columns\), at least 27 x 27"
+    elif case == "png_sidecar":
+        path = tmp_path / "p.png"
+        write(path, pixels("left"), None)
+        rpc.write_rpc_txt(tmp_path / "p_RPC.TXT", model)
+        want = (
+            r"no usable RPC for this image: .*p_RPC\.TXT: GDAL reads no _RPC\.TXT sidecar "
+            r"beside a PNG image .*--rpc p\.png "
+        )
+    elif case == "jpeg_sidecar":
+        path = tmp_path / "j.jpg"
+        with rasterio.open(
+            path, "w", driver="JPEG", width=500, height=500, count=1, dtype="uint8"
+        ) as d:
+            d.write((pixels("left") // 16).astype(np.uint8), 1)
+        rpc.write_rpb(tmp_path / "j.RPB", model)
+        want = r"j\.RPB: GDAL reads no \.RPB sidecar beside a JPEG image"
+    else:
+        path = tmp_path / "s2.tif"
+        write(path, pixels("left"), model, transform=Affine(2.0, 0.0, 0.0, 0.0, 2.0, 0.0))
+        want = r"pixels of 2 x 2 units .*give --crop-origin s2\.tif 0 0"
+    argv = ["import", str(path), right, "-o", str(tmp_path / "o"), "--heights", "500", "1500"]
+    assert exit_code([*argv, *extra]) == 2
+    err = capsys.readouterr().err
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"parproj import: {path}: "), err
+    assert re.search(want, lines[0]), err
+    assert not (tmp_path / "o").exists()

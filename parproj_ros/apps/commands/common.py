@@ -59,10 +59,12 @@ def check_raster(path: Path) -> None:
     Pixels are read later, strip by strip; a file damaged further in is then reported with the
     rows GDAL could not read (``raster_io.read_rows``).
     """
-    from ...io.raster import raster_info
+    from ...io.raster import SceneImportError, raster_info
 
     try:
         raster_info(path)
+    except SceneImportError as err:  # names the file and GDAL's error already
+        raise InputError(path, str(err).removeprefix(f"{path}: ")) from None
     except Exception as err:  # GDAL and rasterio raise assorted types for a damaged file
         raise InputError(path, f"not a raster GDAL can read ({why(err)})") from None
 
@@ -85,6 +87,9 @@ def check_rpc(path: Path, image: bool = False) -> None:
         else:
             read_rpc_file(path)
     except Exception as err:
+        if image and "--rpc " in str(err):  # the message says what to pass already
+            text = " ".join(str(err).split())
+            raise InputError(path, f"no usable RPC for this image: {text}") from None
         if image:
             raise InputError(
                 path,
