@@ -186,6 +186,9 @@ class ProcessSummary:
         recovery: the input reader's recovery report (cut-off bags).
         skipped_topics: topics of unknown types, with counts.
         direct: whether the output bag was written past the page cache (O_DIRECT).
+        unusable: the pairs whose normalized images share almost no ground
+            (:attr:`PairResult.unusable`).
+        heights: (pair, whether it got a DSM) of every pair the heights step saw.
     """
 
     scenes: int = 0
@@ -195,6 +198,8 @@ class ProcessSummary:
     recovery: Any = None
     skipped_topics: dict[str, int] = field(default_factory=dict)
     direct: bool = False
+    unusable: list[str] = field(default_factory=list)
+    heights: list[tuple[str, bool]] = field(default_factory=list)
 
 
 def _bag_issues(reader: BagReader, name: str) -> Outputs:
@@ -293,6 +298,8 @@ def process_bag(
                 writer.drain()  # whole images written before the next input, as before
             summary.scenes += len(out.scenes)
             summary.pairs += len(out.pairs)
+            summary.unusable += [p.pair_id for p in out.pairs if p.unusable]
+            summary.heights += [(h.pair_id, h.ok) for h in out.heights]
             summary.issues += out.issues
             if on_outputs:
                 on_outputs(out)

@@ -48,6 +48,7 @@ from .orientation import orient_scene, start_unseen
 from .pairing import Pairing
 from .render_process import RenderProcess
 from .results import (
+    MIN_SHARED_SHARE,
     BlockResult,
     GroundPoint,
     Issue,
@@ -467,6 +468,21 @@ class Pipeline:
         if tie is not None:
             pair = replace(
                 pair, y_parallax_px=tie.residual_px, y_parallax_source=YParallaxSource.TIE_POINTS
+            )
+        nodata = self.config.nodata
+        shared = float(np.mean((img_l != nodata) & (img_r != nodata))) if img_l.size else 0.0
+        pair = replace(pair, shared_share=shared)
+        if pair.unusable:
+            out.issues.append(
+                Issue(
+                    Level.ERROR,
+                    f"pair {pair.pair_id}",
+                    f"its normalized images share only {100 * shared:.1f} % of their pixels "
+                    f"with data in both (< {100 * MIN_SHARED_SHARE:g} %): the scenes see "
+                    f"different ground at the heights used ({terrain.describe()}), nothing to "
+                    "match. Check that the scenes overlap (crop origins, RPCs, the pair "
+                    "selection), or give a DEM at import (parproj import --dem)",
+                )
             )
         out.pairs.append(pair)
         return out

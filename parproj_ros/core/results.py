@@ -221,6 +221,11 @@ class PairGeometry:
     right_grid: OutputGrid
 
 
+#: Below this share of pixels with data in both normalized images a pair is unusable: the
+#: scenes see different ground (at the heights searched), nothing can be matched.
+MIN_SHARED_SHARE = 0.05
+
+
 @dataclass(frozen=True)
 class PairResult:
     """A normalized stereo pair.
@@ -241,6 +246,8 @@ class PairResult:
         y_parallax_source: where they come from (a plain string is accepted).
         terrain: the heights of the pair's ground (for its heights step) and where they come
             from; None: not known yet (a streamed pair: measured on its images at step 7).
+        shared_share: share of the normalized grid's pixels with data in both images, 0..1
+            (None: a streamed pair, whose images are not held whole).
     """
 
     pair_id: str
@@ -257,9 +264,15 @@ class PairResult:
     y_parallax_px: FloatArray
     y_parallax_source: YParallaxSource
     terrain: Terrain | None = None
+    shared_share: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "y_parallax_source", YParallaxSource(self.y_parallax_source))
+
+    @property
+    def unusable(self) -> bool:
+        """Whether its normalized images share almost no ground (:data:`MIN_SHARED_SHARE`)."""
+        return self.shared_share is not None and self.shared_share < MIN_SHARED_SHARE
 
     @property
     def y_parallax_stats(self) -> tuple[float, float, float]:

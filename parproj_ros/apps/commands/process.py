@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ...core.config import PARAMS
 from ...io.files import (
@@ -14,6 +14,9 @@ from ...io.files import (
     number,
     staged_output,
 )
+
+if TYPE_CHECKING:
+    from ..process import ProcessSummary
 
 #: The parameters of parproj_node that ``parproj process`` has options for.
 OFFLINE_PARAMS = tuple(p for p in PARAMS if p.offline)
@@ -87,7 +90,34 @@ def run(args: argparse.Namespace) -> int:
         f"{summary.messages_in} messages in, {summary.scenes} scenes, {summary.pairs} pairs "
         f"-> {out}{lost}"
     )
-    return 0 if summary.pairs > 0 else 1
+    return verdict(summary, heights=bool(overrides.get("heights")))
+
+
+def verdict(summary: ProcessSummary, *, heights: bool) -> int:
+    """Exit code of a run: 1 when the result is not what was asked for, else 0.
+
+    Each shortfall is one line on stderr saying what is missing and what to try: no pair, a
+    pair whose images share almost no ground, a pair without a DSM when heights were asked.
+    """
+    problems = []
+    if summary.pairs == 0:
+        problems.append("no pair was made (see the lines above)")
+    if summary.unusable:
+        problems.append(
+            f"pair {', '.join(summary.unusable)}: the normalized images share almost no ground "
+            "(ERROR above); check that the scenes overlap, or import with --dem"
+        )
+    missing = [p for p, ok in summary.heights if not ok]
+    if heights and summary.pairs and (missing or not summary.heights):
+        which = ", ".join(missing) if missing else "every pair"
+        problems.append(
+            f"--heights: no DSM for {which} (the WARN above says why: e.g. textureless "
+            "images, no overlap, a disparity range too wide; try --terrain tie_points, or "
+            "--z-avg / --height-range around the ground)"
+        )
+    for text in problems:
+        print(f"parproj process: {text}", file=sys.stderr)
+    return 1 if problems else 0
 
 
 def add_parser(sub: Any) -> None:
