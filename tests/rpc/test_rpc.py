@@ -649,3 +649,58 @@ def test_numbers_that_do_not_parse_are_errors(value: str, tmp_path: Path) -> Non
         rpc.read_rpc(path)
     assert "a_RPC.TXT" in str(err.value) and "SAMP_SCALE" in str(err.value)
     assert repr(value.strip()) in str(err.value)
+
+
+# ---- denominators over an image (issue 24 item 6) -----------------------------------------------
+
+MARSEILLE = Path(__file__).resolve().parents[3] / "shared" / "data" / "marseille_triplet"
+
+
+def _image_lattice(lines: float, samples: float, h: tuple[float, float]) -> tuple[np.ndarray, ...]:
+    """The import check's test points: 11 x 11 pixels (edges included) x 3 heights."""
+    g_l, g_s = np.meshgrid(
+        np.linspace(0.0, lines - 1, 11), np.linspace(0.0, samples - 1, 11), indexing="ij"
+    )
+    hs = np.linspace(h[0], h[1], 3)
+    return np.repeat(g_l.ravel(), 3), np.repeat(g_s.ravel(), 3), np.tile(hs, g_l.size)
+
+
+def test_image_denominator_check_on_real_rpcs() -> None:
+    """No false alarm on real RPCs: the Ventoux scenes (full extent, whole height range) and the
+    three Marseille views (their RPCs in GeoTIFF tag 50844, read through GDAL)."""
+    from parproj_ros.io.raster import raster_info, rpc_from_metadata
+
+    for geom in (LEFT_GEOM, RIGHT_GEOM):
+        m = rpc.read_rpc(geom)
+        lines = 2 * m.line_off + 1  # the scene: line_off is its centre
+        samples = 2 * m.samp_off + 1
+        h = (m.height_off - m.height_scale, m.height_off + m.height_scale)
+        assert m.image_denominator_check(*_image_lattice(lines, samples, h)) is None
+    for i in (1, 2, 3):
+        info = raster_info(MARSEILLE / f"img_0{i}.tif")
+        m = rpc_from_metadata(info.rpc_metadata, info.path)
+        h = (m.height_off - 0.5 * m.height_scale, m.height_off + 0.5 * m.height_scale)
+        assert m.image_denominator_check(*_image_lattice(info.lines, info.samples, h)) is None
+
+
+def test_image_denominator_check_finds_the_zero() -> None:
+    """A sample denominator 1 - P / P0 vanishing at the latitude of the scene's line 3000: named
+    with the line of the test point nearest the zero, within one lattice step."""
+    m = rpc.read_rpc(LEFT_GEOM)
+    lines, samples = 2 * m.line_off + 1, 2 * m.samp_off + 1
+    ll, ss, hh = _image_lattice(lines, samples, (m.height_off, m.height_off))
+    lon0, lat0 = m.localize(3000.0, m.samp_off, m.height_off)
+    _, p0, _ = m.normalize_ground(lon0, lat0, m.height_off)
+    v = m.as_vector()
+    v[12 + 60 : 12 + 80] = 0.0
+    v[12 + 60], v[12 + 62] = 1.0, -1.0 / float(p0)
+    bad = RPCModel.from_vector(v)
+    why = bad.image_denominator_check(ll, ss, hh)
+    assert why is not None and why.startswith("RPC sample denominator changes sign over the image")
+    line = float(why.split("at line ")[1].split(",")[0])
+    assert abs(line - 3000.0) <= (lines - 1) / 10, why
+    v[12 + 60 : 12 + 80] = 0.0
+    zero = RPCModel.from_vector(v)
+    assert zero.image_denominator_check(ll, ss, hh) == (
+        "RPC sample denominator zero everywhere (its 20 SAMP_DEN_COEFF are all 0)"
+    )
