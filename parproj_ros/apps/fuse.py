@@ -1,0 +1,238 @@
+"""``parproj fuse``: the DSMs of several pairs of one area fused into one DSM, as GeoTIFF.
+
+Reads every ``dsm`` ElevationGrid of the output bags given (``parproj process --heights`` on a
+bag of three or more images imported with ``--pairs all``, or several bags of one area), all in
+one object frame, measures the pairs' mutual level offsets, and fuses them
+(:func:`parproj_ros.imaging.fusion.fuse`: per cell the mean of the samples within a tolerance of
+their median, after removing each pair's level offset). Writes, on the grid of a pair's DSM
+export (:mod:`parproj_ros.io.geotiff`: the UTM zone of a tangent-plane frame with WGS84
+ellipsoidal heights, or the frame as it is):
+
+* ``fused_dsm.tif``: the fused heights (float32, NaN holes);
+* ``fused_count.tif``: samples kept per cell (uint8, 0 = none);
+* ``fused_spread.tif``: max - min of the samples kept, metres (float32, NaN holes);
+* ``fuse.json``: the inputs, offsets before and after, and the figures printed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from ..imaging.fusion import TOLERANCE_M, FusedDsm, fuse
+from ..imaging.heights import DsmGrid
+from ..io.files import InputError
+from ..io.geotiff import frame_of, write_dsm_geotiff
+from ..ros.bag import BagError, BagReader
+from ..ros.conversions import elevation_grid_from_msg
+
+__all__ = ["FuseResult", "NotEnoughDsmsError", "export_fused", "fuse_bags", "read_dsms"]
+
+
+class NotEnoughDsmsError(Exception):
+    """Fewer than two DSMs to fuse (exit 1: nothing to fuse, not bad input)."""
+
+
+@dataclass(frozen=True)
+class FuseResult:
+    """The fused DSM and what it was made from.
+
+    Attributes:
+        fused: the fusion (heights, count, spread, grid, offsets).
+        frame_id: the object frame of the inputs and of ``fused``.
+        names: the inputs' pair ids (with the bag's name when several bags are given).
+        completeness: each input's share of the fused grid's cells with a height (0..1).
+    """
+
+    fused: FusedDsm
+    frame_id: str
+    names: list[str]
+    completeness: list[float]
+
+
+def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid]]:
+    """(name, frame_id, heights, grid) of every ``dsm`` of the bags, in their order.
+
+    Raises:
+        BagError: a bag without a ``dsm`` topic.
+    """
+    out: list[tuple[str, str, Any, DsmGrid]] = []
+    for bag in bags:
+        reader = BagReader(bag)
+        if "dsm" not in reader.topics():
+            raise BagError("no dsm topic: process the bag with --heights", bag)
+        for item in reader.messages(topics=["dsm"]):
+            m = item.msg
+            heights, grid, _ = elevation_grid_from_msg(m)
+            name = str(m.pair_id) or f"dsm_{len(out)}"
+            if len(bags) > 1:
+                name = f"{bag.name}:{name}"
+            out.append((name, str(m.header.frame_id), np.asarray(heights, np.float32), grid))
+    return out
+
+
+def fuse_bags(
+    bags: Sequence[Path],
+    *,
+    tolerance_m: float = TOLERANCE_M,
+    align: bool = True,
+    cell_m: float | None = None,
+    frame_id: str | None = None,
+) -> FuseResult:
+    """Fuse the DSMs of ``bags`` (module docstring).
+
+    Args:
+        bags: output bags.
+        tolerance_m: see :func:`parproj_ros.imaging.fusion.fuse`.
+        align: remove each pair's level offset first.
+        cell_m: output cell side, metres (default: the finest input's).
+        frame_id: the frame to take for DSMs labelled with one that is not a tangent plane
+            (an imported pair processed before its frame travelled to the outputs: ``map``).
+
+    Raises:
+        NotEnoughDsmsError: fewer than two DSMs in the bags.
+        InputError: DSMs of different frames.
+    """
+    dsms = read_dsms(bags)
+    if len(dsms) < 2:
+        found = ", ".join(n for n, *_ in dsms) or "none"
+        raise NotEnoughDsmsError(
+            f"fewer than two DSMs to fuse (found {len(dsms)}: {found}) in "
+            f"{', '.join(str(b) for b in bags)}; fuse needs the DSMs of two or more pairs of "
+            "one area: import three or more images with --pairs all, then process --heights"
+        )
+    frames = []
+    for _, f, _, _ in dsms:
+        frames.append(frame_id if frame_id is not None and frame_of(f) is None else f)
+    if len(set(frames)) > 1:
+        listed = "; ".join(f"{n} in {f!r}" for (n, *_), f in zip(dsms, frames, strict=True))
+        raise InputError(
+            str(bags[0]),
+            f"DSMs of different object frames cannot be fused ({listed}): import the images "
+            "of one area together (one bag, --pairs all)",
+        )
+    fused = fuse([(h, g) for _, _, h, g in dsms], tolerance_m=tolerance_m, align=align,
+                 cell=cell_m)  # fmt: skip
+    x, y = fused.grid.centres()
+    from ..imaging.fusion import sample_bilinear
+
+    comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for _, _, h, g in dsms]
+    return FuseResult(fused, frames[0], [n for n, *_ in dsms], comp)
+
+
+def _matrix(m: Any) -> list[list[float | None]]:
+    return [[None if not math.isfinite(v) else round(float(v), 3) for v in row] for row in m]
+
+
+def _layers_on_export(
+    dsm_path: Path, layers: dict[str, tuple[Any, float]], grid: DsmGrid, frame_id: str
+) -> None:
+    """Write frame-grid layers on the grid of the DSM GeoTIFF just written, nearest cell.
+
+    Each map cell with a height h in ``dsm_path`` takes the layer's value at the frame (x, y)
+    of its (lon, lat, h) (the point of the fused surface it shows, as
+    :func:`~parproj_ros.io.geotiff.write_ortho_geotiff` finds it, without its iteration: the
+    heights are already there); nodata where h has none. A frame without geodetic anchor:
+    the layers as they are (same grid). ``layers``: file name -> (array, nodata).
+    """
+    import rasterio
+
+    with rasterio.open(dsm_path) as src:
+        profile = src.profile.copy()
+        h = src.read(1).astype(float)
+        transform = src.transform
+        crs = src.crs
+    frame = frame_of(frame_id)
+    if frame is None or crs is None:
+        rows = cols = None
+    else:
+        from pyproj import CRS, Transformer
+
+        cols_m, rows_m = np.meshgrid(np.arange(h.shape[1]) + 0.5, np.arange(h.shape[0]) + 0.5)
+        e = transform.c + transform.a * cols_m
+        n = transform.f + transform.e * rows_m
+        to_ll = Transformer.from_crs(CRS.from_wkt(crs.to_wkt()), CRS.from_epsg(4326),
+                                     always_xy=True)  # fmt: skip
+        lon, lat = to_ll.transform(e, n)
+        ok = np.isfinite(h)
+        x, y, _ = frame.to_local(lon, lat, np.where(ok, h, frame.h0))
+        rows, cols = grid.index(x, y)
+        ok &= (rows >= 0) & (rows < grid.height) & (cols >= 0) & (cols < grid.width)
+        rows = np.where(ok, rows, -1)
+        cols = np.where(ok, cols, -1)
+    for name, (values, nodata) in layers.items():
+        v = np.asarray(values)
+        if rows is None or cols is None:
+            out = v
+        else:
+            good = rows >= 0
+            out = np.full(h.shape, nodata, dtype=v.dtype)
+            out[good] = v[rows[good], cols[good]]
+        prof = {**profile, "dtype": v.dtype.name, "nodata": nodata,
+                "predictor": 3 if v.dtype.kind == "f" else 2}  # fmt: skip
+        # written in place: the folder is staged as a whole (a 3-D CRS may add an .aux.xml)
+        with rasterio.open(dsm_path.with_name(name), "w", **prof) as dst:
+            dst.write(out, 1)
+            dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=f"parproj_ros fused DSM layer {name}",
+                            PARPROJ_SOURCE_FRAME=frame_id)  # fmt: skip
+
+
+def export_fused(
+    res: FuseResult, folder: Path, *, target: Literal["utm", "local"] = "utm"
+) -> dict[str, Any]:
+    """Write the fused DSM, count and spread GeoTIFFs into ``folder``; the report as a dict."""
+    f = res.fused
+    crs, out = write_dsm_geotiff(
+        folder / "fused_dsm.tif", f.heights, f.grid, res.frame_id, target=target
+    )
+    _layers_on_export(
+        folder / "fused_dsm.tif",
+        {"fused_count.tif": (f.count, 0), "fused_spread.tif": (f.spread, float("nan"))},
+        f.grid,
+        res.frame_id,
+    )
+    n = len(res.names)
+    valid = f.count > 0
+    hist = [int((f.count == k).sum()) for k in range(1, n + 1)]
+    spread = f.spread[valid & (f.count > 1)]
+    return {
+        "inputs": res.names,
+        "frame_id": res.frame_id,
+        "crs": None if crs is None else crs.name,
+        "epsg": None if crs is None else crs.to_epsg(),
+        "cells": [out.width, out.height],
+        "cell_size_m": out.cell,
+        "frame_grid": {
+            "x0": f.grid.x0,
+            "y0": f.grid.y0,
+            "cell": f.grid.cell,
+            "width": f.grid.width,
+            "height": f.grid.height,
+        },
+        "input_completeness": res.completeness,
+        "completeness": f.completeness,
+        "cells_by_count": hist,
+        "spread_median_m": float(np.median(spread)) if spread.size else None,
+        "split_cells": f.split_cells,
+        "aligned": bool(np.any(f.offsets != 0.0)),
+        "offsets_m": [round(float(o), 3) for o in f.offsets],
+        "median_before_m": _matrix(f.median_before),
+        "median_after_m": _matrix(f.median_after),
+        "shared_cells": f.shared_cells.tolist(),
+        "files": ["fused_dsm.tif", "fused_count.tif", "fused_spread.tif", "fuse.json"],
+    }
+
+
+def offsets_table(names: Sequence[str], median: Sequence[Sequence[float | None]]) -> list[str]:
+    """Lines of a matrix of level offsets (row - column, metres) for a person."""
+    w = max(8, *(len(n) for n in names))
+    lines = [" " * w + "".join(f" {n:>{w}s}" for n in names)]
+    for name, row in zip(names, median, strict=True):
+        cells = "".join(f" {'-':>{w}s}" if v is None else f" {v:+{w}.2f}" for v in row)
+        lines.append(f"{name:>{w}s}{cells}")
+    return lines
