@@ -7,6 +7,7 @@ from . import (
     demo,
     dsm,
     evaluate,
+    fuse,
     import_images,
     paper,
     process,
@@ -29,4 +30,5 @@ COMMANDS = (
     segments,
     batch,
     dsm,
+    fuse,
 )
