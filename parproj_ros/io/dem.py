@@ -307,9 +307,14 @@ class RasterSampler:
             with np.errstate(invalid="ignore"):
                 x, y = self._to_ds.transform(lon, lat, errcheck=False)
             x, y = np.asarray(x, float), np.asarray(y, float)
-        a = self._inverse
-        col = a.a * x + a.b * y + a.c - 0.5
-        row = a.d * x + a.e * y + a.f - 0.5
+        t = self._ds.transform
+        if t.b == 0 and t.d == 0:  # north-up: from the first centre (as grid_height does)
+            col = (x - (t.c + 0.5 * t.a)) / t.a
+            row = (y - (t.f + 0.5 * t.e)) / t.e
+        else:
+            a = self._inverse
+            col = a.a * x + a.b * y + a.c - 0.5
+            row = a.d * x + a.e * y + a.f - 0.5
         if self.geographic:
             w = self._ds.width
             for turn in (360.0, -360.0):
@@ -317,7 +322,7 @@ class RasterSampler:
                     out = ~((col >= 0) & (col <= w - 1))
                 if not out.any():
                     break
-                c2 = col + a.a * turn
+                c2 = col + turn / t.a if t.b == 0 else col + self._inverse.a * turn
                 with np.errstate(invalid="ignore"):
                     use = out & (c2 >= 0) & (c2 <= w - 1)
                 col = np.where(use, c2, col)
