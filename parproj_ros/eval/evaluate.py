@@ -122,6 +122,53 @@ def match_y_parallax(
     }
 
 
+def first_frame_id(reader: BagReader, topic: str) -> str | None:
+    """``header.frame_id`` of the first message on ``topic`` (None: no such topic, or no name)."""
+    if topic not in reader.topics():
+        return None
+    for item in reader.messages(topics=[topic]):
+        return str(item.msg.header.frame_id).strip() or None
+    return None
+
+
+def _frame_distance(a: str, b: str) -> str:
+    """How far apart the origins of two local tangent plane frames are, as text ("" if not)."""
+    from ..io.scene_import import frame_from_id
+
+    try:
+        fa, fb = frame_from_id(a), frame_from_id(b)
+    except ValueError:
+        return ""
+    ea = np.array(fa.to_local(fb.lon0, fb.lat0, fb.h0), dtype=np.float64).ravel()
+    return f" (origins {float(np.hypot(ea[0], ea[1])):.0f} m apart, {float(ea[2]):+.1f} m up)"
+
+
+def check_truth_frame(out_bag: Path, truth_bag: Path) -> None:
+    """Refuse truth points in another object frame than the outputs they are to check.
+
+    Compares the ``header.frame_id`` of the truth bag's ``truth/points`` with that of the output
+    bag's ``stereo_pair`` messages, as recorded (``map`` for a simulated bag, ``enu_wgs84:lat=..``
+    for an imported pair; :mod:`parproj_ros.core.frames`). Object coordinates of two frames
+    cannot be compared: a truth bag of another pair, or of the same pair imported again about
+    another tangent plane, would give errors of kilometres or pass as a wrong figure.
+
+    Raises:
+        InputError: the two frames differ (``--truth`` named, with both frames).
+    """
+    from ..io.files import InputError
+
+    truth = first_frame_id(BagReader(truth_bag), "truth/points")
+    out = first_frame_id(BagReader(out_bag), "stereo_pair")
+    if truth is None or out is None or truth == out:
+        return
+    raise InputError(
+        "--truth",
+        f"{truth_bag}: its truth points are in object frame {truth!r}, the outputs of {out_bag} "
+        f"in {out!r}{_frame_distance(truth, out)}: their coordinates cannot be compared; give "
+        "the bag the outputs were computed from",
+    )
+
+
 def evaluate_bag(
     out_bag: Path,
     truth_bag: Path | None = None,
@@ -135,6 +182,8 @@ def evaluate_bag(
     DSMs (``dsm`` topic) are evaluated against ``surface`` (default: the terrain of the
     scenario named like the truth bag, if there is one; else only their completeness).
     """
+    if truth_bag:
+        check_truth_frame(Path(out_bag), Path(truth_bag))
     reader = BagReader(out_bag)
     truth: list[GroundPoint] = (
         truth_from_bag(BagReader(truth_bag))

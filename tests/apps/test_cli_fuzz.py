@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import random
 import shutil
@@ -666,3 +667,44 @@ def test_damaged_mcap_bytes_give_bag_error_or_recovery(tmp_path: Path) -> None:
             assert str(f) in str(err)
             outcomes["BagError"] += 1
     assert outcomes["recovered"] > 0 and outcomes["BagError"] > 0, outcomes
+
+
+# ---- evaluate --truth in another object frame (issue 24 item 6) ---------------------------------
+
+
+def _truth_in_frame(path: Path, frame_id: str) -> Path:
+    """The Ventoux bag's truth points, relabelled ``frame_id`` (same numbers)."""
+    items = list(BagReader(BAG).messages(topics=["truth/points"]))
+    for item in items:
+        item.msg.header.frame_id = frame_id
+    return write_bag(path, [("truth/points", i.msg, i.log_time_ns) for i in items])
+
+
+def test_evaluate_refuses_truth_from_another_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Truth in ``map`` or in another tangent plane against outputs in the imported pair's
+    frame: exit 2, one line naming both frames (and how far apart two tangent planes are)."""
+    from parproj_ros.eval.evaluate import first_frame_id
+    from parproj_ros.io.scene_import import frame_from_id, frame_id_of
+    from parproj_ros.rpc import LocalTangentPlane
+
+    out = tmp_path / "out"
+    assert run(["process", str(BAG), "-o", str(out), *FAST], capsys)[0] == 0
+    frame = first_frame_id(BagReader(BAG), "truth/points")
+    assert frame is not None and frame.startswith("enu_wgs84:")
+    assert first_frame_id(BagReader(out), "stereo_pair") == frame  # as recorded by process
+    ok = ["evaluate", str(out), "--truth", str(BAG), "--no-matching", "--json"]
+    assert run(ok, capsys)[0] == 0
+    f0 = frame_from_id(frame)
+    moved = frame_id_of(LocalTangentPlane(f0.lat0 + 0.009, f0.lon0, f0.h0 + 12.0))
+    x, y, _ = LocalTangentPlane(f0.lat0 + 0.009, f0.lon0, f0.h0 + 12.0).to_local(
+        f0.lon0, f0.lat0, f0.h0
+    )
+    apart = f"(origins {float(math.hypot(float(x), float(y))):.0f} m apart"
+    for other, extra in (("map", ""), (moved, apart)):
+        truth = _truth_in_frame(tmp_path / f"truth_{len(extra)}", other)
+        argv = ["evaluate", str(out), "--truth", str(truth), "--no-matching"]
+        code, _, err = run(argv, capsys)
+        assert_bad_input(code, err, "evaluate", f"in object frame {other!r}")
+        assert f"in {frame!r}" in err and "--truth" in err and extra in err, err
