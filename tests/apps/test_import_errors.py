@@ -546,3 +546,80 @@ def test_one_line_exit_2(
     assert len(lines) == 1 and lines[0].startswith(f"parproj import: {path}: "), err
     assert re.search(want, lines[0]), err
     assert not (tmp_path / "o").exists()
+
+
+# ---- advice names only options that exist ------------------------------------------------------
+
+#: Options of other programs that messages may name: ROS 2's (``ros2 run ... --ros-args
+#: --params-file FILE``), which parproj_node takes from the ROS 2 command line.
+FOREIGN_OPTIONS = {"--ros-args": "ROS 2", "--params-file": "ROS 2"}
+_OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:-[a-z0-9]+)*")
+
+
+def _parser_options(parser: Any) -> set[str]:
+    """Every option string of an argparse parser and of its sub-command parsers."""
+    import argparse
+
+    out: set[str] = set()
+    for action in parser._actions:
+        out.update(action.option_strings)
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                out |= _parser_options(sub)
+    return out
+
+
+def _strings(tree: Any) -> list[tuple[int, str]]:
+    """(line, text) of every string in a module; f-strings with their fields as NUL."""
+    import ast
+
+    inside: set[int] = set()
+    out: list[tuple[int, str]] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):
+            parts = []
+            for v in node.values:
+                inside.add(id(v))
+                is_text = isinstance(v, ast.Constant) and isinstance(v.value, str)
+                parts.append(v.value if is_text else "\0")  # type: ignore[union-attr]
+            out.append((node.lineno, "".join(parts)))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and isinstance(node.value, str):
+            if id(node) not in inside:
+                out.append((node.lineno, node.value))
+    return out
+
+
+def test_advice_names_only_existing_options() -> None:
+    """Every ``--option`` a string in parproj_ros/ names (messages, advice, help, docstrings) is
+    an option of a parser the package builds: ``parproj`` and its sub-commands (as
+    cli.build_parser makes them, ``--no-<name>`` included) and the ``python -m`` tools
+    (any ``add_argument("--...")`` in the package), or ROS 2's own (:data:`FOREIGN_OPTIONS`).
+    An f-string's ``--no-{name}`` is a family, not an option, and is skipped."""
+    import ast
+
+    from parproj_ros.apps import cli as cli_module
+
+    root = Path(cli_module.__file__).resolve().parents[1]
+    known = _parser_options(cli_module.build_parser()) | set(FOREIGN_OPTIONS)
+    trees = {f: ast.parse(f.read_text(), str(f)) for f in sorted(root.rglob("*.py"))}
+    for tree in trees.values():  # the other parsers (python -m parproj_ros.core.config, ...)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument":
+                known |= {
+                    a.value
+                    for a in node.args
+                    if isinstance(a, ast.Constant) and str(a.value).startswith("--")
+                }
+    unknown: list[str] = []
+    mentions = 0
+    for f, tree in trees.items():
+        for line, text in _strings(tree):
+            for m in _OPTION.finditer(text):
+                if text[m.end() : m.end() + 1] in ("\0", "-"):  # --no-{name}, --rpc-*
+                    continue
+                mentions += 1
+                if m.group() not in known:
+                    unknown.append(f"{f.relative_to(root.parent)}:{line}: {m.group()}")
+    assert mentions > 100  # the scan sees the messages (227 mentions of 66 options when written)
+    assert not unknown, unknown
