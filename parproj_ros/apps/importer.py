@@ -311,9 +311,9 @@ def import_scenes(
             (logged).
         band: the band to import from every image (1-based); None: band 1 (logged when an
             image has more).
-        dem: SRTM ``.hgt`` path or a height function ``(lon, lat) -> ellipsoidal h`` (m); None:
-            ``heights``.
-        geoid_undulation: metres added to the SRTM heights (geoid -> ellipsoid).
+        dem: DEM file(s) (any raster GDAL reads, :func:`parproj_ros.io.dem.load_dem`) or a
+            height function ``(lon, lat) -> ellipsoidal h`` (m); None: ``heights``.
+        geoid_undulation: metres added to the DEM file's heights (geoid -> ellipsoid).
         heights: (hmin, hmax) metres without a DEM (default :func:`default_heights` of the
             first image).
         principal_distance: c written in the scanner info, metres.

@@ -84,7 +84,7 @@ def virtual_gcp(
         lines: number of lines of the (left, right) image.
         samples: number of samples of the (left, right) image.
         heights: (hmin, hmax) metres above the WGS84 ellipsoid, or a DEM function
-            ``(lon deg, lat deg) -> ellipsoidal height m`` (e.g. :func:`srtm_height`).
+            ``(lon deg, lat deg) -> ellipsoidal height m`` (e.g. ``io.dem.load_dem``).
         grid: (nx, ny, nz): grid points across (samples), along (lines), in height.
         frame: object frame; default: tangent plane at the kept points' mean lon, lat, height.
         window: (first_line, first_sample, last_line, last_sample) of the left image to cover;
