@@ -2,10 +2,11 @@
 
 What ``parproj import`` does with them (:func:`measure`), before any virtual point is made:
 
-1. **Features.** Each image is read once, at reduced resolution when it is large (GDAL average
-   decimation by an integer factor so that its longer side is at most :data:`MAX_SIDE` pixels),
-   stretched to 8 bits (1st-99th percentiles), and SIFT key points are detected on it (at most
-   :data:`MAX_FEATURES`, no-data masked). Key point positions are scaled back to full-resolution
+1. **Features.** Each image is read tile by tile (:func:`features`: memory bounded by one
+   tile), at reduced resolution when it is large (GDAL average decimation by an integer factor
+   so that its longer side is at most :data:`MAX_SIDE` pixels), stretched to 8 bits (1st-99th
+   percentiles), and SIFT key points are detected on it (at most :data:`MAX_FEATURES`, no-data
+   masked). Key point positions are scaled back to full-resolution
    pixels of the image (this project's convention, (0, 0) = centre of the first pixel).
 2. **Matches**, per pair of images whose footprints overlap: nearest neighbours of the
    descriptors with Lowe's ratio test (:data:`RATIO`), then an RPC-consistency check instead of
@@ -42,7 +43,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from ..imaging.matching import to_uint8
+from ..imaging.matching import stretch_limits, to_uint8
 from ..rpc.adjust import (
     BiasAdjustment,
     adjust_biases,
@@ -60,6 +61,9 @@ IntArray = NDArray[np.int64]
 MAX_SIDE = 2048
 #: Most SIFT key points per image.
 MAX_FEATURES = 6000
+#: Side of the tiles SIFT runs on, reduced pixels, and their overlap border.
+TILE = 512
+TILE_MARGIN = 24
 #: Lowe's ratio test.
 RATIO = 0.75
 #: Fewest consistent matches for a measured terrain range.
@@ -93,10 +97,17 @@ class Features:
     factor: int
 
 
-def read_reduced(img: ImportedImage, max_side: int = MAX_SIDE) -> tuple[NDArray[Any], int]:
-    """One band of the image, GDAL-averaged by an integer factor to <= max_side pixels a side.
+def read_reduced(
+    img: ImportedImage,
+    factor: int,
+    window: tuple[int, int, int, int] | None = None,
+) -> NDArray[np.float32]:
+    """A window of one band, GDAL-averaged by ``factor`` (float32; masked pixels 0).
 
-    Masked pixels (GDAL mask: nodata, alpha, NaN) are 0. Returns (pixels float32, factor).
+    Args:
+        img: the image.
+        factor: decimation factor (1 = full resolution).
+        window: (row0, col0, rows, cols) in full-resolution pixels; None: the whole image.
 
     Raises:
         SceneImportError: GDAL cannot read the band.
@@ -104,13 +115,15 @@ def read_reduced(img: ImportedImage, max_side: int = MAX_SIDE) -> tuple[NDArray[
     """
     from rasterio.enums import Resampling
     from rasterio.errors import RasterioError
+    from rasterio.windows import Window
 
-    k = max(1, math.ceil(max(img.lines, img.samples) / max_side))
-    shape = (max(1, img.lines // k), max(1, img.samples // k))
+    r0, c0, nr, nc = window if window is not None else (0, 0, img.lines, img.samples)
+    shape = (max(1, nr // factor), max(1, nc // factor))
+    win = Window(c0, r0, shape[1] * factor, shape[0] * factor)
     with raster._env(), raster._open(img.path) as src:
         try:
-            data = src.read(img.band, out_shape=shape, resampling=Resampling.average)
-            mask = src.read_masks(img.band, out_shape=shape) == 0
+            data = src.read(img.band, window=win, out_shape=shape, resampling=Resampling.average)
+            mask = src.read_masks(img.band, window=win, out_shape=shape) == 0
         except RasterioError as err:
             raise raster.SceneImportError(
                 f"{img.path}: GDAL cannot read band {img.band} for tie points: "
@@ -118,21 +131,53 @@ def read_reduced(img: ImportedImage, max_side: int = MAX_SIDE) -> tuple[NDArray[
             ) from None
     a = np.asarray(data, dtype=np.float32)
     a[mask | ~np.isfinite(a)] = 0.0
-    return a, k
+    return a
 
 
 def features(img: ImportedImage, max_side: int = MAX_SIDE) -> Features:
-    """SIFT key points of an image (module docstring, step 1)."""
-    a, k = read_reduced(img, max_side)
-    u8 = to_uint8(a, 0.0)
-    sift = cv2.SIFT.create(nfeatures=MAX_FEATURES)
-    kp, desc = sift.detectAndCompute(u8, (u8 > 0).astype(np.uint8))
-    if desc is None or not kp:
+    """SIFT key points of an image (module docstring, step 1), tile by tile.
+
+    The image is decimated by k = ceil(longest side / max_side) and cut into tiles of
+    :data:`TILE` reduced pixels (plus a :data:`TILE_MARGIN` border, key points kept in the
+    core only), each read from the file alone: memory is bounded by one tile's SIFT pyramid,
+    whatever the raster's size. Each tile may keep its share (by area) of :data:`MAX_FEATURES`,
+    so that the key points spread over the image. The 8-bit stretch (1st-99th percentiles)
+    is that of a decimated read of the whole image (at most 512 px a side).
+    """
+    k = max(1, math.ceil(max(img.lines, img.samples) / max_side))
+    overview = read_reduced(img, max(k, math.ceil(max(img.lines, img.samples) / 512)))
+    limits = stretch_limits(overview, 0.0)
+    del overview
+    rl, rs = img.lines // k, img.samples // k  # reduced size
+    pts: list[FloatArray] = []
+    descs: list[NDArray[np.float32]] = []
+    for t0 in range(0, rl, TILE):
+        for u0 in range(0, rs, TILE):
+            a0, b0 = max(0, t0 - TILE_MARGIN), max(0, u0 - TILE_MARGIN)
+            a1, b1 = min(rl, t0 + TILE + TILE_MARGIN), min(rs, u0 + TILE + TILE_MARGIN)
+            tile = read_reduced(img, k, (a0 * k, b0 * k, (a1 - a0) * k, (b1 - b0) * k))
+            u8 = to_uint8(tile, 0.0, limits)
+            if (u8 > 0).mean() < 0.05:
+                continue
+            share = min(TILE, rl - t0) * min(TILE, rs - u0) / (rl * rs)
+            sift = cv2.SIFT.create(nfeatures=max(50, round(MAX_FEATURES * share)))
+            kp, desc = sift.detectAndCompute(u8, (u8 > 0).astype(np.uint8))
+            if desc is None or not kp:
+                continue
+            xy = np.array([p.pt for p in kp], dtype=np.float64)  # reduced (col, row)
+            xy += np.array([b0, a0], dtype=np.float64)
+            core = (
+                (xy[:, 1] >= t0 - 0.5)
+                & (xy[:, 1] < t0 + TILE - 0.5)
+                & (xy[:, 0] >= u0 - 0.5)
+                & (xy[:, 0] < u0 + TILE - 0.5)
+            )
+            # a reduced pixel centre c covers full pixels k c .. k c + k - 1: centre k c + (k-1)/2
+            pts.append(np.stack([xy[core, 1], xy[core, 0]], axis=-1) * k + (k - 1) / 2.0)
+            descs.append(np.asarray(desc, dtype=np.float32)[core])
+    if not pts:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32), k)
-    xy = np.array([p.pt for p in kp], dtype=np.float64)  # (col, row) of the reduced image
-    # a reduced pixel centre c covers full pixels k c .. k c + k - 1: its centre k c + (k-1)/2
-    pts = np.stack([xy[:, 1] * k + (k - 1) / 2.0, xy[:, 0] * k + (k - 1) / 2.0], axis=-1)
-    return Features(pts, np.asarray(desc, dtype=np.float32), k)
+    return Features(np.concatenate(pts), np.concatenate(descs), k)
 
 
 def ratio_matches(a: Features, b: Features, ratio: float = RATIO) -> tuple[IntArray, IntArray]:
