@@ -494,3 +494,26 @@ def test_import_errors_are_one_line(
         "RPC" not in err.split(":", 2)[-1] or case == "two_geoids"
     )  # the DEM is named, not the RPC
     assert not (tmp_path / "bag").exists()
+
+
+def test_a_dem_over_part_of_the_scene_is_refused(forms: dict[str, Any], tmp_path: Path) -> None:
+    """The crop cut at the left image's centre column: about half its ground has no height."""
+    from parproj_ros.io.scene_import import height_range
+
+    img = load_image(IMAGES[0], "left")
+    lon_c, _ = img.rpc.localize(
+        np.array([img.lines / 2]), np.array([img.samples / 2]), np.array([img.rpc.height_off])
+    )
+    t = forms["transform"]
+    cut = round((float(lon_c[0]) - t.c) / t.a - 0.5) + 1  # the last centre: the nearest one
+    half = _write(tmp_path / "west.tif", forms["crop"][:, :cut], t, "EPSG:4326", -32768)
+    with pytest.raises(DemError) as err:
+        height_range(img, load_dem(half, geoid=50.0), 100.0)
+    text = str(err.value)
+    share = float(re.search(r"gives heights at (\d+) %", text).group(1))  # type: ignore[union-attr]
+    # part of the ground has heights (the scene is 4 SRTM cells wide: the share is coarse)
+    assert text.startswith(str(half)) and 0 < share < 100 * MIN_COVERAGE, text
+    assert "left_image.tif's ground" in text
+    # the whole crop passes: the range is the ground's +- 100 m
+    lo, hi = height_range(img, load_dem(forms["geotiff"], geoid=50.0), 100.0)
+    assert 300 < lo + 100 < hi - 100 < 800
