@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import re
 import signal
 import sys
@@ -121,6 +122,8 @@ def one_line_warnings(name: str) -> Iterator[None]:
     raised it (rasterio, numpy, ...): a traceback-like pair of lines that names our code's
     innards, not the input. Inside this block each warning is one line saying what it says
     (Python's filters decide which are shown); :data:`QUIET_WARNINGS` are not shown at all.
+    GDAL's warnings, which rasterio logs (logger ``rasterio``), become ``<name>: note: GDAL:
+    <text>`` too.
     """
 
     def show(
@@ -134,11 +137,27 @@ def one_line_warnings(name: str) -> Iterator[None]:
         text = " ".join(str(message).split())
         print(f"{name}: note: {text}", file=sys.stderr if file is None else file)
 
-    with warnings.catch_warnings():  # Python's filters stay (DeprecationWarning: ignored)
-        for pattern in QUIET_WARNINGS:
-            warnings.filterwarnings("ignore", message=pattern)
-        warnings.showwarning = show
-        yield
+    class GdalNotes(logging.Handler):
+        """GDAL's own warnings, which rasterio logs as ``CPLE_AppDefined in <text>``."""
+
+        def emit(self, record: logging.LogRecord) -> None:
+            text = re.sub(r"^CPLE_\w+ in ", "", " ".join(record.getMessage().split()))
+            print(f"{name}: note: GDAL: {text}", file=sys.stderr)
+
+    gdal_log = logging.getLogger("rasterio")
+    handler = GdalNotes(logging.WARNING)
+    propagate = gdal_log.propagate
+    gdal_log.addHandler(handler)
+    gdal_log.propagate = False
+    try:
+        with warnings.catch_warnings():  # Python's filters stay (DeprecationWarning: ignored)
+            for pattern in QUIET_WARNINGS:
+                warnings.filterwarnings("ignore", message=pattern)
+            warnings.showwarning = show
+            yield
+    finally:
+        gdal_log.removeHandler(handler)
+        gdal_log.propagate = propagate
 
 
 def main(argv: Sequence[str] | None = None) -> int:

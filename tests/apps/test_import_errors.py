@@ -475,6 +475,7 @@ def test_scaled_geotransform_is_refused_with_safe_advice(tmp_path: Path) -> None
 def test_one_line_warnings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
     """Python warnings inside a command: one line each, no ``file.py:123:`` source lines; the
     NotGeoreferencedWarning of images without a geotransform not at all."""
+    import logging
     import warnings
 
     with cli.one_line_warnings("parproj import"):
@@ -483,8 +484,17 @@ def test_one_line_warnings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
         write(png, pixels("left"), None)  # rasterio warns: no geotransform
         with rasterio.open(png) as src:
             src.read(1)
+        # GDAL's own warnings reach Python through rasterio's error handler, which logs them
+        logging.getLogger("rasterio._env").warning(
+            "%s in %s", "CPLE_AppDefined", "TIFFReadDirectory: Unknown field with tag 65000"
+        )
     err = capsys.readouterr().err
-    assert err == "parproj import: note: GDAL said something\n", err
+    assert err == (
+        "parproj import: note: GDAL said something\n"
+        "parproj import: note: GDAL: TIFFReadDirectory: Unknown field with tag 65000\n"
+    ), err
+    # the handler goes with the command (rasterio's own NullHandler stays)
+    assert [type(h) for h in logging.getLogger("rasterio").handlers] == [logging.NullHandler]
 
 
 @pytest.mark.ros
@@ -623,3 +633,23 @@ def test_advice_names_only_existing_options() -> None:
                     unknown.append(f"{f.relative_to(root.parent)}:{line}: {m.group()}")
     assert mentions > 100  # the scan sees the messages (227 mentions of 66 options when written)
     assert not unknown, unknown
+
+
+@pytest.mark.ros
+def test_real_import_prints_no_warning_lines(pair: tuple[Path, Path], tmp_path: Path) -> None:
+    """``parproj import`` as a process, on a PNG (no geotransform: rasterio warns on every open)
+    with its RPC given as the sidecar message advises: exit 0 and nothing on stderr (it used to
+    print rasterio's NotGeoreferencedWarning with its source line, four times)."""
+    import subprocess
+    import sys
+
+    png = tmp_path / "p.png"
+    write(png, pixels("left"), None)
+    rpc.write_rpc_txt(tmp_path / "p_RPC.TXT", crop_rpcs()[0])
+    argv = [sys.executable, "-m", "parproj_ros.apps.cli", "import", str(png), str(pair[1])]
+    argv += ["-o", str(tmp_path / "o"), "--heights", "500", "1500"]
+    argv += ["--rpc", "p.png", str(tmp_path / "p_RPC.TXT")]
+    done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr == "", done.stderr
+    assert (tmp_path / "o" / "metadata.yaml").is_file()
