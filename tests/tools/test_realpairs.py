@@ -1,0 +1,119 @@
+"""The real-pair benchmark (`python -m tools.bench.realpairs`): its scoring and report, tiny.
+
+The full run (import, process, dsm, fuse on the Marseille triplet and Ventoux) takes minutes
+and is the benchmark itself; here: the scoring of a DSM against two references on one grid and
+one footprint, the markdown it prints, and the timing hook of the heights step. Speed is
+measured by the benchmark, never asserted here.
+"""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from pyproj import CRS
+
+from parproj_ros.eval.dsm_compare import MapDsm
+from parproj_ros.imaging.heights import DsmGrid
+from tools.bench import realpairs
+from tools.bench.realpairs import CASES, markdown, score
+
+UTM31 = CRS.from_epsg(32631)
+
+
+def test_score_on_one_grid_and_footprint() -> None:
+    rng = np.random.default_rng(5)
+    grid = DsmGrid(698000.25, 4793000.25, 0.5, 120, 100)
+    e, n = grid.centres()
+    ground = (150.0 + 0.02 * (e - 698000.0) + np.sin(n / 7.0)).astype(np.float32)
+    s2p = ground.copy()
+    s2p[rng.random(s2p.shape) < 0.1] = np.nan  # s2p's scattered empty cells
+    cars = (ground + 0.1 + rng.normal(0, 0.05, ground.shape)).astype(np.float32)
+    ours = ground + np.float32(0.3)
+    ours[:, :30] = np.nan  # a quarter of the grid without heights
+    # cars on a grid 3 cells west and 2 north of s2p's: resampled onto s2p's lattice
+    cars_grid = DsmGrid(grid.x0 - 1.5, grid.y0 + 1.0, 0.5, 120, 100)
+    cars_on = np.full_like(cars, np.nan)
+    cars_on[2:, 3:] = cars[:-2, :-3]
+    refs = {
+        "s2p": MapDsm(s2p, grid, UTM31, "s2p_x"),
+        "cars": MapDsm(cars_on, cars_grid, UTM31, "cars_x"),
+    }
+    rows = score(MapDsm(ours, grid, UTM31, "ours"), refs, [], label="ours")
+    by = {(r["dsm"], r["vs"]): r for r in rows}
+    assert set(by) == {("ours", "s2p"), ("ours", "cars"), ("s2p (reference)", "cars")}
+    # one footprint for all rows: the cells of the first reference (no images given)
+    fp = int(np.isfinite(s2p).sum())
+    assert {r["footprint_cells"] for r in rows} == {fp}
+    assert by["ours", "s2p"]["median"] == pytest.approx(0.3, abs=1e-4)
+    assert by["ours", "s2p"]["nmad"] < 1e-4
+    assert by["ours", "s2p"]["completeness"] == pytest.approx(0.75, abs=0.02)
+    assert by["ours", "cars"]["median"] == pytest.approx(0.2, abs=0.01)
+    assert by["ours", "cars"]["nmad"] == pytest.approx(0.05, abs=0.01)
+    assert by["s2p (reference)", "cars"]["median"] == pytest.approx(-0.1, abs=0.01)
+    assert by["s2p (reference)", "cars"]["completeness"] == 1.0
+    # cars misses the first 2 rows and 3 columns of s2p's grid (its own grid is shifted)
+    missing = 1.0 - by["ours", "cars"]["reference_completeness"]
+    assert missing == pytest.approx((2 * 120 + 3 * 100 - 6) / 12000, abs=0.01)
+
+    doc = {
+        "git": {"commit": "abc1234", "uncommitted_files": 2},
+        "date": "today",
+        "machine": "x",
+        "cases": [
+            {
+                "case": "marseille_12",
+                "rows": rows,
+                "seconds": {"import": 1.0, "process": 2.0, "dsm": 3.0},
+                "speed": {"heights_s_per_mpx": 1.5, "sgbm_s_per_mpx": 0.5, "ratio": 3.0},
+            }
+        ],
+    }
+    text = markdown(doc)
+    assert "commit abc1234 + 2 uncommitted files" in text
+    assert "| marseille_12 | ours | s2p | +0.30 | 0.00 |" in text
+    assert "| marseille_12 | 1.0 | 2.0 | 3.0 | - | 1.50 | 0.50 | 3.00 |" in text
+
+
+def test_cases_name_existing_data() -> None:
+    """Every case's images and references are in ../shared/data (README of the data)."""
+    for case in CASES.values():
+        for p in case.images:
+            assert p.is_file(), p
+        for refs in case.refs.values():
+            for p in refs.values():
+                assert p.is_file(), p
+        for imgs in case.footprints.values():
+            assert set(imgs) <= set(case.images)
+    assert set(CASES["marseille_123"].refs) == {
+        "img_01+img_02",
+        "img_01+img_03",
+        "img_02+img_03",
+        "fused",
+    }
+
+
+def test_heights_hook_times_and_restores() -> None:
+    from parproj_ros.core.heights import HeightsStage
+
+    original = HeightsStage.__call__
+    times: list[float] = []
+
+    out: Any = SimpleNamespace(pairs=[1])  # no blocks, no issues: the step raises
+    with realpairs._timed_heights(times):
+        assert HeightsStage.__call__ is not original
+        with pytest.raises(AttributeError):  # the real step runs (and fails on this fake)
+            HeightsStage.__call__(HeightsStage.__new__(HeightsStage), out)
+    assert HeightsStage.__call__ is original
+    assert len(times) == 1 and times[0] >= 0.0
+
+
+def test_bare_sgbm_time_is_finite() -> None:
+    rng = np.random.default_rng(0)
+    left = rng.integers(1, 2000, (64, 96)).astype(np.uint16)
+    right = np.roll(left, -4, axis=1)
+    t = realpairs.bare_sgbm_s(left, right, (-8, 8))
+    assert math.isfinite(t) and t > 0

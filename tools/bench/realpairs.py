@@ -1,0 +1,549 @@
+"""Real-pair benchmark: ``python -m tools.bench.realpairs [--json] [-o FILE] [--cases ...]``.
+
+For the real Pleiades data in ``../shared/data`` (the Marseille triplet: pairs 1-2, 1-3, 2-3,
+and the triplet through ``parproj import --pairs all`` and ``parproj fuse``; the Ventoux pair)
+it runs the documented commands with NO height option::
+
+    parproj import IMAGES -o bag [--pairs all]
+    parproj process bag -o out --heights
+    parproj dsm out -o dsm            (and for the triplet: parproj fuse out -o fused)
+
+timing each as a separate process (wall clock, what a user waits), and scores every pair DSM
+against the s2p and CARS references of the same images, and the fused DSM against
+s2p_dsm_123 / cars_dsm_123, with :mod:`parproj_ros.eval.dsm_compare`: one grid (the s2p
+reference's), one footprint per case (cells whose ground point projects inside every image of
+the case through its RPC, as the data's README scores the references), median, NMAD, RMS,
+p95 |d| of ours - reference, and completeness (share of footprint cells with a height). Our
+DSM is read from the output bag (ElevationGrid in its tangent-plane frame, converted exactly);
+where ``parproj dsm`` wrote a GeoTIFF with a CRS, that file is scored too (its median must
+agree with the bag's: same surface, another path). Beside them, the references' own agreement
+(s2p vs CARS on the same images), computed in the same run on the same grid and footprint.
+
+Ventoux has no reference DSM: its DSM is scored against the SRTM tile (90 m, geoid heights +
+50 m undulation, the bags' README): a coarse check of level and completeness only.
+
+Speed of the heights step: ``parproj process --heights`` is run once more in this process
+with the heights step (:class:`parproj_ros.core.heights.HeightsStage`) timed; against it, one
+bare ``cv2.StereoSGBM`` pass (the settings of :class:`~parproj_ros.imaging.dense.SgbmParams`,
+as tools/bench/heights.py) on the same normalized pair (read from the output bag, stretched to
+8 bits) over the disparity range the step searched. Figures per left-image megapixel.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from parproj_ros.eval.dsm_compare import (
+    FrameDsm,
+    MapDsm,
+    compare,
+    footprint,
+    frame_dsms_from_bag,
+    import_bag_frame,
+    read_geotiff_dsm,
+    to_map_grid,
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+DATA = ROOT.parent / "shared" / "data"
+MARSEILLE = DATA / "marseille_triplet"
+VENTOUX = DATA / "ventoux"
+#: Geoid undulation added to the SRTM heights at Ventoux, metres (bags/README.md).
+VENTOUX_UNDULATION_M = 50.0
+
+#: s2p vs CARS on pair 1-2 and on the triplet (README of the data), metres: the yardstick.
+README_AGREEMENT = {
+    "marseille_12": {"median": -0.08, "nmad": 0.77},
+    "marseille_123": {"median": 0.00, "nmad": 0.52},
+}
+
+
+@dataclass(frozen=True)
+class Case:
+    """One benchmark case.
+
+    Attributes:
+        name: its key.
+        images: the images imported (in order).
+        refs: pair id -> {reference name: GeoTIFF}; the DSM of that pair is scored against
+            each ("fused" for the fused DSM).
+        footprints: pair id -> the images whose common footprint is scored.
+        pairs_all: import with ``--pairs all`` and fuse the pairs' DSMs.
+        srtm: an SRTM tile to score against when there is no reference DSM.
+    """
+
+    name: str
+    images: tuple[Path, ...]
+    refs: dict[str, dict[str, Path]]
+    footprints: dict[str, tuple[Path, ...]]
+    pairs_all: bool = False
+    srtm: Path | None = None
+
+
+def _img(i: int) -> Path:
+    return MARSEILLE / f"img_0{i}.tif"
+
+
+def _ref(name: str) -> Path:
+    return MARSEILLE / "reference" / f"{name}.tif"
+
+
+CASES: dict[str, Case] = {
+    "marseille_12": Case(
+        "marseille_12",
+        (_img(1), _img(2)),
+        {"left+right": {"s2p": _ref("s2p_dsm_12"), "cars": _ref("cars_dsm_12")}},
+        {"left+right": (_img(1), _img(2))},
+    ),
+    "marseille_13": Case(
+        "marseille_13",
+        (_img(1), _img(3)),
+        {"left+right": {"s2p": _ref("s2p_dsm_13")}},
+        {"left+right": (_img(1), _img(3))},
+    ),
+    "marseille_23": Case(
+        "marseille_23",
+        (_img(2), _img(3)),
+        {"left+right": {"s2p": _ref("s2p_dsm_23")}},
+        {"left+right": (_img(2), _img(3))},
+    ),
+    "marseille_123": Case(
+        "marseille_123",
+        (_img(1), _img(2), _img(3)),
+        {
+            "img_01+img_02": {"s2p": _ref("s2p_dsm_12"), "cars": _ref("cars_dsm_12")},
+            "img_01+img_03": {"s2p": _ref("s2p_dsm_13")},
+            "img_02+img_03": {"s2p": _ref("s2p_dsm_23")},
+            "fused": {"s2p": _ref("s2p_dsm_123"), "cars": _ref("cars_dsm_123")},
+        },
+        {
+            "img_01+img_02": (_img(1), _img(2)),
+            "img_01+img_03": (_img(1), _img(3)),
+            "img_02+img_03": (_img(2), _img(3)),
+            "fused": (_img(1), _img(2), _img(3)),
+        },
+        pairs_all=True,
+    ),
+    "ventoux": Case(
+        "ventoux",
+        (VENTOUX / "left_image.tif", VENTOUX / "right_image.tif"),
+        {},
+        {"left+right": (VENTOUX / "left_image.tif", VENTOUX / "right_image.tif")},
+        srtm=VENTOUX / "dem" / "N44E005.hgt",
+    ),
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Scoring
+
+
+def score(
+    ours: MapDsm | FrameDsm,
+    refs: dict[str, MapDsm],
+    images: Sequence[Path],
+    *,
+    label: str,
+    also: dict[str, MapDsm | FrameDsm] | None = None,
+) -> list[dict[str, Any]]:
+    """Rows of ours (and ``also``) against each reference, and of the references' agreement.
+
+    ``also``: other DSMs scored the same way (e.g. the GeoTIFF of ours). All on one grid and
+    one footprint.
+
+    The grid is the first reference's; the footprint the cells whose ground point (at the
+    median height of all the DSMs scored) projects inside every image (the whole grid's cells
+    where the first reference has a height when no image is given).
+    """
+    names = list(refs)
+    first = refs[names[0]]
+    g, crs = first.grid, first.crs
+    on = {n: to_map_grid(r, g, crs) for n, r in refs.items()}
+    mine = to_map_grid(ours, g, crs, start=on[names[0]])
+    if images:
+        mask = footprint(g, crs, [mine, *on.values()], images)
+    else:
+        mask = np.isfinite(on[names[0]])
+    rows: list[dict[str, Any]] = []
+    dsms: dict[str, MapDsm | FrameDsm] = {label: ours, **(also or {})}
+    for dname, dsm in dsms.items():
+        for rname, ref in refs.items():
+            c = compare(dsm, ref, grid=(g, crs), mask=mask, images=images)
+            rows.append({**c.as_dict(), "dsm": dname, "vs": rname})
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            c = compare(refs[a], refs[b], grid=(g, crs), mask=mask, images=images)
+            rows.append({**c.as_dict(), "dsm": f"{a} (reference)", "vs": b})
+    return rows
+
+
+def srtm_reference(path: Path, ours: FrameDsm, undulation_m: float) -> MapDsm:
+    """The SRTM tile (+ undulation: ellipsoidal heights) on a UTM grid covering our DSM."""
+    from pyproj import CRS, Transformer
+
+    from parproj_ros.imaging.heights import DsmGrid
+    from parproj_ros.io.dem import srtm_height
+    from parproj_ros.io.geotiff import crs_for_frame, frame_of
+
+    frame = frame_of(ours.frame_id)
+    crs = crs_for_frame(ours.frame_id)
+    if frame is None or crs is None:
+        raise ValueError(f"{ours.name}: frame {ours.frame_id!r} is not a tangent plane")
+    x, y = ours.grid.centres()
+    z = ours.heights
+    lon, lat, _ = frame.to_geodetic(x, y, np.where(np.isfinite(z), z, 0.0))
+    fwd = Transformer.from_crs(CRS.from_epsg(4326), crs, always_xy=True)
+    e, n = (np.asarray(v) for v in fwd.transform(lon, lat))
+    cell = ours.grid.cell
+    grid = DsmGrid.covering(float(e.min()), float(e.max()), float(n.min()), float(n.max()), cell)
+    ge, gn = grid.centres()
+    inv = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True)
+    glon, glat = inv.transform(ge, gn)
+    dem = srtm_height(path, geoid_undulation=undulation_m)
+    h = np.asarray(dem(np.asarray(glon), np.asarray(glat)), dtype=np.float32)
+    return MapDsm(h, grid, crs, f"SRTM+{undulation_m:g}m")
+
+
+# ---------------------------------------------------------------------------------------------
+# Running the commands
+
+
+def _parproj() -> list[str]:
+    return [sys.executable, "-m", "parproj_ros.apps.cli"]
+
+
+def run_step(args: Sequence[str], log: Callable[[str], None]) -> tuple[float, int, str]:
+    """Run ``parproj ARGS``; (wall seconds, exit code, its stderr's last lines)."""
+    t0 = time.perf_counter()
+    p = subprocess.run([*_parproj(), *args], capture_output=True, text=True, check=False)
+    dt = time.perf_counter() - t0
+    tail = "\n".join((p.stderr or "").strip().splitlines()[-3:])
+    log(f"  parproj {' '.join(str(a) for a in args[:1])}: {dt:.1f} s, exit {p.returncode}")
+    if p.returncode != 0:
+        log("    " + tail.replace("\n", "\n    "))
+    return dt, p.returncode, tail
+
+
+@contextmanager
+def _timed_heights(times: list[float]) -> Any:
+    """Time every call of the pipeline's heights step (HeightsStage.__call__) in this process."""
+    from parproj_ros.core import heights as core_heights
+
+    stage = getattr(core_heights, "HeightsStage", None)
+    if stage is None:
+        yield
+        return
+    original = stage.__call__
+
+    def wrapped(self: Any, out: Any) -> Any:
+        t0 = time.perf_counter()
+        try:
+            return original(self, out)
+        finally:
+            if getattr(out, "pairs", None):
+                times.append(time.perf_counter() - t0)
+
+    stage.__call__ = wrapped
+    try:
+        yield
+    finally:
+        stage.__call__ = original
+
+
+def normalized_pairs(
+    out_bag: Path,
+) -> dict[str, tuple[NDArray[Any], NDArray[Any], tuple[int, int]]]:
+    """Pair id -> (left, right normalized images, searched disparity range) of an output bag."""
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.ros.conversions import image_to_array
+
+    reader = BagReader(out_bag)
+    images: dict[str, tuple[NDArray[Any], NDArray[Any]]] = {}
+    ranges: dict[str, tuple[int, int]] = {}
+    left = right = None
+    topics = ["left/image_normalized", "right/image_normalized", "stereo_pair", "dsm"]
+    for item in reader.messages(topics=topics):
+        m = item.msg
+        if item.topic == "left/image_normalized":
+            left = image_to_array(m)
+        elif item.topic == "right/image_normalized":
+            right = image_to_array(m)
+        elif item.topic == "stereo_pair" and left is not None and right is not None:
+            images[str(m.pair_id)] = (left, right)
+            left = right = None
+        elif item.topic == "dsm":
+            ranges[str(m.pair_id)] = (int(m.disparity_min), int(m.disparity_max))
+    return {k: (*images[k], ranges[k]) for k in images if k in ranges}
+
+
+def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
+    """Seconds of one bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), best of two."""
+    import cv2
+
+    from parproj_ros.imaging.dense import SgbmParams, to_uint8
+
+    p = SgbmParams()
+
+    def stretch(a: NDArray[Any]) -> NDArray[Any]:
+        data = a[a != 0] if np.any(a != 0) else a
+        lo, hi = np.percentile(data, p.stretch_percentiles)
+        return to_uint8(a, float(lo), float(hi))
+
+    l8, r8 = stretch(left), stretch(right)
+    ndisp = int(np.ceil((d_range[1] - d_range[0] + 1) / 16)) * 16
+    bs = p.block_size
+    sgbm = cv2.StereoSGBM.create(
+        minDisparity=d_range[0],
+        numDisparities=ndisp,
+        blockSize=bs,
+        P1=8 * bs * bs,
+        P2=32 * bs * bs,
+        disp12MaxDiff=-1,
+        preFilterCap=63,
+        uniquenessRatio=p.uniqueness_ratio,
+        speckleWindowSize=p.speckle_window,
+        speckleRange=p.speckle_range,
+        mode=p.mode,
+    )
+    best = math.inf
+    for _ in range(2):
+        t0 = time.perf_counter()
+        sgbm.compute(l8, r8)
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str, Any]:
+    """The heights step against one bare SGBM pass on the same normalized pairs.
+
+    The step is timed in an in-process ``parproj process --heights`` run.
+    """
+    from parproj_ros.apps.cli import main as cli_main
+
+    times: list[float] = []
+    out = work / "speed_out"
+    said = io.StringIO()
+    with _timed_heights(times), redirect_stdout(said), redirect_stderr(said):
+        rc = cli_main(["process", str(bag), "-o", str(out), "--heights", "-q", "--force"])
+    if rc != 0 or not times:
+        return {"error": f"in-process process exit {rc}, heights step timed {len(times)} times"}
+    pairs = normalized_pairs(out)
+    mpx = sum(lft.size for lft, _, _ in pairs.values()) / 1e6
+    sgbm = sum(bare_sgbm_s(lft, rgt, rng) for lft, rgt, rng in pairs.values())
+    step = float(sum(times))
+    res = {
+        "pairs": len(pairs),
+        "mpx": mpx,
+        "heights_s": step,
+        "sgbm_s": sgbm,
+        "heights_s_per_mpx": step / mpx if mpx else None,
+        "sgbm_s_per_mpx": sgbm / mpx if mpx else None,
+        "ratio": step / sgbm if sgbm else None,
+        "ranges": {k: list(v[2]) for k, v in pairs.items()},
+    }
+    log(
+        f"  heights step {step:.2f} s for {mpx:.2f} Mpx ({res['heights_s_per_mpx']:.2f} s/Mpx), "
+        f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f}"
+    )
+    return res
+
+
+def run_case(case: Case, work: Path, log: Callable[[str], None]) -> dict[str, Any]:
+    """Import, process, dsm (and fuse) one case; time, score, measure the heights speed."""
+    log(f"{case.name}:")
+    bag, out, dsm_dir = work / "bag", work / "out", work / "dsm"
+    res: dict[str, Any] = {"case": case.name, "images": [p.name for p in case.images]}
+    imp = ["import", *map(str, case.images), "-o", str(bag), "--force"]
+    if case.pairs_all:
+        imp += ["--pairs", "all"]
+    steps: list[tuple[str, list[str]]] = [
+        ("import", imp),
+        ("process", ["process", str(bag), "-o", str(out), "--heights", "-q", "--force"]),
+        ("dsm", ["dsm", str(out), "-o", str(dsm_dir), "--force"]),
+    ]
+    if case.pairs_all:
+        steps.append(("fuse", ["fuse", str(out), "-o", str(work / "fused"), "--force"]))
+    res["seconds"] = {}
+    res["exit"] = {}
+    for name, args in steps:
+        dt, rc, tail = run_step(args, log)
+        res["seconds"][name] = dt
+        res["exit"][name] = rc
+        if rc != 0:
+            res.setdefault("errors", {})[name] = tail
+            if name in ("import", "process"):
+                return res
+    frame = import_bag_frame(bag)
+    dsms = {d.name: d for d in frame_dsms_from_bag(out, frame_id=frame)}
+    res["dsm_frame"] = sorted({d.frame_id for d in dsms.values()})
+    rows: list[dict[str, Any]] = []
+    for pair_id, d in dsms.items():
+        imgs = case.footprints.get(pair_id, case.images)
+        also: dict[str, MapDsm | FrameDsm] = {}
+        tif = dsm_dir / f"{pair_id.replace('+', '_')}_dsm.tif"
+        if tif.is_file():
+            try:
+                also[f"{pair_id} (GeoTIFF)"] = read_geotiff_dsm(tif)
+            except ValueError as err:  # no CRS yet: the bag's frame is what we score
+                res.setdefault("notes", []).append(f"{tif.name}: {err}")
+        refs = {k: read_geotiff_dsm(p, name=p.stem) for k, p in case.refs.get(pair_id, {}).items()}
+        if not refs and case.srtm is not None:
+            refs = {"srtm": srtm_reference(case.srtm, d, VENTOUX_UNDULATION_M)}
+        if refs:
+            rows += score(d, refs, imgs, label=pair_id, also=also)
+    if case.pairs_all and len(dsms) >= 2:
+        from parproj_ros.imaging.fusion import fuse
+
+        f = fuse([(d.heights, d.grid) for d in dsms.values()])
+        fid = next(iter(dsms.values())).frame_id
+        fused = FrameDsm(f.heights, f.grid, fid, "fused")
+        res["fusion"] = {
+            "pairs": list(dsms),
+            "median_before_m": [[round(float(v), 3) for v in r] for r in f.median_before],
+            "median_after_m": [[round(float(v), 3) for v in r] for r in f.median_after],
+            "offsets_m": [round(float(v), 3) for v in f.offsets],
+        }
+        refs = {k: read_geotiff_dsm(p, name=p.stem) for k, p in case.refs["fused"].items()}
+        also = {}
+        tif = work / "fused" / "fused_dsm.tif"
+        if tif.is_file():
+            try:
+                also["fused (GeoTIFF)"] = read_geotiff_dsm(tif)
+            except ValueError as err:
+                res.setdefault("notes", []).append(f"{tif.name}: {err}")
+        rows += score(fused, refs, case.footprints["fused"], label="fused", also=also)
+    res["rows"] = rows
+    for r in rows:
+        log(
+            f"  {r['dsm']} - {r['vs']}: median {r['median']:+.2f} NMAD {r['nmad']:.2f} m, "
+            f"completeness {100 * r['completeness']:.1f} %"
+        )
+    res["speed"] = heights_speed(bag, work, log)
+    return res
+
+
+# ---------------------------------------------------------------------------------------------
+# Report
+
+
+def _git() -> dict[str, Any]:
+    def git(*a: str) -> str:
+        p = subprocess.run(["git", *a], cwd=ROOT, capture_output=True, text=True, check=False)
+        return p.stdout.strip()
+
+    dirty = [ln for ln in git("status", "--porcelain", "--", "parproj_ros").splitlines() if ln]
+    return {"commit": git("rev-parse", "--short", "HEAD"), "uncommitted_files": len(dirty)}
+
+
+def _f(v: Any, fmt: str) -> str:
+    return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
+
+
+def markdown(doc: dict[str, Any]) -> str:
+    """The results as markdown tables (accuracy, then speed)."""
+    g = doc.get("git", {})
+    dirty = f" + {g['uncommitted_files']} uncommitted files" if g.get("uncommitted_files") else ""
+    lines = [
+        f"Real pairs, commit {g.get('commit', '?')}{dirty}, {doc.get('date', '')}, "
+        f"{doc.get('machine', '')}",
+        "",
+        "| case | DSM | vs | median m | NMAD m | RMS m | p95 abs m | cells | complete % "
+        "| ref complete % |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for case in doc["cases"]:
+        for r in case.get("rows", []):
+            lines.append(
+                f"| {case['case']} | {r['dsm']} | {r['vs']} | {_f(r['median'], '+.2f')} "
+                f"| {_f(r['nmad'], '.2f')} | {_f(r['rms'], '.2f')} | {_f(r['p95_abs'], '.2f')} "
+                f"| {r['cells']} | {_f(100 * r['completeness'], '.1f')} "
+                f"| {_f(100 * r['reference_completeness'], '.1f')} |"
+            )
+        if case.get("errors"):
+            for step, tail in case["errors"].items():
+                lines.append(f"| {case['case']} | {step} failed | {' '.join(tail.split())} |")
+    lines += [
+        "",
+        "| case | import s | process s | dsm s | fuse s | heights step s/Mpx | bare SGBM s/Mpx "
+        "| heights / SGBM |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for case in doc["cases"]:
+        s = case.get("seconds", {})
+        sp = case.get("speed", {})
+        lines.append(
+            f"| {case['case']} | {_f(s.get('import'), '.1f')} | {_f(s.get('process'), '.1f')} "
+            f"| {_f(s.get('dsm'), '.1f')} | {_f(s.get('fuse'), '.1f')} "
+            f"| {_f(sp.get('heights_s_per_mpx'), '.2f')} | {_f(sp.get('sgbm_s_per_mpx'), '.2f')} "
+            f"| {_f(sp.get('ratio'), '.2f')} |"
+        )
+    for case in doc["cases"]:
+        fu = case.get("fusion")
+        if fu:
+            names = fu["pairs"]
+            offs = ", ".join(
+                f"{a} - {b} {fu['median_before_m'][i][j]:+.2f}"
+                for i, a in enumerate(names)
+                for j, b in enumerate(names)
+                if j > i
+            )
+            lines += ["", f"{case['case']}: pair level offsets before fusion (m): {offs}"]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the cases; print the markdown tables (or JSON); exit 1 if a case made no DSM."""
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--json", action="store_true", help="print one JSON document")
+    ap.add_argument("-o", "--output", help="also write the report (markdown, or JSON) here")
+    ap.add_argument("--keep", help="folder for the bags and DSMs (default: a temporary one)")
+    args = ap.parse_args(argv)
+    missing = [p for c in args.cases for p in CASES[c].images if not p.is_file()]
+    if missing:
+        print(f"realpairs: missing data: {', '.join(map(str, missing))}", file=sys.stderr)
+        return 2
+    log: Callable[[str], None] = lambda s: print(s, file=sys.stderr, flush=True)  # noqa: E731
+    doc: dict[str, Any] = {
+        "git": _git(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores",
+        "readme_agreement": README_AGREEMENT,
+        "cases": [],
+    }
+    with tempfile.TemporaryDirectory(prefix="realpairs_") as tmp:
+        base = Path(args.keep) if args.keep else Path(tmp)
+        for name in args.cases:
+            work = base / name
+            work.mkdir(parents=True, exist_ok=True)
+            doc["cases"].append(run_case(CASES[name], work, log))
+    text = json.dumps(doc, indent=1, default=float) if args.json else markdown(doc)
+    print(text)
+    if args.output:
+        Path(args.output).write_text(text)
+    failed = [c["case"] for c in doc["cases"] if not c.get("rows")]
+    if failed:
+        print(f"realpairs: no DSM scored for {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
