@@ -140,7 +140,10 @@ def _frame_distance(a: str, b: str) -> str:
     except ValueError:
         return ""
     ea = np.array(fa.to_local(fb.lon0, fb.lat0, fb.h0), dtype=np.float64).ravel()
-    return f" (origins {float(np.hypot(ea[0], ea[1])):.0f} m apart, {float(ea[2]):+.1f} m up)"
+    return (
+        f" (origins {float(np.hypot(ea[0], ea[1])):.0f} m apart horizontally, "
+        f"{abs(float(ea[2])):.1f} m vertically)"
+    )
 
 
 def check_truth_frame(out_bag: Path, truth_bag: Path) -> None:

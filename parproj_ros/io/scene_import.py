@@ -532,8 +532,8 @@ def check_image(
         why = rpc.image_denominator_check(ll, ss, hh)
         if why is not None:
             raise SceneImportError(
-                f"{name}: {why}: the RPC is unusable over this image ({img.rpc_source}: "
-                "damaged coefficients, or not this image's RPC; check --rpc and --crop-origin)"
+                f"{name}: {why}: the RPC from {img.rpc_source} is damaged or not this image's "
+                "(check --rpc and --crop-origin)"
             )
         k = int(np.flatnonzero(failed)[0])
         raise SceneImportError(
