@@ -639,7 +639,7 @@ def test_advice_names_only_existing_options() -> None:
 def test_real_import_prints_no_warning_lines(pair: tuple[Path, Path], tmp_path: Path) -> None:
     """``parproj import`` as a process, on a PNG (no geotransform: rasterio warns on every open)
     with its RPC given as the sidecar message advises: exit 0 and nothing on stderr (it used to
-    print rasterio's NotGeoreferencedWarning with its source line, four times)."""
+    print rasterio's NotGeoreferencedWarning with its source line at each opening)."""
     import subprocess
     import sys
 
