@@ -1,18 +1,25 @@
 """``parproj dsm``: the DSMs of an output bag as GeoTIFF, with their ortho-images and plots.
 
 For every ``dsm`` message (parproj_msgs/ElevationGrid) of an output bag (``parproj process``
-with ``--heights``, or a recording of the node): ``<pair>_dsm.tif`` (float32, WGS84
-ellipsoidal heights in the UTM zone of a real pair's frame, or the frame's Z with no CRS for a
-simulated one, :mod:`parproj_ros.io.geotiff`), ``<pair>_ortho.tif`` (the same grid),
-``<pair>_disparity.tif`` (the pair's disparity map in the left normalized grid, no
-georeference), and the PNGs a person looks at (hillshade, disparity, ortho-image, and the
+with ``--heights``, or a recording of the node): ``<pair>_dsm.tif`` (a Cloud Optimized GeoTIFF,
+float32: WGS84 ellipsoidal heights in the UTM zone of a real pair's frame with a 3-D CRS, or
+heights above a geoid with a compound CRS, or the frame's Z with a local engineering CRS for a
+simulated one, :mod:`parproj_ros.io.geotiff`), ``<pair>_ortho.tif`` (the same grid and CRS),
+``<pair>_dsm.las`` / ``.laz`` on request (the DSM's cells as points, :mod:`parproj_ros.io.
+pointcloud`), ``<pair>_disparity.tif`` (the pair's disparity map in the left normalized grid,
+no georeference), and the PNGs a person looks at (hillshade, disparity, ortho-image, and the
 height error map when a true surface is given).
+
+A DSM with a height in fewer than :data:`MIN_VALID_FRACTION` of its cells is not exported: its
+row says so (``status`` "empty"), and ``parproj dsm`` exits 1 with a line saying what to try.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any, Literal
+
+import numpy as np
 
 from ..eval.heights import (
     Surface,
@@ -22,10 +29,38 @@ from ..eval.heights import (
     save_height_plots,
 )
 from ..io.files import InputError
-from ..io.geotiff import frame_of, write_dsm_geotiff, write_ortho_geotiff, write_plain_tiff
-from ..ros.bag import BagError, BagReader
+from ..io.geotiff import (
+    Geoid,
+    frame_of,
+    write_dsm_geotiff,
+    write_ortho_geotiff,
+    write_plain_tiff,
+)
+from ..io.pointcloud import write_point_cloud
+from ..ros.bag import BagReader
 from ..ros.conversions import elevation_grid_from_msg, stamp_to_ns
 from ..rpc import HeightFunction
+
+#: A DSM with a height in fewer of its cells than this is reported and not exported.
+MIN_VALID_FRACTION = 0.01
+
+
+class NoHeightsError(Exception):
+    """The bag holds no DSM to export (no dsm topic, or no message on it): exit 1."""
+
+
+def crs_text(crs: Any) -> str:
+    """A CRS in a few words: ``EPSG:32631 + ellipsoidal height (WGS 84)`` and the like."""
+    sub = list(crs.sub_crs_list) if crs.is_compound else [crs]
+    horizontal = sub[0].to_2d() if len(sub[0].axis_info) == 3 else sub[0]
+    code = horizontal.to_epsg()
+    text = f"EPSG:{code}" if code else horizontal.name
+    if crs.is_compound:
+        vcode = sub[1].to_epsg()
+        return f"{text} + {sub[1].name}" + (f" (EPSG:{vcode})" if vcode else "")
+    if len(crs.axis_info) == 3:
+        return f"{text} + ellipsoidal height (WGS 84)"
+    return text
 
 
 def export_dsms(
@@ -36,19 +71,31 @@ def export_dsms(
     truth: Surface | None = None,
     dem: HeightFunction | None = None,
     plots: bool = True,
+    point_cloud: Literal["las", "laz"] | None = None,
+    geoid: Geoid | None = None,
 ) -> list[dict[str, Any]]:
     """Write the GeoTIFFs and plots of every DSM of ``out_bag`` into ``folder``; one row each.
 
     The truth for the error figures and map: ``truth`` (a surface in the DSM's frame), or
     ``dem`` (ellipsoidal heights by lon, lat) placed in each DSM's tangent-plane frame.
+    ``point_cloud``: also ``<pair>_dsm.las`` or ``.laz``. ``geoid``: heights written above it
+    (:func:`parproj_ros.io.geotiff.write_dsm_geotiff`), not above the ellipsoid.
+
+    Returns:
+        One row per DSM message: ``status`` "written" (files, CRS, grid) or "empty" (fewer
+        than :data:`MIN_VALID_FRACTION` of its cells with a height: nothing written).
 
     Raises:
-        BagError: the bag has no ``dsm`` topic (processed without heights).
-        InputError: ``dem`` given for a DSM whose frame is not a tangent plane.
+        NoHeightsError: the bag has no ``dsm`` topic (processed without heights), or no message on
+            it (no pair got heights); the message says what to try.
+        InputError: ``dem`` or ``geoid`` given for a DSM whose frame is not a tangent plane.
     """
     reader = BagReader(out_bag)
     if "dsm" not in reader.topics():
-        raise BagError("no dsm topic: process the bag with --heights", out_bag)
+        raise NoHeightsError(
+            f"{out_bag}: no DSM: the bag has no dsm topic (processed without heights); make "
+            "one with: parproj process INPUT_BAG -o OUT --heights, then parproj dsm OUT"
+        )
     disparities = disparities_by_stamp(reader)
     rows: list[dict[str, Any]] = []
     for item in reader.messages(topics=["dsm"]):
@@ -56,21 +103,39 @@ def export_dsms(
         heights, grid, ortho = elevation_grid_from_msg(m)
         name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"
         frame = m.header.frame_id
+        valid = float(np.isfinite(heights).mean()) if heights.size else 0.0
+        row: dict[str, Any] = {"pair_id": m.pair_id, "frame_id": frame, "valid_fraction": valid}
+        rows.append(row)
+        if valid < MIN_VALID_FRACTION:
+            row.update(status="empty", files=[])
+            continue
         surface = truth
-        if dem is not None:
-            if frame_of(frame) is None:
+        for option, given in (("--dem", dem is not None), ("--heights-geoid", geoid is not None)):
+            if given and frame_of(frame) is None:
                 raise InputError(
-                    "--dem", f"the DSM of {m.pair_id} is in {frame!r}, not a tangent plane"
+                    option, f"the DSM of {m.pair_id} is in {frame!r}, not a tangent plane"
                 )
+        if dem is not None:
             surface = enu_dem_surface(frame, dem)
-        crs, out_grid = write_dsm_geotiff(folder / f"{name}_dsm.tif", heights, grid, frame,
-                                          target=target)  # fmt: skip
+        crs, out_grid = write_dsm_geotiff(
+            folder / f"{name}_dsm.tif", heights, grid, frame, target=target, geoid=geoid
+        )
         files = [f"{name}_dsm.tif"]
         if ortho is not None:
             write_ortho_geotiff(
-                folder / f"{name}_ortho.tif", ortho, grid, frame, heights=heights, target=target
+                folder / f"{name}_ortho.tif",
+                ortho,
+                grid,
+                frame,
+                heights=heights,
+                target=target,
+                geoid_epsg=None if geoid is None else geoid[1],
             )
             files.append(f"{name}_ortho.tif")
+        if point_cloud is not None:
+            cloud = f"{name}_dsm.{point_cloud}"
+            row["points"] = write_point_cloud(folder / f"{name}_dsm.tif", folder / cloud)
+            files.append(cloud)
         disp = disparities.get(stamp_to_ns(m.header.stamp))
         if disp is not None:
             write_plain_tiff(
@@ -80,13 +145,14 @@ def export_dsms(
                 description="disparity col_left - col_right, px, left normalized grid",
             )
             files.append(f"{name}_disparity.tif")
-        row: dict[str, Any] = {
-            "pair_id": m.pair_id,
-            "crs": None if crs is None else crs.to_string(),
-            "cells": [out_grid.width, out_grid.height],
-            "cell_size_m": out_grid.cell,
-            "files": files,
-        }
+        row.update(
+            status="written",
+            crs=crs_text(crs),
+            crs_wkt=crs.to_wkt(),
+            cells=[out_grid.width, out_grid.height],
+            cell_size_m=out_grid.cell,
+            files=files,
+        )
         if surface is not None:
             row["against_truth"] = dsm_accuracy(heights, grid, surface)
         if plots:
@@ -94,5 +160,10 @@ def export_dsms(
                 folder, name, heights, grid, disparity=disp, truth=surface, ortho=ortho
             )
             files += [p.name for p in written]
-        rows.append(row)
+    if not rows:
+        raise NoHeightsError(
+            f"{out_bag}: no DSM: the dsm topic has no message (no pair got heights: the WARN "
+            "lines of parproj process say why); try parproj process with --z-avg and "
+            "--height-range around the ground, or import with --dem"
+        )
     return rows

@@ -14,29 +14,39 @@ frame (``parproj_ros.imaging.heights``). What that frame is decides what is writ
   normal through (lon, lat) is found by fixed-point iteration (point (lon, lat, h) -> ENU
   (x, y, z); h += Z_dsm(x, y) - z; the horizontal (x, y) moves by about d / R = 1e-3 m per
   metre of h at 6 km, so 2-3 rounds get below 1e-5 m), Z_dsm bilinear in the DSM. Heights
-  written are WGS84 ellipsoidal heights, metres (band description and tags say so). The
-  ortho-image is sampled at the same (x, y) (it needs the DSM heights of its cells for that), so
-  both files share one grid.
+  written are WGS84 ellipsoidal heights, metres, and the file's CRS is 3-D (:func:`file_crs`):
+  the map CRS with an ellipsoidal height axis, written as GeoTIFF 1.1 says (OGC 19-008r4, annex
+  D.3: ``ProjectedCSTypeGeoKey`` and ``VerticalGeoKey`` = 4979, WGS 84 geographic 3-D), which
+  GDAL reads back as the 3-D projected CRS; or, with a geoid model (``geoid=``), heights above
+  that geoid and a compound CRS (map CRS + the geoid's vertical CRS, e.g. EPSG:5773 EGM96).
+  The ortho-image is sampled at the same (x, y) (it needs the DSM heights of its cells for
+  that), so both files share one grid and CRS.
 * any other frame (a simulated bag's ``map``): a local Cartesian engineering frame, metres, with
-  no geodetic anchor. The grid is written as it is (geotransform in frame metres, no CRS, the
-  exact values); the file's description and tags say so.
+  no geodetic anchor. The grid is written as it is (geotransform in frame metres, the exact
+  values) with a local engineering CRS (WKT ``ENGCRS`` named after the frame, x east, y north,
+  metres; :func:`engineering_crs`), which GDAL writes as a ``LOCAL_CS``.
+
+Files are Cloud Optimized GeoTIFFs (GDAL's COG driver: 256 x 256 tiles, deflate with the
+predictor, overviews by averaging down to one tile, the IFDs first), written under a temporary
+name and renamed when complete; GDAL's ``IMAGE_STRUCTURE`` metadata says ``LAYOUT=COG``.
 
 No data: float rasters use NaN (DSM) and a nodata value (ortho, default 0). An output cell has a
 height only where every DSM cell that its bilinear interpolation weighs (non-zero weight) has
 one, so a hole grows by less than one cell and nothing is extrapolated (the outer half cell of
-the DSM's border is not written either). Files are float32 (DSM) or the image's dtype (ortho),
-deflate-compressed, tiled 256 x 256, written under a temporary name and renamed when complete.
+the DSM's border is not written either). Files are float32 (DSM) or the image's dtype (ortho).
 
 :func:`write_plain_tiff` writes an array with no georeferencing (e.g. a disparity map, which
-lives in the normalized image's pixel grid).
+lives in the normalized image's pixel grid; a tiled GeoTIFF, not a COG).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+import struct
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -51,9 +61,12 @@ if TYPE_CHECKING:
     from pyproj import CRS
 
 __all__ = [
+    "Geoid",
     "Target",
     "crs_for_frame",
+    "engineering_crs",
     "export_grid",
+    "file_crs",
     "frame_of",
     "utm_zone",
     "write_dsm_geotiff",
@@ -63,6 +76,9 @@ __all__ = [
 
 FloatArray = NDArray[np.float64]
 Target = Literal["utm", "local"]
+#: A geoid model: (N(lon deg, lat deg) -> undulation, metres above the WGS84 ellipsoid; the EPSG
+#: code of the vertical CRS of heights above it, e.g. 5773 EGM96 height, 3855 EGM2008 height).
+Geoid = tuple[Callable[[FloatArray, FloatArray], FloatArray], int]
 
 #: Output rows computed and written at once (a multiple of the tile height).
 BLOCK_ROWS = 256
@@ -74,9 +90,27 @@ HEIGHT_TOL_M = 1e-5
 #: Tag and band texts.
 ELLIPSOIDAL = "ellipsoidal height above WGS84, metres"
 NO_CRS_NOTE = (
-    "local engineering frame {frame!r}: Cartesian metres, no geodetic anchor, no CRS "
+    "local engineering frame {frame!r}: Cartesian metres, no geodetic anchor "
     "(X east-like, Y north-like as the frame defines them)"
 )
+#: EPSG codes of the vertical CRS of heights above a geoid model, by model name.
+VERTICAL_EPSG = {"egm2008": 3855, "egm96": 5773}
+#: GeoTIFF keys: VerticalGeoKey, and WGS 84 geographic 3-D (the code that says "ellipsoidal
+#: heights" there, GeoTIFF 1.1 annex D.3).
+VERTICAL_GEO_KEY = 4096
+WGS84_3D = 4979
+#: The vertical CRS GDAL is handed for an ellipsoidal-height file (its writer encodes no 3-D
+#: projected CRS in GeoTIFF keys): the key is then set to :data:`WGS84_3D` in place.
+PLACEHOLDER_VERTICAL = 5773
+#: COG creation options (GDAL COG driver) besides the compression's predictor.
+COG_OPTIONS = {
+    "COMPRESS": "DEFLATE",
+    "PREDICTOR": "YES",
+    "BLOCKSIZE": str(TILE),
+    "OVERVIEWS": "AUTO",
+    "RESAMPLING": "AVERAGE",
+    "BIGTIFF": "IF_SAFER",
+}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -118,8 +152,24 @@ def utm_zone(lon_deg: float, lat_deg: float) -> tuple[int, bool]:
     return zone, lat_deg >= 0.0
 
 
-def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS | None:
-    """The map CRS an object frame is exported in.
+def engineering_crs(frame_id: str) -> CRS:
+    """The local engineering CRS of a frame without a geodetic anchor (e.g. ``map``).
+
+    WKT ``ENGCRS`` named after the frame: Cartesian, x east, y north, metres (GDAL writes it as
+    a GeoTIFF ``LOCAL_CS``; GIS tools show the grid in metres and place it nowhere on Earth).
+    """
+    from pyproj import CRS
+
+    name = " ".join(str(frame_id).split()).replace('"', "'") or "unnamed"
+    return CRS.from_wkt(
+        f'ENGCRS["parproj local frame {name}",EDATUM["{name}"],CS[Cartesian,2],'
+        'AXIS["x (E)",east,ORDER[1],LENGTHUNIT["metre",1]],'
+        'AXIS["y (N)",north,ORDER[2],LENGTHUNIT["metre",1]]]'
+    )
+
+
+def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS:
+    """The horizontal CRS an object frame is exported in (the file's is :func:`file_crs`).
 
     Args:
         frame_id: the object frame; ``enu_wgs84:lat=...,lon=...,h=...`` for an imported pair.
@@ -128,8 +178,9 @@ def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS | None:
             easting or northing), metres.
 
     Returns:
-        A ``pyproj.CRS``; None for any other frame (e.g. ``map``: a local engineering frame in
-        metres with no geodetic anchor, written without CRS).
+        A 2-D ``pyproj.CRS``: projected for a tangent-plane frame; for any other frame (e.g.
+        ``map``: a local frame in metres with no geodetic anchor) its
+        :func:`engineering_crs`.
 
     Raises:
         ValueError: an unknown target, a malformed tangent-plane frame_id, or a UTM target
@@ -143,7 +194,7 @@ def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS | None:
         raise ValueError(f"target must be 'utm' or 'local', got {target!r}")
     frame = frame_of(frame_id)
     if frame is None:
-        return None
+        return engineering_crs(frame_id)
     if target == "utm":
         zone, north = utm_zone(frame.lon0, frame.lat0)
         return CRS.from_epsg((32600 if north else 32700) + zone)
@@ -157,6 +208,35 @@ def crs_for_frame(frame_id: str, *, target: Target = "utm") -> CRS | None:
         ),
         geodetic_crs=CRS.from_epsg(4326),  # WGS 84
         name=f"WGS 84 / local transverse Mercator (lat {frame.lat0:.7f}, lon {frame.lon0:.7f})",
+    )
+
+
+def file_crs(frame_id: str, *, target: Target = "utm", geoid_epsg: int | None = None) -> CRS:
+    """The CRS a DSM file of this frame carries: 3-D for a tangent-plane frame.
+
+    Args:
+        frame_id: the object frame.
+        target: "utm" or "local" (:func:`crs_for_frame`).
+        geoid_epsg: EPSG code of the vertical CRS of the heights (e.g. 5773, EGM96 height);
+            None: WGS84 ellipsoidal heights.
+
+    Returns:
+        Tangent-plane frame: the map CRS with an ellipsoidal height axis (``to_3d``), or the
+        compound CRS map + vertical; any other frame: its 2-D engineering CRS.
+    """
+    from pyproj import CRS
+    from pyproj.crs import CompoundCRS
+
+    horizontal = crs_for_frame(frame_id, target=target)
+    if frame_of(frame_id) is None:
+        return horizontal
+    if geoid_epsg is None:
+        return horizontal.to_3d()
+    vertical = CRS.from_epsg(int(geoid_epsg))
+    if not vertical.is_vertical:
+        raise ValueError(f"EPSG:{geoid_epsg} is not a vertical CRS ({vertical.name})")
+    return CompoundCRS(
+        name=f"{horizontal.name} + {vertical.name}", components=[horizontal, vertical]
     )
 
 
@@ -229,6 +309,8 @@ class _Reprojection:
         z = heights[self.valid]
         self.z_ref = float(np.median(z)) if z.size else 0.0
         self.to_geodetic = Transformer.from_crs(crs, _CRS.from_epsg(4326), always_xy=True)
+        #: (lon, lat) degrees of the cell centres of the last :meth:`rows`.
+        self.lonlat: tuple[FloatArray, FloatArray] = (np.zeros(0), np.zeros(0))
 
     def rows(self, r0: int, r1: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Object (x, y) metres and ellipsoidal height h metres of output rows r0:r1.
@@ -240,6 +322,7 @@ class _Reprojection:
         lon, lat = self.to_geodetic.transform(e, n)
         lon = np.asarray(lon, dtype=float)
         lat = np.asarray(lat, dtype=float)
+        self.lonlat = (lon, lat)
         frame = self.frame
         h = np.full(e.shape, frame.h0 + self.z_ref)
         for _ in range(MAX_ROUNDS):
@@ -291,13 +374,13 @@ def export_grid(
     *,
     target: Target = "utm",
     resolution: float | None = None,
-) -> tuple[CRS | None, DsmGrid]:
-    """The CRS and north-up grid a DSM (and its ortho-image) are exported on.
+) -> tuple[CRS, DsmGrid]:
+    """The horizontal CRS and north-up grid a DSM (and its ortho-image) are exported on.
 
     For a tangent-plane frame: the grid of cell ``resolution`` (default ``grid.cell``), centres
     on multiples of it in map metres, covering the map position of the grid's outline at the
-    lowest and the highest valid height (at Z = 0 without heights). For any other frame: no CRS
-    and ``grid`` itself.
+    lowest and the highest valid height (at Z = 0 without heights). For any other frame: its
+    engineering CRS and ``grid`` itself.
 
     Args:
         grid: the DSM grid in the object frame.
@@ -312,13 +395,14 @@ def export_grid(
     """
     crs = crs_for_frame(frame_id, target=target)
     frame = frame_of(frame_id)
-    if crs is None or frame is None:
+    if frame is None:
         if resolution is not None and resolution != grid.cell:
             raise ValueError(
-                f"frame {frame_id!r} has no CRS: its grid is written as it is "
+                f"frame {frame_id!r} is a local frame (no geodetic anchor, no map CRS): its "
+                "grid is written as it is "
                 f"(cell {grid.cell} m), not resampled to {resolution} m"
             )
-        return None, grid
+        return crs, grid
     from pyproj import CRS as _CRS
     from pyproj import Transformer
 
@@ -359,9 +443,28 @@ def _spans(n: int) -> Iterator[tuple[int, int]]:
         yield s, min(n, s + BLOCK_ROWS)
 
 
-def _profile(
-    grid: DsmGrid, dtype: np.dtype[Any], crs: CRS | None, nodata: float
-) -> dict[str, Any]:
+def _written_crs(crs: CRS) -> CRS:
+    """The CRS handed to GDAL for a file whose CRS is ``crs`` (see :func:`_set_ellipsoidal`).
+
+    GDAL's GeoTIFF writer keeps a 3-D projected CRS only in a side file (``.aux.xml``): it is
+    handed the compound of the map CRS and :data:`PLACEHOLDER_VERTICAL`, whose
+    ``VerticalGeoKey`` is then set to :data:`WGS84_3D`.
+    """
+    from pyproj.crs import CompoundCRS
+
+    if crs.is_projected and len(crs.axis_info) == 3 and not crs.is_compound:
+        from pyproj import CRS as _CRS
+
+        horizontal = crs.to_2d()
+        return CompoundCRS(
+            name=f"{horizontal.name} + WGS 84 ellipsoidal height",
+            components=[horizontal, _CRS.from_epsg(PLACEHOLDER_VERTICAL)],
+        )
+    return crs
+
+
+def _profile(grid: DsmGrid, dtype: np.dtype[Any], crs: CRS, nodata: float) -> dict[str, Any]:
+    """The intermediate tiled GeoTIFF's profile (uncompressed; the COG copy compresses)."""
     from rasterio.crs import CRS as RIO_CRS
     from rasterio.transform import Affine
 
@@ -373,10 +476,8 @@ def _profile(
         "count": 1,
         "dtype": dtype.name,
         "transform": Affine(grid.cell, 0.0, grid.x0 - half, 0.0, -grid.cell, grid.y0 + half),
-        "crs": None if crs is None else RIO_CRS.from_wkt(crs.to_wkt()),
+        "crs": RIO_CRS.from_wkt(_written_crs(crs).to_wkt()),
         "nodata": nodata,
-        "compress": "deflate",
-        "predictor": 3 if dtype.kind == "f" else 2,
         "tiled": True,
         "blockxsize": TILE,
         "blockysize": TILE,
@@ -402,8 +503,64 @@ class _Staged:
             self.tmp.unlink(missing_ok=True)
 
 
-def _tags(frame_id: str, crs: CRS | None, target: Target, what: str) -> dict[str, str]:
-    if crs is None:
+def _set_ellipsoidal(path: Path) -> None:
+    """Set the file's ``VerticalGeoKey`` from :data:`PLACEHOLDER_VERTICAL` to :data:`WGS84_3D`.
+
+    In place (two bytes of the GeoKeyDirectory; nothing moves, the COG layout stays valid).
+
+    Raises:
+        ValueError: the file has no such key (GDAL wrote the CRS otherwise).
+    """
+    import tifffile
+
+    with tifffile.TiffFile(path) as tf:
+        tag = tf.pages.first.tags.get(34735)  # GeoKeyDirectoryTag, shorts
+        if tag is None:
+            raise ValueError(f"{path}: GDAL wrote no GeoTIFF keys")
+        values, offset, order = tuple(tag.value), int(tag.valueoffset), tf.byteorder
+    for k in range(int(values[3])):
+        key, location, _, value = values[4 + 4 * k : 8 + 4 * k]
+        if key == VERTICAL_GEO_KEY and location == 0 and value == PLACEHOLDER_VERTICAL:
+            with open(path, "r+b") as f:
+                f.seek(offset + 2 * (4 + 4 * k + 3))
+                f.write(struct.pack(f"{order}H", WGS84_3D))
+            return
+    raise ValueError(f"{path}: no VerticalGeoKey {PLACEHOLDER_VERTICAL} written by GDAL")
+
+
+@contextlib.contextmanager
+def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Iterator[Any]:
+    """A writer for ``path`` as a Cloud Optimized GeoTIFF in ``crs``.
+
+    The body writes a tiled GeoTIFF (``.<name>.tiled.partial``); GDAL's COG driver copies it
+    (:data:`COG_OPTIONS`) to ``.<name>.partial``, whose vertical key is set for ellipsoidal
+    heights, then renamed onto ``path``. Nothing is left behind on an error.
+    """
+    from rasterio.shutil import copy as rio_copy
+
+    final = Path(path)
+    plain = final.with_name(f".{final.name}.tiled.partial")
+    staged = final.with_name(f".{final.name}.partial")
+    written = _written_crs(crs)
+    try:
+        with _open_writer(plain, profile) as dst:
+            yield dst
+        with warnings.catch_warnings():
+            from rasterio.errors import NotGeoreferencedWarning
+
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            rio_copy(plain, staged, driver="COG", **COG_OPTIONS)
+        if written is not crs:
+            _set_ellipsoidal(staged)
+        os.replace(staged, final)
+    finally:
+        for leftover in (plain, staged):
+            leftover.unlink(missing_ok=True)
+            Path(f"{leftover}.aux.xml").unlink(missing_ok=True)
+
+
+def _tags(frame_id: str, crs: CRS, target: Target, what: str) -> dict[str, str]:
+    if frame_of(frame_id) is None:
         note = NO_CRS_NOTE.format(frame=frame_id)
     else:
         note = (
@@ -413,7 +570,7 @@ def _tags(frame_id: str, crs: CRS | None, target: Target, what: str) -> dict[str
     return {
         "TIFFTAG_IMAGEDESCRIPTION": f"parproj_ros {what}: {note}",
         "PARPROJ_SOURCE_FRAME": frame_id,
-        "PARPROJ_CRS": "none (local engineering frame, metres)" if crs is None else crs.name,
+        "PARPROJ_CRS": crs.name,
     }
 
 
@@ -435,12 +592,14 @@ def write_dsm_geotiff(
     target: Target = "utm",
     nodata: float = math.nan,
     resolution: float | None = None,
-) -> tuple[CRS | None, DsmGrid]:
-    """Write a DSM as a float32 GeoTIFF (deflate, tiled) in the CRS of its frame.
+    geoid: Geoid | None = None,
+) -> tuple[CRS, DsmGrid]:
+    """Write a DSM as a float32 Cloud Optimized GeoTIFF in the CRS of its frame.
 
     Tangent-plane frame (``enu_wgs84:...``): exact reprojection (module doc) onto
-    :func:`export_grid`; values are WGS84 ellipsoidal heights, metres. Other frames: the grid
-    as it is, values Z in the frame, metres, no CRS.
+    :func:`export_grid`; values are WGS84 ellipsoidal heights, metres (3-D CRS: map CRS +
+    ellipsoidal height), or with ``geoid`` heights above it, h - N (compound CRS). Other
+    frames: the grid as it is, values Z in the frame, metres, local engineering CRS.
 
     Args:
         path: the GeoTIFF to write (replaced if it exists).
@@ -451,27 +610,39 @@ def write_dsm_geotiff(
         target: "utm" (zone of the frame origin) or "local" (transverse Mercator at it).
         nodata: value written for cells without a height (NaN by default).
         resolution: output cell side, map metres (default: ``grid.cell``).
+        geoid: (N(lon, lat) metres, EPSG code of its vertical CRS): heights written above that
+            geoid (tangent-plane frames only).
 
     Returns:
-        (crs, grid) of the file (``crs`` None without a geodetic anchor).
+        (crs, grid) of the file: :func:`file_crs` and the grid in its horizontal metres.
     """
     z = np.asarray(dsm_heights, dtype=np.float32)
     _check_grid("dsm_heights", z, grid)
-    crs, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
+    horizontal, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
     frame = frame_of(frame_id)
+    if geoid is not None and frame is None:
+        raise ValueError(f"frame {frame_id!r} has no geodetic anchor: no geoid heights")
+    crs = file_crs(frame_id, target=target, geoid_epsg=None if geoid is None else geoid[1])
     profile = _profile(out, np.dtype(np.float32), crs, nodata)
-    with _Staged(path) as tmp, _open_writer(tmp, profile) as dst:
+    with _cog(path, profile, crs) as dst:
         dst.update_tags(**_tags(frame_id, crs, target, "DSM"))
-        if crs is None or frame is None:
+        if frame is None:
             dst.set_band_description(1, f"height Z in frame {frame_id}, metres")
             dst.update_tags(1, HEIGHT="Z in the local frame, metres")
             dst.write(np.where(np.isfinite(z), z, np.float32(nodata)).astype(np.float32), 1)
         else:
-            dst.set_band_description(1, ELLIPSOIDAL)
-            dst.update_tags(1, HEIGHT=ELLIPSOIDAL, VERTICAL_DATUM="WGS84 ellipsoid")
-            rep = _Reprojection(frame, crs, z, grid, out)
+            vertical = ELLIPSOIDAL if geoid is None else f"height above {crs.sub_crs_list[1].name}"
+            dst.set_band_description(1, vertical)
+            dst.update_tags(
+                1,
+                HEIGHT=vertical,
+                VERTICAL_DATUM="WGS84 ellipsoid" if geoid is None else crs.sub_crs_list[1].name,
+            )
+            rep = _Reprojection(frame, horizontal, z, grid, out)
             for r0, r1 in _spans(out.height):
                 _, _, h = rep.rows(r0, r1)
+                if geoid is not None:
+                    h = h - np.asarray(geoid[0](*rep.lonlat), dtype=float)
                 block = np.where(np.isfinite(h), h, nodata).astype(np.float32)
                 dst.write(block, 1, window=((r0, r1), (0, out.width)))
         dst.set_band_unit(1, "metre")
@@ -515,13 +686,14 @@ def write_ortho_geotiff(
     nodata: float = 0,
     resolution: float | None = None,
     interpolation: Literal["bilinear", "nearest"] = "bilinear",
-) -> tuple[CRS | None, DsmGrid]:
-    """Write an ortho-image on a DSM grid as a GeoTIFF (its dtype kept; deflate, tiled).
+    geoid_epsg: int | None = None,
+) -> tuple[CRS, DsmGrid]:
+    """Write an ortho-image on a DSM grid as a Cloud Optimized GeoTIFF (its dtype kept).
 
     Tangent-plane frame: each output cell takes the image at the object (x, y) where the DSM
     surface meets the ellipsoid normal through the cell centre, exactly as
     :func:`write_dsm_geotiff` does with the same ``heights``, ``target`` and ``resolution``:
-    the two files share CRS and grid. Other frames: the image as it is, no CRS.
+    the two files share CRS and grid. Other frames: the image as it is, engineering CRS.
 
     Args:
         path: the GeoTIFF to write (replaced if it exists).
@@ -537,6 +709,7 @@ def write_ortho_geotiff(
         resolution: output cell side, map metres (default: ``grid.cell``).
         interpolation: "bilinear" (where all weighed pixels have data, else the nearest
             pixel; integers rounded) or "nearest".
+        geoid_epsg: the DSM's vertical CRS when written with a geoid (:func:`file_crs`).
 
     Returns:
         (crs, grid) of the file.
@@ -559,15 +732,16 @@ def write_ortho_geotiff(
             f"frame {frame_id!r} is a tangent plane: give the DSM heights of the ortho-image's "
             "cells (heights=...), its cells' map positions depend on them"
         )
-    crs, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
+    horizontal, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
+    crs = file_crs(frame_id, target=target, geoid_epsg=geoid_epsg)
     profile = _profile(out, img.dtype, crs, nodata)
-    with _Staged(path) as tmp, _open_writer(tmp, profile) as dst:
+    with _cog(path, profile, crs) as dst:
         dst.update_tags(**_tags(frame_id, crs, target, "ortho-image"))
         dst.set_band_description(1, "ortho-image (left scene on the DSM)")
-        if crs is None or frame is None or z is None:
+        if frame is None or z is None:
             dst.write(img, 1)
         else:
-            rep = _Reprojection(frame, crs, z, grid, out)
+            rep = _Reprojection(frame, horizontal, z, grid, out)
             for r0, r1 in _spans(out.height):
                 x, y, h = rep.rows(r0, r1)
                 ok = np.isfinite(h)

@@ -332,6 +332,7 @@ def test_process_passes_every_option_to_the_pipeline(
 
 #: import name -> PyPI distribution (setup.cfg install_requires)
 PYPI = {
+    "laspy": "laspy",
     "numpy": "numpy",
     "scipy": "scipy",
     "cv2": "opencv-python-headless",
@@ -349,6 +350,7 @@ PYPI = {
 }
 #: import name -> rosdep key (package.xml); None: none exists (installed with pip)
 ROSDEP = {
+    "laspy": None,  # no rosdep key: pip
     "numpy": "python3-numpy",
     "scipy": "python3-scipy",
     "cv2": "python3-opencv",

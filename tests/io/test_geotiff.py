@@ -1,4 +1,5 @@
-"""GeoTIFF export (parproj_ros/io/geotiff.py): CRS choice, exact reprojection, nodata, dtypes.
+"""GeoTIFF export (parproj_ros/io/geotiff.py): CRS choice, exact reprojection, nodata, dtypes,
+Cloud Optimized GeoTIFF layout, 3-D CRS (ellipsoidal heights) and geoid heights.
 
 Synthetic DSMs on a local tangent plane at the Ventoux origin (lat 44.17, lon 5.27, h 600 m),
 8 km x 8 km, 10 m cells: a plane, a tilted plane and a Gaussian bump. Each file is read back
@@ -23,13 +24,16 @@ from typing import Any
 import numpy as np
 import pytest
 import rasterio
+import tifffile
 from pyproj import CRS, Transformer
 
 from parproj_ros.geometry.geodesy import LocalTangentPlane
 from parproj_ros.imaging.heights import DsmGrid
 from parproj_ros.io.geotiff import (
+    WGS84_3D,
     crs_for_frame,
     export_grid,
+    file_crs,
     utm_zone,
     write_dsm_geotiff,
     write_ortho_geotiff,
@@ -88,7 +92,8 @@ def back_to_enu(
     rows, cols = np.nonzero(ok)
     e = t.c + (cols + 0.5) * t.a
     n = t.f + (rows + 0.5) * t.e
-    lon, lat = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True).transform(e, n)
+    to_lonlat = Transformer.from_crs(crs.to_2d(), CRS.from_epsg(4326), always_xy=True)
+    lon, lat = to_lonlat.transform(e, n)
     hh = h[ok].astype(float)
     x, y, z = frame.to_local(lon, lat, hh)
     return x, y, z, hh, ok
@@ -101,7 +106,8 @@ def exact_positions(path: Path, surface: Surface, frame: LocalTangentPlane = VEN
         rows, cols = np.mgrid[0 : src.height, 0 : src.width]
     e = t.c + (cols + 0.5) * t.a
     n = t.f + (rows + 0.5) * t.e
-    lon, lat = Transformer.from_crs(crs, CRS.from_epsg(4326), always_xy=True).transform(e, n)
+    to_lonlat = Transformer.from_crs(crs.to_2d(), CRS.from_epsg(4326), always_xy=True)
+    lon, lat = to_lonlat.transform(e, n)
     h = np.full(e.shape, frame.h0)
     for _ in range(6):
         x, y, z = frame.to_local(lon, lat, h)
@@ -116,12 +122,17 @@ def test_written_heights_lie_on_the_surface(tmp_path: Path, name: str, target: A
     surface, bound = SURFACES[name]
     path = tmp_path / "dsm.tif"
     crs, out = write_dsm_geotiff(path, dsm_of(surface), GRID, FID, target=target)
-    h, file_crs, t, tags = read(path)
-    assert file_crs is not None and crs is not None and file_crs.equals(crs)
+    h, in_file, t, tags = read(path)
+    assert in_file is not None and in_file.is_projected
     if target == "utm":
-        assert file_crs.to_epsg() == 32631
+        # 3-D: UTM 31N with an ellipsoidal height axis (GeoTIFF 1.1 VerticalGeoKey 4979)
+        assert in_file.to_2d().to_epsg() == 32631
+        assert [a.name for a in in_file.axis_info] == ["Easting", "Northing", "Ellipsoidal height"]
+        assert in_file.equals(file_crs(FID))
     else:
-        p = {q.name: q.value for q in file_crs.coordinate_operation.params}
+        # GDAL reads a user-defined projection with VerticalGeoKey 4979 as 2-D; the name says it
+        assert "ellipsoidal height" in in_file.name and in_file.ellipsoid == crs.ellipsoid
+        p = {q.name: q.value for q in in_file.coordinate_operation.params}
         assert p["Latitude of natural origin"] == pytest.approx(44.17, abs=1e-9)
         assert p["Longitude of natural origin"] == pytest.approx(5.27, abs=1e-9)
     assert (t.a, -t.e) == (GRID.cell, GRID.cell) and h.dtype == np.float32
@@ -218,20 +229,24 @@ def test_map_frame_is_written_as_it_is(tmp_path: Path) -> None:
     grid = DsmGrid(-35.0, 120.0, 0.5, 70, 40)
     z = dsm_of(SURFACES["tilted"][0], grid)
     z[3:7, 10:12] = np.nan
-    assert crs_for_frame("map") is None
+    eng = crs_for_frame("map")
+    assert eng.is_engineering and [a.unit_name for a in eng.axis_info] == ["metre", "metre"]
     crs, out = write_dsm_geotiff(tmp_path / "dsm.tif", z, grid, "map")
-    assert crs is None and out == grid
-    h, file_crs, t, tags = read(tmp_path / "dsm.tif")
-    assert file_crs is None
+    assert crs.equals(eng) and out == grid
+    h, in_file, t, tags = read(tmp_path / "dsm.tif")
+    # a local engineering CRS (GDAL: LOCAL_CS), metres, named after the frame; never none
+    assert in_file is not None and in_file.is_engineering and "map" in in_file.name
+    assert [a.direction for a in in_file.axis_info] == ["east", "north"]
     assert tuple(t)[:6] == (0.5, 0.0, -35.25, 0.0, -0.5, 120.25)
     np.testing.assert_array_equal(h, z)  # NaN where NaN, the rest bit for bit
-    assert "no CRS" in tags["TIFFTAG_IMAGEDESCRIPTION"] and "map" in tags["PARPROJ_SOURCE_FRAME"]
+    assert "engineering" in tags["TIFFTAG_IMAGEDESCRIPTION"]
+    assert tags["PARPROJ_SOURCE_FRAME"] == "map"
     img = np.arange(70 * 40, dtype=np.uint16).reshape(40, 70)
     write_ortho_geotiff(tmp_path / "ortho.tif", img, grid, "map")
     o, _, t2, _ = read(tmp_path / "ortho.tif")
     assert o.dtype == np.uint16 and t2 == t
     np.testing.assert_array_equal(o, img)
-    with pytest.raises(ValueError, match="no CRS"):
+    with pytest.raises(ValueError, match="local frame"):
         write_dsm_geotiff(tmp_path / "x.tif", z, grid, "map", resolution=1.0)
 
 
@@ -259,7 +274,7 @@ def test_southern_origin_round_trip(tmp_path: Path) -> None:
     grid = DsmGrid.covering(-2500.0, 2500.0, -2500.0, 2500.0, 25.0)
     surface = SURFACES["tilted"][0]
     crs, _ = write_dsm_geotiff(tmp_path / "s.tif", dsm_of(surface, grid), grid, frame_id_of(south))
-    assert crs is not None and crs.to_epsg() == 32734
+    assert crs.to_2d().to_epsg() == 32734 and len(crs.axis_info) == 3
     x, y, z, hh, _ = back_to_enu(tmp_path / "s.tif", south)
     tol = float_tol(dsm_of(surface, grid), hh)
     assert x.size > 30_000 and np.abs(z - surface(x, y)).max() <= tol
@@ -285,3 +300,69 @@ def test_plain_tiff_has_no_georeference(tmp_path: Path) -> None:
     assert crs is None and t.is_identity and a.dtype == np.float32
     np.testing.assert_array_equal(a, d)
     assert tags["TIFFTAG_IMAGEDESCRIPTION"] == "disparity, px"
+
+
+def geokeys(path: Path) -> dict[int, int]:
+    """The GeoTIFF keys stored in the GeoKeyDirectory itself (key -> value)."""
+    with tifffile.TiffFile(path) as tf:
+        v = tf.pages.first.tags[34735].value
+    return {v[4 + 4 * k]: v[7 + 4 * k] for k in range(v[3]) if v[5 + 4 * k] == 0}
+
+
+@pytest.mark.parametrize("kind", ["dsm", "ortho", "map"])
+def test_files_are_cloud_optimized(tmp_path: Path, kind: str) -> None:
+    """GDAL's own COG check (IMAGE_STRUCTURE LAYOUT=COG, which its COG driver writes and its
+    reader reports only for a file whose layout is a COG), 256 x 256 tiles, deflate, overviews
+    down to one tile (about 805 cells: levels 2 and 4), the CRS in the file (no .aux.xml)."""
+    z = dsm_of(SURFACES["bump"][0])
+    path = tmp_path / f"{kind}.tif"
+    if kind == "ortho":
+        img = (np.arange(z.size) % 251 + 1).astype(np.uint8).reshape(z.shape)
+        write_ortho_geotiff(path, img, GRID, FID, heights=z)
+    else:
+        write_dsm_geotiff(path, z, GRID, "map" if kind == "map" else FID)
+    with rasterio.open(path) as src:
+        structure = src.tags(ns="IMAGE_STRUCTURE")
+        assert structure["LAYOUT"] == "COG" and structure["COMPRESSION"] == "DEFLATE"
+        assert src.block_shapes == [(256, 256)]
+        levels, side = [], max(src.width, src.height)
+        while side > 256:  # GDAL: halve until the smallest level fits in one tile
+            side = -(-side // 2)
+            levels.append(2 * (levels[-1] if levels else 1))
+        assert src.overviews(1) == levels and len(levels) == 2
+        over = src.read(1, out_shape=(1, src.height // 2, src.width // 2))
+        assert over.dtype == src.dtypes[0] and np.isfinite(over.astype(float)).mean() > 0.9
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    keys = geokeys(path)
+    if kind == "map":
+        assert 1024 not in keys and keys[3076] == 9001  # no model type (LOCAL_CS), metres
+    else:
+        assert keys[3072] == 32631 and keys[4096] == WGS84_3D  # UTM 31N + ellipsoidal heights
+
+
+def test_geoid_heights_and_compound_crs(tmp_path: Path) -> None:
+    """With a geoid (here N = 49.35 m + 1e-5 m per metre east, EGM96 height): the heights
+    written are the ellipsoidal ones minus N at each cell's lon, lat (to float32 rounding), and
+    the file's CRS is compound UTM 31N + EPSG:5773."""
+    z = dsm_of(SURFACES["tilted"][0])
+
+    def undulation(lon: FloatArray, lat: FloatArray) -> FloatArray:
+        return 49.35 + 1e-5 * (np.asarray(lon) - 5.27) * 80_000.0
+
+    write_dsm_geotiff(tmp_path / "h.tif", z, GRID, FID)
+    crs, _ = write_dsm_geotiff(tmp_path / "g.tif", z, GRID, FID, geoid=(undulation, 5773))
+    h, _, t, _ = read(tmp_path / "h.tif")
+    g, in_file, t2, tags = read(tmp_path / "g.tif")
+    assert t == t2 and crs.is_compound and in_file is not None and in_file.is_compound
+    horizontal, vertical = in_file.sub_crs_list
+    assert horizontal.to_epsg() == 32631 and vertical.to_epsg() == 5773
+    rows, cols = np.mgrid[0 : h.shape[0], 0 : h.shape[1]]
+    to_lonlat = Transformer.from_crs(horizontal, CRS.from_epsg(4326), always_xy=True)
+    lon, lat = to_lonlat.transform(t.c + (cols + 0.5) * t.a, t.f + (rows + 0.5) * t.e)
+    ok = np.isfinite(h)
+    assert (np.isfinite(g) == ok).all() and ok.mean() > 0.9
+    err = np.abs(g[ok] - (h[ok].astype(float) - undulation(lon[ok], lat[ok])))
+    assert err.max() <= float(np.spacing(np.float32(np.nanmax(h)))), err.max()
+    assert "EGM96" in tags["PARPROJ_CRS"]
+    with pytest.raises(ValueError, match="geodetic anchor"):
+        write_dsm_geotiff(tmp_path / "m.tif", z, GRID, "map", geoid=(undulation, 5773))

@@ -1,9 +1,14 @@
-"""``parproj dsm``: the DSMs of an output bag as GeoTIFF (UTM), ortho-images and plots."""
+"""``parproj dsm``: an output bag's DSMs as COG (UTM + heights), ortho-images, points, plots.
+
+Exit 1 when there is no DSM to export, or a DSM with almost no heights.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
+import sys
 from typing import Any
 
 from ...io.dem import add_dem_arguments
@@ -28,11 +33,37 @@ def run(args: argparse.Namespace) -> int:
 
         raise InputError("--scenario", f"unknown; known: {', '.join(SCENARIOS)}")
     dem = dem_from_args(args)
-    with staged_output(out, force=args.force, kind="folder") as work:
-        rows = export_dsms(bag, work, target=args.target, truth=truth, dem=dem)
-        if dem is not None:
-            dem.check_usage("the DSMs' cells")
-        (work / "dsm.json").write_text(json.dumps(rows, indent=1, default=float))
+    geoid = _heights_geoid(args.heights_geoid)
+    from ..export import MIN_VALID_FRACTION, NoHeightsError
+
+    try:
+        with staged_output(out, force=args.force, kind="folder") as work:
+            rows = export_dsms(
+                bag,
+                work,
+                target=args.target,
+                truth=truth,
+                dem=dem,
+                point_cloud=args.point_cloud,
+                geoid=geoid,
+            )
+            if dem is not None:
+                dem.check_usage("the DSMs' cells")
+            (work / "dsm.json").write_text(json.dumps(rows, indent=1, default=float))
+            if all(r["status"] == "empty" for r in rows):
+                shutil.rmtree(work)  # nothing to give: no folder made
+    except NoHeightsError as err:
+        print(f"parproj dsm: {err}", file=sys.stderr)
+        return 1
+    empty = [r for r in rows if r["status"] == "empty"]
+    for r in empty:
+        print(
+            f"parproj dsm: {r['pair_id']}: the DSM has a height in {100 * r['valid_fraction']:.2f}"
+            f" % of its cells (< {100 * MIN_VALID_FRACTION:.0f} %): not exported; the pair "
+            "matched almost nothing (see the heights line of parproj process); try parproj "
+            "process with --z-avg and --height-range around the ground, or import with --dem",
+            file=sys.stderr,
+        )
 
     def show(res: dict[str, Any]) -> None:
         for r in res["pairs"]:
@@ -43,11 +74,27 @@ def run(args: argparse.Namespace) -> int:
                 if t
                 else ""
             )
-            print(f"{r['pair_id']}: {r['cells'][0]} x {r['cells'][1]} cells, {r['crs']}{err}")
-        print(f"-> {out}")
+            if r["status"] == "written":
+                print(
+                    f"{r['pair_id']}: {r['cells'][0]} x {r['cells'][1]} cells, "
+                    f"{100 * r['valid_fraction']:.1f} % with a height, {r['crs']}{err}"
+                )
+        if len(empty) < len(res["pairs"]):
+            print(f"-> {out}")
 
-    report(args.json, {"pairs": rows, "output": str(out)}, show)
-    return 0 if rows else 1
+    shown = [{k: v for k, v in r.items() if k != "crs_wkt"} for r in rows]
+    report(args.json, {"pairs": shown, "output": str(out)}, show)
+    return 1 if empty else 0
+
+
+def _heights_geoid(model: str | None) -> Any:
+    """(N(lon, lat), vertical EPSG) of ``--heights-geoid``; None for ellipsoidal heights."""
+    if model is None:
+        return None
+    from ...io.dem import _geoid_sampler
+    from ...io.geotiff import VERTICAL_EPSG
+
+    return _geoid_sampler(model), VERTICAL_EPSG[model]
 
 
 def add_parser(sub: Any) -> None:
@@ -65,6 +112,27 @@ def add_parser(sub: Any) -> None:
     )
     p.add_argument("--scenario", help="simulated bag: the scenario whose terrain is the truth")
     add_dem_arguments(p, "real pair: the (coarse) truth")
+    cloud = p.add_mutually_exclusive_group()
+    cloud.add_argument(
+        "--las",
+        dest="point_cloud",
+        action="store_const",
+        const="las",
+        help="also write each DSM's cells as a LAS 1.4 point cloud (<pair>_dsm.las, its CRS)",
+    )
+    cloud.add_argument(
+        "--laz",
+        dest="point_cloud",
+        action="store_const",
+        const="laz",
+        help="the same, LAZ-compressed (<pair>_dsm.laz)",
+    )
+    p.add_argument(
+        "--heights-geoid",
+        choices=["egm2008"],
+        help="real pair: write heights above this geoid (compound CRS, e.g. + EGM2008 height, "
+        "EPSG:3855) instead of WGS84 ellipsoidal heights (3-D CRS, the default)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument("--force", action="store_true", help=FORCE_HELP)
     p.set_defaults(func=run)
