@@ -517,3 +517,24 @@ def test_a_dem_over_part_of_the_scene_is_refused(forms: dict[str, Any], tmp_path
     # the whole crop passes: the range is the ground's +- 100 m
     lo, hi = height_range(img, load_dem(forms["geotiff"], geoid=50.0), 100.0)
     assert 300 < lo + 100 < hi - 100 < 800
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+def test_dsm_against_a_dem_elsewhere_is_refused(
+    forms: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """parproj dsm --dem: a tile that covers the DSM is used; one 5 deg east is named, exit 2."""
+    pair = [str(p) for p in IMAGES]
+    bag, out = tmp_path / "in", tmp_path / "out"
+    dem = ["--dem", str(forms["geotiff"]), "--geoid-undulation", "50"]
+    assert _cli(["import", *pair, *dem, "-o", str(bag)], capsys)[0] == 0
+    code, err = _cli(["process", str(bag), "-o", str(out), "--heights"], capsys)
+    assert code == 0, err
+    code, err = _cli(["dsm", str(out), "-o", str(tmp_path / "dsm"), *dem], capsys)
+    assert code == 0, err
+    far = _elsewhere(forms, tmp_path)
+    code, err = _cli(["dsm", str(out), "-o", str(tmp_path / "dsm2"), "--dem", str(far)], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{far}: the DEM gives heights at 0 % of the DSMs' cells" in err, err
+    assert not (tmp_path / "dsm2").exists()
