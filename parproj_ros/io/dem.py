@@ -260,7 +260,15 @@ class RasterSampler:
                 warnings.simplefilter("ignore")  # NotGeoreferencedWarning: checked below
                 self._ds = rasterio.open(source)
         except Exception as err:  # RasterioIOError, CPLE_*: any failure is the file's
-            raise DemError(label, f"GDAL cannot read it as a raster ({_short(err)})") from None
+            hint = ""
+            if Path(str(source)).suffix.lower() == ".hgt":
+                hint = (
+                    "; an SRTM tile must keep its name (e.g. N44E005.hgt): GDAL reads its "
+                    "position from it"
+                )
+            raise DemError(
+                label, f"GDAL cannot read it as a raster ({_short(err)}){hint}"
+            ) from None
         ds = self._ds
         if ds.count < 1 or ds.width < 2 or ds.height < 2:
             raise DemError(label, f"{ds.width} x {ds.height} pixels, {ds.count} bands: no grid")

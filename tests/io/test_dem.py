@@ -315,6 +315,10 @@ def test_loader_errors_name_the_file(forms: dict[str, Any], tmp_path: Path) -> N
     junk.write_text("not a raster\n")
     with pytest.raises(DemError, match=r"junk\.tif: GDAL cannot read it as a raster"):
         load_dem(junk)
+    renamed = tmp_path / "dem.hgt"
+    renamed.write_bytes(TILE.read_bytes())
+    with pytest.raises(DemError, match=r"dem\.hgt: GDAL .* must keep its name \(e\.g\. N44E005"):
+        load_dem(renamed)
     plain = tmp_path / "plain.tif"
     with rasterio.open(plain, "w", driver="GTiff", width=4, height=4, count=1, dtype="int16") as d:
         d.write(np.zeros((4, 4), np.int16), 1)
