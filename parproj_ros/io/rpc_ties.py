@@ -484,7 +484,9 @@ def measure(
             if k > 1:  # key points of a decimated image: refine at full resolution
                 out.observations = refine_tracks(images, out.observations, k + 2)
             try:
-                out.adjustment = adjust_biases(rpcs, out.observations)
+                out.adjustment = adjust_biases(
+                    rpcs, out.observations, names=[img.scene_id for img in images]
+                )
             except ValueError as err:
                 out.adjust_note = str(err)
     if out.adjustment is not None:

@@ -57,6 +57,8 @@ REJECT_SIGMA = 4.0
 REJECT_FLOOR_PX = 1.0
 #: Fewest tie points seen in three or more views for an adjustment.
 MIN_MULTI_TRACKS = 20
+#: Fewest of those each view must be in.
+MIN_VIEW_OBSERVATIONS = 10
 
 
 def _metres(lat_deg: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -73,8 +75,11 @@ def project_biased(
 
 
 def ground_jacobian(rpc: RPCModel, geo: FloatArray) -> FloatArray:
-    """(n, 2, 3): d(line, sample) / d(east, north, up), pixels per metre (forward differences
-    of :data:`STEP_M`: an RPC's second derivatives make their error below 1e-6 px / m)."""
+    """(n, 2, 3): d(line, sample) / d(east, north, up), pixels per metre.
+
+    Forward differences of :data:`STEP_M` (their error, from the RPC's curvature, is below
+    1e-5 px / m on the Marseille Pleiades models, where a metre is 2 px).
+    """
     mx, my = _metres(geo[:, 1])
     out = np.empty((geo.shape[0], 2, 3))
     p0 = project_biased(rpc, geo)
@@ -296,6 +301,7 @@ def adjust_biases(
     reject_sigma: float = REJECT_SIGMA,
     reject_floor_px: float = REJECT_FLOOR_PX,
     min_multi_tracks: int = MIN_MULTI_TRACKS,
+    names: Sequence[str] | None = None,
 ) -> BiasAdjustment:
     """Per-view image biases from tie points (module docstring), with robust rejection.
 
@@ -308,13 +314,15 @@ def adjust_biases(
             norms) are dropped, with a floor of ``reject_floor_px``.
         reject_floor_px: floor of the rejection threshold, pixels.
         min_multi_tracks: fewest inlier tie points seen in three or more views.
+        names: the views' names for the messages (default: their indices).
 
     Returns:
         The adjustment (:class:`BiasAdjustment`).
 
     Raises:
-        ValueError: fewer than two views, a malformed ``obs``, or fewer than
-            ``min_multi_tracks`` tie points in three or more views (the message says how many).
+        ValueError: fewer than two views, a malformed ``obs``, fewer than
+            ``min_multi_tracks`` tie points in three or more views, or a view in fewer than
+            :data:`MIN_VIEW_OBSERVATIONS` of them (the message says which and how many).
 
     """
     nv = len(rpcs)
@@ -333,6 +341,13 @@ def adjust_biases(
         raise ValueError(
             f"only {int(np.sum(count >= 3))} tie points are seen in three or more views (at "
             f"least {min_multi_tracks} needed to fix the views' relative biases)"
+        )
+    per_view = (inl & (count >= 3)[:, None]).sum(axis=0)
+    if int(per_view.min()) < MIN_VIEW_OBSERVATIONS:
+        v = int(np.argmin(per_view))
+        raise ValueError(
+            f"view {names[v] if names else v} is in only {int(per_view[v])} tie points seen in "
+            f"three or more views (at least {MIN_VIEW_OBSERVATIONS} needed to fix its bias)"
         )
     centre = np.nanmedian(geo0[count >= 2], axis=0)
     c = _gauge_matrix(rpcs, centre, gauge)

@@ -159,3 +159,14 @@ def test_two_views_cannot_fix_the_relative_bias(rpcs: list[RPCModel]) -> None:
         adjust_biases(rpcs[:2], obs)
     with pytest.raises(ValueError, match=r"obs must be \(n, 3, 2\)"):
         adjust_biases(rpcs, obs)
+
+
+def test_a_view_in_too_few_tie_points_is_named(rpcs: list[RPCModel]) -> None:
+    """A fourth view (another acquisition of img_02's geometry) in only 5 of the tie points:
+    its bias is not determined, and the message names it."""
+    four = [*rpcs, rpcs[1]]
+    geo = _ground(rpcs[0], 200, 11)
+    obs = _observations(four, geo, np.vstack([BIASES, [[0.3, 0.3]]]), 12)
+    obs[5:, 3] = np.nan
+    with pytest.raises(ValueError, match="view img_04 is in only 5 tie points seen in three"):
+        adjust_biases(four, obs, names=["img_01", "img_02", "img_03", "img_04"])
