@@ -120,8 +120,8 @@ def one_line_warnings(name: str) -> Iterator[None]:
 
     Python prints a warning as ``file.py:123: SomeWarning: text`` and the source line that
     raised it (rasterio, numpy, ...): a traceback-like pair of lines that names our code's
-    innards, not the input. Inside this block each warning is one line saying what it says
-    (Python's filters decide which are shown); :data:`QUIET_WARNINGS` are not shown at all.
+    innards, not the input. Inside this block each warning is one line saying what it says;
+    deprecation warnings and :data:`QUIET_WARNINGS` are not shown at all.
     GDAL's warnings, which rasterio logs (logger ``rasterio``), become ``<name>: note: GDAL:
     <text>`` too.
     """
@@ -150,7 +150,11 @@ def one_line_warnings(name: str) -> Iterator[None]:
     gdal_log.addHandler(handler)
     gdal_log.propagate = False
     try:
-        with warnings.catch_warnings():  # Python's filters stay (DeprecationWarning: ignored)
+        with warnings.catch_warnings():
+            # deprecations speak to developers (Python ignores them outside __main__; pytest and
+            # -W show them: --debug does too), never to a user of the command
+            for category in (DeprecationWarning, PendingDeprecationWarning):
+                warnings.simplefilter("ignore", category)
             for pattern in QUIET_WARNINGS:
                 warnings.filterwarnings("ignore", message=pattern)
             warnings.showwarning = show
