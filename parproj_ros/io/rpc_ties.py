@@ -644,9 +644,13 @@ def import_ties(
         summary["heights_source"] = prior
         summary["heights_note"] = prior_text()
         if res.measured is not None:
-            summary["heights_note"] += (
-                f" (the tie points measure {res.measured[0]:.0f}..{res.measured[1]:.0f} m)"
-            )
+            m0, m1 = res.measured
+            summary["heights_note"] += f" (the tie points measure {m0:.0f}..{m1:.0f} m)"
+            if not callable(heights) and (m0 < float(heights[0]) or m1 > float(heights[1])):
+                summary["heights_note"] = (
+                    "warning: " + summary["heights_note"] + ": the terrain reaches outside "
+                    "the given heights; widen --heights or leave it out to use the measured ones"
+                )
     if res.measured is not None:
         summary["measured_p1_p99"] = [float(x) for x in res.measured]
     summary["tie_points"] = n

@@ -187,6 +187,13 @@ def test_given_heights_kept_and_options_off() -> None:
     assert "adjustment" not in summary
     assert lines[-1].startswith("heights 0..1000 m as given (--heights) (the tie points measure ")
     lines.clear()
+    _, heights, _ = import_ties(
+        images, (100.0, 200.0), measure_terrain=False, adjust=False, log=lines.append
+    )
+    assert heights == (100.0, 200.0)
+    assert lines[-1].startswith("warning: heights 100..200 m as given (--heights) (the tie ")
+    assert lines[-1].endswith("widen --heights or leave it out to use the measured ones")
+    lines.clear()
     prior = default_heights(images[0])
     _, heights, summary = import_ties(
         images, prior, measure_terrain=True, adjust=None, tie_points=False, log=lines.append
