@@ -534,7 +534,7 @@ def test_one_line_exit_2(
         write(path, pixels("left"), None)
         rpc.write_rpc_txt(tmp_path / "p_RPC.TXT", model)
         want = (
-            r"no usable RPC for this image: .*p_RPC\.TXT: GDAL reads no _RPC\.TXT sidecar "
+            r"no usable RPC: .*p_RPC\.TXT: GDAL reads no _RPC\.TXT sidecar "
             r"beside a PNG image .*--rpc p\.png "
         )
     elif case == "jpeg_sidecar":

@@ -88,8 +88,9 @@ def check_rpc(path: Path, image: bool = False) -> None:
             read_rpc_file(path)
     except Exception as err:
         if image and "--rpc " in str(err):  # the message says what to pass already
-            text = " ".join(str(err).split())
-            raise InputError(path, f"no usable RPC for this image: {text}") from None
+            text = " ".join(str(err).split()).removeprefix(f"{path}: ")
+            why_not = text if text.startswith("no RPC") else f"no usable RPC: {text}"
+            raise InputError(path, why_not) from None
         if image:
             raise InputError(
                 path,
