@@ -8,6 +8,14 @@ up; the node and ``parproj process`` make exactly those pairs (a scene may be in
 Without one (two images, no ``--pairs``) there is no ``pairs`` topic and the scenes pair up by
 order; the bag is then the same as ``parproj import`` of a pair always wrote.
 
+Tie points (issue 24, :func:`parproj_ros.io.rpc_ties.import_ties`; docs/multiview.md): before
+any virtual point is made, the original images are matched. With three or more images one
+image bias per view is estimated from the tie points seen in three or more views and folded
+into each RPC (``adjust``), so that every pair shares one object space; without ``heights`` and
+``dem`` the virtual points span the heights the tie points measure (percentiles 1-99 plus a
+margin, at least 100 m), else the RPC span with a warning. One line says which heights were used
+and where they came from; the bag's ``custom_data`` keeps it (``heights``) and the biases.
+
 Pair selection (``pairs``, :func:`select_pairs`):
 
 * ``"bh"`` (default with three or more images): every pair of images that overlap (at least
