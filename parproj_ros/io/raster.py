@@ -34,7 +34,7 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -153,9 +153,20 @@ def truncation(path: str | Path) -> str | None:
     try:
         size = p.stat().st_size
         with p.open("rb") as fh:
-            magic = fh.read(4)
+            head = fh.read(16)
+        magic = head[:4]
         if magic not in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
             return None
+        order: Literal["little", "big"] = "little" if magic[:2] == b"II" else "big"
+        # the first directory's offset: bytes 4-7 (classic TIFF) or 8-15 (BigTIFF)
+        first = int.from_bytes(
+            head[4:8] if magic[2:] in (b"*\x00", b"\x00*") else head[8:16], order
+        )
+        if first >= size:
+            return (
+                f"truncated: the file has {size} bytes, its TIFF header puts its first directory "
+                f"at byte {first} (copy or download it again)"
+            )
         import tifffile
 
         with tifffile.TiffFile(p) as tif:

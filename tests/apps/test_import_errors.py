@@ -332,6 +332,22 @@ def test_truncated_raster_names_the_cut(tmp_path: Path) -> None:
         f"image data up to byte {len(data)} (50 % present" in msg
     ), msg
     assert "TIFFReadEncodedStrip" in msg and "See previous exception" not in msg, msg
+    # a real Pleiades view whose TIFF directory is at the end (after the pixels), cut at 90 %
+    # of its bytes: GDAL cannot even open it; the header's offset of the lost directory is named
+    real = Path(__file__).resolve().parents[3] / "shared/data/marseille_triplet/img_01.tif"
+    with tifffile.TiffFile(real) as tif:
+        ifd = int(tif.pages[0].offset)
+    data = real.read_bytes()
+    n = len(data) * 9 // 10
+    assert ifd > n  # the case: the directory comes after the pixels
+    m1 = tmp_path / "m1.tif"
+    m1.write_bytes(data[:n])
+    with pytest.raises(SceneImportError) as err:
+        read_band(m1)
+    assert str(err.value).startswith(
+        f"{m1}: truncated: the file has {n} bytes, its TIFF header puts its first directory at "
+        f"byte {ifd}"
+    ), err.value
     # a JPEG cut short: libjpeg's words, and "truncated"
     jpg = tmp_path / "j.jpg"
     with rasterio.open(
