@@ -41,7 +41,8 @@ domain while the model is exact there. :meth:`RPCModel.project` and :meth:`RPCMo
 therefore evaluate everywhere by default (``domain="advice"``); ``domain="limit"`` restores the
 hard limit (used by :func:`virtual_gcp`, the paper-2 experiment). What is really wrong is refused
 by the importer (parproj_ros/io/scene_import.py): non-finite coefficients, a localization that does
-not converge, a denominator crossing zero over the image (:meth:`RPCModel.denominator_check`).
+not converge, a denominator crossing zero over the image (:meth:`RPCModel.denominator_check`,
+:meth:`RPCModel.image_denominator_check`, which also says where).
 
 Ground frames: :func:`ecef_from_geodetic` / :func:`geodetic_from_ecef` (WGS84) and
 :class:`LocalTangentPlane` (east, north, up, metres) give the local Cartesian object frame of the

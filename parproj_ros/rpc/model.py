@@ -443,10 +443,11 @@ class RPCModel:
         """Why a denominator makes the model unusable over an image, with where; or None.
 
         ``line``, ``sample``, ``h_m`` (pixels, metres; broadcast) are test points spread over the
-        image and its heights. The ground they cover is taken from what localizes (converged
-        points) and from the numerators' linear terms (:meth:`linear_ground`, which needs no
-        convergence); both denominators are evaluated on a ``lattice`` x ``lattice`` grid over
-        that lon/lat box at each test height. A denominator whose coefficients are all zero, one
+        image and its heights. The ground they cover is the lon/lat box of their ground by the
+        numerators' linear terms (:meth:`linear_ground`, which needs no convergence), widened by
+        the points that localize within that box's own size of it (a far branch of a broken
+        model does not count); both denominators are evaluated on a ``lattice`` x ``lattice``
+        grid over the box at each test height. A denominator whose coefficients are all zero, one
         that changes sign over the box or comes within 1e-6 of zero (relative to its largest
         magnitude) is reported with the ground point nearest its zero and the test point of the
         image nearest to that (a projection through such a model passes through infinity, so
