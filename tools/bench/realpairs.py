@@ -294,7 +294,7 @@ def normalized_pairs(
 
 
 def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
-    """Seconds of one bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), best of two."""
+    """Seconds of one bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), best of three."""
     import cv2
 
     from parproj_ros.imaging.dense import SgbmParams, to_uint8
@@ -323,11 +323,17 @@ def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int
         mode=p.mode,
     )
     best = math.inf
-    for _ in range(2):
+    for _ in range(3):
         t0 = time.perf_counter()
         sgbm.compute(l8, r8)
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+def _cv2_threads() -> int:
+    import cv2
+
+    return int(cv2.getNumThreads())
 
 
 def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str, Any]:
@@ -346,7 +352,8 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         return {"error": f"in-process process exit {rc}, heights step timed {len(times)} times"}
     pairs = normalized_pairs(out)
     mpx = sum(lft.size for lft, _, _ in pairs.values()) / 1e6
-    sgbm = sum(bare_sgbm_s(lft, rgt, rng) for lft, rgt, rng in pairs.values())
+    per_pair = {k: bare_sgbm_s(lft, rgt, rng) for k, (lft, rgt, rng) in pairs.items()}
+    sgbm = sum(per_pair.values())
     step = float(sum(times))
     res = {
         "pairs": len(pairs),
@@ -357,6 +364,9 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "sgbm_s_per_mpx": sgbm / mpx if mpx else None,
         "ratio": step / sgbm if sgbm else None,
         "ranges": {k: list(v[2]) for k, v in pairs.items()},
+        "sgbm_s_by_pair": per_pair,
+        "heights_s_by_call": times,
+        "cv2_threads": _cv2_threads(),
     }
     log(
         f"  heights step {step:.2f} s for {mpx:.2f} Mpx ({res['heights_s_per_mpx']:.2f} s/Mpx), "
