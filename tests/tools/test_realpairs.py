@@ -44,19 +44,19 @@ def test_score_on_one_grid_and_footprint() -> None:
     }
     rows = score(MapDsm(ours, grid, UTM31, "ours"), refs, [], label="ours")
     by = {(r["dsm"], r["vs"]): r for r in rows}
-    assert set(by) == {("ours", "s2p"), ("ours", "cars"), ("s2p (reference)", "cars")}
+    assert set(by) == {("ours", "s2p_x"), ("ours", "cars_x"), ("s2p_x (reference)", "cars_x")}
     # one footprint for all rows: the cells of the first reference (no images given)
     fp = int(np.isfinite(s2p).sum())
     assert {r["footprint_cells"] for r in rows} == {fp}
-    assert by["ours", "s2p"]["median"] == pytest.approx(0.3, abs=1e-4)
-    assert by["ours", "s2p"]["nmad"] < 1e-4
-    assert by["ours", "s2p"]["completeness"] == pytest.approx(0.75, abs=0.02)
-    assert by["ours", "cars"]["median"] == pytest.approx(0.2, abs=0.01)
-    assert by["ours", "cars"]["nmad"] == pytest.approx(0.05, abs=0.01)
-    assert by["s2p (reference)", "cars"]["median"] == pytest.approx(-0.1, abs=0.01)
-    assert by["s2p (reference)", "cars"]["completeness"] == 1.0
+    assert by["ours", "s2p_x"]["median"] == pytest.approx(0.3, abs=1e-4)
+    assert by["ours", "s2p_x"]["nmad"] < 1e-4
+    assert by["ours", "s2p_x"]["completeness"] == pytest.approx(0.75, abs=0.02)
+    assert by["ours", "cars_x"]["median"] == pytest.approx(0.2, abs=0.01)
+    assert by["ours", "cars_x"]["nmad"] == pytest.approx(0.05, abs=0.01)
+    assert by["s2p_x (reference)", "cars_x"]["median"] == pytest.approx(-0.1, abs=0.01)
+    assert by["s2p_x (reference)", "cars_x"]["completeness"] == 1.0
     # cars misses the first 2 rows and 3 columns of s2p's grid (its own grid is shifted)
-    missing = 1.0 - by["ours", "cars"]["reference_completeness"]
+    missing = 1.0 - by["ours", "cars_x"]["reference_completeness"]
     assert missing == pytest.approx((2 * 120 + 3 * 100 - 6) / 12000, abs=0.01)
 
     doc = {
@@ -74,7 +74,7 @@ def test_score_on_one_grid_and_footprint() -> None:
     }
     text = markdown(doc)
     assert "commit abc1234 + 2 uncommitted files" in text
-    assert "| marseille_12 | ours | s2p | +0.30 | 0.00 |" in text
+    assert "| marseille_12 | ours | s2p_x | +0.30 | 0.00 |" in text
     assert "| marseille_12 | 1.0 | 2.0 | 3.0 | - | 1.50 | 0.50 | 3.00 |" in text
 
 

@@ -184,13 +184,13 @@ def score(
     rows: list[dict[str, Any]] = []
     dsms: dict[str, MapDsm | FrameDsm] = {label: ours, **(also or {})}
     for dname, dsm in dsms.items():
-        for rname, ref in refs.items():
+        for ref in refs.values():
             c = compare(dsm, ref, grid=(g, crs), mask=mask, images=images)
-            rows.append({**c.as_dict(), "dsm": dname, "vs": rname})
+            rows.append({**c.as_dict(), "dsm": dname, "vs": ref.name})
     for i, a in enumerate(names):
         for b in names[i + 1 :]:
             c = compare(refs[a], refs[b], grid=(g, crs), mask=mask, images=images)
-            rows.append({**c.as_dict(), "dsm": f"{a} (reference)", "vs": b})
+            rows.append({**c.as_dict(), "dsm": f"{refs[a].name} (reference)", "vs": refs[b].name})
     return rows
 
 
@@ -438,6 +438,8 @@ def run_case(case: Case, work: Path, log: Callable[[str], None]) -> dict[str, An
                 also["fused (GeoTIFF)"] = read_geotiff_dsm(tif)
             except ValueError as err:
                 res.setdefault("notes", []).append(f"{tif.name}: {err}")
+        # the pairs too, against the same references on the same footprint: like with like
+        also.update(dsms)
         rows += score(fused, refs, case.footprints["fused"], label="fused", also=also)
     res["rows"] = rows
     for r in rows:
