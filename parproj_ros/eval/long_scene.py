@@ -18,7 +18,7 @@ import numpy as np
 
 from ..geometry.segmentation import PairSegmentation, SideCamera, segment_pair
 from ..io.scene_import import PIXEL_SIZE, PRINCIPAL_DISTANCE
-from ..rpc import LocalTangentPlane, RPCModel, VirtualGCP, read_rpc, virtual_gcp
+from ..rpc import LocalTangentPlane, RPCError, RPCModel, VirtualGCP, read_rpc, virtual_gcp
 
 
 @dataclass(frozen=True)
@@ -119,8 +119,22 @@ def run(
     bounds: tuple[float, ...] = (1.0, 0.5, 0.3),
     overlap: float = 0.1,
 ) -> dict[str, Any]:
-    """Segment the full-length strips of an RPC pair for each bound; a JSON-ready report."""
-    strip = rpc_strip(read_rpc(left_rpc), read_rpc(right_rpc), width, sum(heights) / 2)
+    """Segment the full-length strips of an RPC pair for each bound; a JSON-ready report.
+
+    Raises:
+        RPCError: an RPC whose denominator vanishes over its scene (named, with where).
+    """
+    models = (read_rpc(left_rpc), read_rpc(right_rpc))
+    for path, m in zip((left_rpc, right_rpc), models, strict=True):
+        # over the whole scene (11 x 11 pixels at 3 heights), before anything localizes
+        g_l, g_s = np.meshgrid(
+            np.linspace(0.0, 2 * m.line_off, 11), np.linspace(0.0, 2 * m.samp_off, 11)
+        )
+        hs = np.linspace(heights[0], heights[1], 3)
+        why = m.image_denominator_check(g_l.ravel()[:, None], g_s.ravel()[:, None], hs)
+        if why is not None:
+            raise RPCError(f"{path}: {why.replace('the image', 'the scene')}: a damaged RPC")
+    strip = rpc_strip(*models, width, sum(heights) / 2)
     gcp = strip.grid(heights, along=241)
     check = strip.grid(heights, along=97, shift=37.0, frame=gcp.frame)
     rows = []

@@ -669,3 +669,28 @@ def test_real_import_prints_no_warning_lines(pair: tuple[Path, Path], tmp_path: 
     assert done.returncode == 0, done.stderr
     assert done.stderr == "", done.stderr
     assert (tmp_path / "o" / "metadata.yaml").is_file()
+
+
+def test_segments_names_a_vanishing_denominator(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``parproj segments`` on a full-scene RPC whose line denominator vanishes in the scene:
+    exit 2 naming the file and the denominator (it used to cut the strip anyway, 6690 px model
+    error, exit 1); an all-zero one used to be '1 of 1 points did not converge'."""
+    full = rpc.read_rpc(DATA / "left_image.geom")
+    right = str(DATA / "right_image.geom")
+    v = full.as_vector()
+    v[12 + 20 : 12 + 40] = 0.0
+    v[12 + 20], v[12 + 21] = 1.0, -1.0 / 0.05  # zero at L = 0.05, inside the scene
+    rpc.write_geom(tmp_path / "den.geom", RPCModel.from_vector(v))
+    v[12 + 20 : 12 + 40] = 0.0
+    rpc.write_geom(tmp_path / "den0.geom", RPCModel.from_vector(v))
+    for name, want in (
+        ("den", r"RPC line denominator changes sign over the scene at line \d+, sample \d+"),
+        ("den0", r"RPC line denominator zero everywhere"),
+    ):
+        capsys.readouterr()
+        assert exit_code(["segments", str(tmp_path / f"{name}.geom"), right]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"parproj segments: {tmp_path / name}.geom: "), err
+        assert len(err.splitlines()) == 1 and re.search(want, err), err
