@@ -70,6 +70,7 @@ __all__ = [
     "frame_of",
     "utm_zone",
     "write_dsm_geotiff",
+    "write_like",
     "write_ortho_geotiff",
     "write_plain_tiff",
 ]
@@ -749,6 +750,59 @@ def write_ortho_geotiff(
                 block = _cast(np.where(ok, v, nodata), img.dtype)
                 dst.write(block, 1, window=((r0, r1), (0, out.width)))
     return crs, out
+
+
+def write_like(
+    path: str | os.PathLike[str],
+    like: str | os.PathLike[str],
+    array: ArrayLike,
+    *,
+    nodata: float | None = None,
+    description: str = "",
+) -> None:
+    """Write one band on the grid and CRS of the GeoTIFF ``like`` (e.g. a DSM's count layer).
+
+    A Cloud Optimized GeoTIFF like the others of this module; the CRS read from ``like`` (a
+    3-D one included: its ellipsoidal height key is written the same way), its geotransform,
+    ``array``'s dtype.
+
+    Raises:
+        ValueError: ``array`` is not of ``like``'s shape, or not an integer or float array.
+    """
+    import rasterio
+    from pyproj import CRS as _CRS
+
+    a = np.asarray(array)
+    with rasterio.open(like) as src:
+        shape, transform = (src.height, src.width), src.transform
+        crs = None if src.crs is None else _CRS.from_wkt(src.crs.to_wkt())
+    if a.shape != shape or a.dtype.kind not in "iuf":
+        raise ValueError(
+            f"need a {shape} integer or float array like {like}, got {a.dtype} {a.shape}"
+        )
+    profile: dict[str, Any] = {
+        "driver": "GTiff",
+        "width": shape[1],
+        "height": shape[0],
+        "count": 1,
+        "dtype": a.dtype.name,
+        "transform": transform,
+        "nodata": nodata,
+        "tiled": True,
+        "blockxsize": TILE,
+        "blockysize": TILE,
+        "BIGTIFF": "IF_SAFER",
+    }
+    if crs is None:
+        raise ValueError(f"{like}: no CRS to write {path} in")
+    from rasterio.crs import CRS as RIO_CRS
+
+    profile["crs"] = RIO_CRS.from_wkt(_written_crs(crs).to_wkt())
+    with _cog(path, profile, crs) as dst:
+        if description:
+            dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=description)
+            dst.set_band_description(1, description)
+        dst.write(a, 1)
 
 
 def write_plain_tiff(

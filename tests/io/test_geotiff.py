@@ -36,6 +36,7 @@ from parproj_ros.io.geotiff import (
     file_crs,
     utm_zone,
     write_dsm_geotiff,
+    write_like,
     write_ortho_geotiff,
     write_plain_tiff,
 )
@@ -366,3 +367,20 @@ def test_geoid_heights_and_compound_crs(tmp_path: Path) -> None:
     assert "EGM96" in tags["PARPROJ_CRS"]
     with pytest.raises(ValueError, match="geodetic anchor"):
         write_dsm_geotiff(tmp_path / "m.tif", z, GRID, "map", geoid=(undulation, 5773))
+
+
+def test_layer_written_like_a_dsm(tmp_path: Path) -> None:
+    """write_like: a uint8 layer on a DSM's grid and 3-D CRS, as a COG, the key in the file."""
+    grid = DsmGrid.covering(-600.0, 600.0, -500.0, 500.0, 2.0)
+    write_dsm_geotiff(tmp_path / "dsm.tif", dsm_of(SURFACES["plane"][0], grid), grid, FID)
+    with rasterio.open(tmp_path / "dsm.tif") as src:
+        shape, t = (src.height, src.width), src.transform
+    count = (np.arange(shape[0] * shape[1]) % 4).astype(np.uint8).reshape(shape)
+    write_like(tmp_path / "count.tif", tmp_path / "dsm.tif", count, nodata=0, description="n")
+    c, crs, t2, _ = read(tmp_path / "count.tif")
+    np.testing.assert_array_equal(c, count)
+    assert t2 == t and crs is not None and crs.equals(read(tmp_path / "dsm.tif")[1])
+    assert geokeys(tmp_path / "count.tif")[4096] == WGS84_3D
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["count.tif", "dsm.tif"]
+    with pytest.raises(ValueError, match="integer or float array like"):
+        write_like(tmp_path / "x.tif", tmp_path / "dsm.tif", count[:-1])
