@@ -646,7 +646,9 @@ def write_dsm_geotiff(
                     h = h - np.asarray(geoid[0](*rep.lonlat), dtype=float)
                 block = np.where(np.isfinite(h), h, nodata).astype(np.float32)
                 dst.write(block, 1, window=((r0, r1), (0, out.width)))
-        dst.set_band_unit(1, "metre")
+        # "m": GDAL stores no unit equal to the name of a vertical CRS unit ("metre"), which the
+        # ellipsoidal-height key then does not give back
+        dst.set_band_unit(1, "m")
     return crs, out
 
 

@@ -99,7 +99,7 @@ def test_real_frame_products(tmp_path: Path, capsys: pytest.CaptureFixture[str])
         h = src.read(1)
         t = src.transform
         crs = CRS.from_wkt(src.crs.to_wkt())
-        assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+        assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and src.units == ("m",)
     assert crs.to_2d().to_epsg() == 32631 and crs.axis_info[2].name == "Ellipsoidal height"
     assert (t.a, t.b, t.d, t.e) == (CELL, 0.0, 0.0, -CELL)
     for corner in (t.c, t.f):  # cell centres on multiples of the cell
