@@ -24,7 +24,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..imaging.fusion import TOLERANCE_M, FusedDsm, fuse
+from ..imaging.fusion import TOLERANCE_M, FusedDsm, fuse, sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..io.files import InputError
 from ..io.geotiff import frame_of, write_dsm_geotiff
@@ -47,21 +47,25 @@ class FuseResult:
         frame_id: the object frame of the inputs and of ``fused``.
         names: the inputs' pair ids (with the bag's name when several bags are given).
         completeness: each input's share of the fused grid's cells with a height (0..1).
+        weights: each input's weight in the mean (1 / a^2, or 1 each).
     """
 
     fused: FusedDsm
     frame_id: str
     names: list[str]
     completeness: list[float]
+    weights: list[float]
 
 
-def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid]]:
-    """(name, frame_id, heights, grid) of every ``dsm`` of the bags, in their order.
+def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]]:
+    """(name, frame_id, heights, grid, a) of every ``dsm`` of the bags, in their order.
+
+    ``a``: the pair's metres of height per pixel of disparity (``height_per_disparity_px``).
 
     Raises:
         BagError: a bag without a ``dsm`` topic.
     """
-    out: list[tuple[str, str, Any, DsmGrid]] = []
+    out: list[tuple[str, str, Any, DsmGrid, float]] = []
     for bag in bags:
         reader = BagReader(bag)
         if "dsm" not in reader.topics():
@@ -72,7 +76,8 @@ def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid]]:
             name = str(m.pair_id) or f"dsm_{len(out)}"
             if len(bags) > 1:
                 name = f"{bag.name}:{name}"
-            out.append((name, str(m.header.frame_id), np.asarray(heights, np.float32), grid))
+            a = float(m.height_per_disparity_px)
+            out.append((name, str(m.header.frame_id), np.asarray(heights, np.float32), grid, a))
     return out
 
 
@@ -83,6 +88,7 @@ def fuse_bags(
     align: bool = True,
     cell_m: float | None = None,
     frame_id: str | None = None,
+    weigh: bool = True,
 ) -> FuseResult:
     """Fuse the DSMs of ``bags`` (module docstring).
 
@@ -93,6 +99,9 @@ def fuse_bags(
         cell_m: output cell side, metres (default: the finest input's).
         frame_id: the frame to take for DSMs labelled with one that is not a tangent plane
             (an imported pair processed before its frame travelled to the outputs: ``map``).
+        weigh: weigh each pair's samples by 1 / a^2 (``a``: its metres of height per pixel of
+            disparity; the matching noise in pixels being alike, its height noise is
+            proportional to ``a``); equal weights otherwise or where an ``a`` is unusable.
 
     Raises:
         NotEnoughDsmsError: fewer than two DSMs in the bags.
@@ -107,7 +116,7 @@ def fuse_bags(
             "one area: import three or more images with --pairs all, then process --heights"
         )
     frames = []
-    for _, f, _, _ in dsms:
+    for _, f, _, _, _ in dsms:
         frames.append(frame_id if frame_id is not None and frame_of(f) is None else f)
     if len(set(frames)) > 1:
         listed = "; ".join(f"{n} in {f!r}" for (n, *_), f in zip(dsms, frames, strict=True))
@@ -116,13 +125,16 @@ def fuse_bags(
             f"DSMs of different object frames cannot be fused ({listed}): import the images "
             "of one area together (one bag, --pairs all)",
         )
-    fused = fuse([(h, g) for _, _, h, g in dsms], tolerance_m=tolerance_m, align=align,
-                 cell=cell_m)  # fmt: skip
+    a = np.array([abs(d[4]) for d in dsms])
+    weights = (
+        [float(v) for v in 1.0 / a**2] if weigh and np.all(np.isfinite(a) & (a > 0)) else None
+    )
+    fused = fuse([(h, g) for _, _, h, g, _ in dsms], tolerance_m=tolerance_m, align=align,
+                 cell=cell_m, weights=weights)  # fmt: skip
     x, y = fused.grid.centres()
-    from ..imaging.fusion import sample_bilinear
-
-    comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for _, _, h, g in dsms]
-    return FuseResult(fused, frames[0], [n for n, *_ in dsms], comp)
+    comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for _, _, h, g, _ in dsms]
+    names = [d[0] for d in dsms]
+    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms))
 
 
 def _matrix(m: Any) -> list[list[float | None]]:
@@ -215,6 +227,7 @@ def export_fused(
             "height": f.grid.height,
         },
         "input_completeness": res.completeness,
+        "weights": [w / max(res.weights) for w in res.weights],
         "completeness": f.completeness,
         "cells_by_count": hist,
         "spread_median_m": float(np.median(spread)) if spread.size else None,

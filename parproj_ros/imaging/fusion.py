@@ -9,8 +9,10 @@ and nothing is extrapolated). Then, per cell:
 1. the median ``m`` of the pairs' samples;
 2. samples farther than ``tolerance_m`` from ``m`` are rejected (blunders, occlusions, a
    mismatched repetitive pattern);
-3. the fused height is the mean of the samples kept; ``count`` is their number and ``spread``
-   their range (max - min, metres; 0 for one sample).
+3. the fused height is the mean of the samples kept (weighted: ``weights``, e.g. 1 / a^2 with
+   ``a`` a pair's metres of height per pixel of disparity, so that a pair of twice the base
+   counts four times); ``count`` is their number and ``spread`` their range (max - min,
+   metres; 0 for one sample).
 
 With an odd number of samples the median is one of them, so a cell with data keeps at least one.
 Two samples farther apart than ``2 tolerance_m`` (and, rarely, an even number of samples that
@@ -263,6 +265,7 @@ def fuse(
     tolerance_m: float = TOLERANCE_M,
     align: bool = True,
     min_weight: float = 0.5,
+    weights: Sequence[float] | None = None,
 ) -> FusedDsm:
     """Fuse the DSMs of one area (one object frame) into one DSM (module docstring).
 
@@ -273,6 +276,10 @@ def fuse(
         tolerance_m: samples farther than this from the per-cell median are rejected, metres.
         align: remove each input's level offset (:func:`level_offsets`) before combining.
         min_weight: see :func:`sample_bilinear`.
+        weights: per input, the weight of its samples in the mean of the kept ones (default:
+            equal). For pairs matched with one matcher, the height noise is the disparity
+            noise (pixels, about the same in every pair) times the pair's metres per pixel of
+            disparity ``a``: ``1 / a^2`` weighs each pair by its precision.
 
     Raises:
         ValueError: fewer than two DSMs, or a tolerance that is not > 0.
@@ -300,9 +307,19 @@ def fuse(
         med = np.nanmedian(stack, axis=0)
     keep = have & (np.abs(stack - med[None]) <= np.float32(tolerance_m))
     count = keep.sum(axis=0)
+    if weights is None:
+        w = np.ones(len(layers), dtype=np.float32)
+    else:
+        w = np.asarray(weights, dtype=np.float32)
+        if w.shape != (len(layers),) or not np.all(np.isfinite(w) & (w > 0)):
+            raise ValueError(f"weights must be {len(layers)} finite values > 0, got {weights}")
+    wk = np.where(keep, w[:, None, None], np.float32(0.0))
     kept = np.where(keep, stack, np.float32(0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
-        fused = np.where(count > 0, kept.sum(axis=0) / np.maximum(count, 1), np.nan)
+        total = wk.sum(axis=0)
+        fused = np.where(
+            count > 0, (wk * kept).sum(axis=0) / np.where(count > 0, total, 1), np.nan
+        )
     fused = fused.astype(np.float32)
     hi = np.where(keep, stack, -np.inf).max(axis=0)
     lo = np.where(keep, stack, np.inf).min(axis=0)

@@ -57,6 +57,7 @@ def test_two_equal_dsms_fuse_to_the_same_heights(
     assert doc["inputs"] == [f"out:{pair}", f"out:{pair}"]
     assert doc["median_before_m"] == [[0.0, 0.0], [0.0, 0.0]]
     assert doc["offsets_m"] == [0.0, 0.0]
+    assert doc["weights"] == [1.0, 1.0]  # 1 / a^2 of one pair, twice
     valid = np.isfinite(heights)
     assert doc["cells_by_count"] == [0, int(valid.sum())]
     assert doc["completeness"] == pytest.approx(valid.mean())

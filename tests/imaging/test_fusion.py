@@ -122,6 +122,13 @@ def test_count_spread_and_split_cells_exact() -> None:
     assert h[5, 5] == pytest.approx(100.1666667, abs=1e-5) and n[5, 5] == 3
     assert s[5, 5] == pytest.approx(2.5)
     assert h[0, 0] == 100.0 and n[0, 0] == 3 and s[0, 0] == 0.0
+    # weights 4 : 1 : 1 (a pair of twice the base): (4 x 99 + 100 + 101.5) / 6
+    res = fuse([(a, g), (b, g), (c, g)], tolerance_m=3.0, align=False, weights=[4.0, 1.0, 1.0])
+    assert res.heights[5, 5] == pytest.approx((4 * 99.0 + 100.0 + 101.5) / 6.0, abs=1e-5)
+    assert res.heights[1, 1] == pytest.approx((4 * 100.0 + 100.5) / 5.0, abs=1e-5)
+    assert res.count[5, 5] == 3 and res.spread[5, 5] == pytest.approx(2.5)
+    with pytest.raises(ValueError, match="weights"):
+        fuse([(a, g), (b, g)], weights=[1.0, 0.0])
 
 
 def test_levels_measured_and_removed() -> None:

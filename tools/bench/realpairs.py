@@ -419,13 +419,14 @@ def run_case(case: Case, work: Path, log: Callable[[str], None]) -> dict[str, An
         if refs:
             rows += score(d, refs, imgs, label=pair_id, also=also)
     if case.pairs_all and len(dsms) >= 2:
-        from parproj_ros.imaging.fusion import fuse
+        from parproj_ros.apps.fuse import fuse_bags
 
-        f = fuse([(d.heights, d.grid) for d in dsms.values()])
-        fid = next(iter(dsms.values())).frame_id
-        fused = FrameDsm(f.heights, f.grid, fid, "fused")
+        fr = fuse_bags([out], frame_id=frame)  # what parproj fuse computes
+        f = fr.fused
+        fused = FrameDsm(f.heights, f.grid, fr.frame_id, "fused")
         res["fusion"] = {
             "pairs": list(dsms),
+            "weights": fr.weights,
             "median_before_m": [[round(float(v), 3) for v in r] for r in f.median_before],
             "median_after_m": [[round(float(v), 3) for v in r] for r in f.median_after],
             "offsets_m": [round(float(v), 3) for v in f.offsets],

@@ -25,6 +25,7 @@ def run(args: argparse.Namespace) -> int:
             tolerance_m=args.tolerance_m,
             align=not args.no_align,
             cell_m=args.cell_m or None,
+            weigh=not args.equal_weights,
         )
     except NotEnoughDsmsError as err:
         print(f"parproj fuse: {err}", file=sys.stderr)
@@ -44,8 +45,8 @@ def run(args: argparse.Namespace) -> int:
     def show(d: dict[str, Any]) -> None:
         names = d["inputs"]
         print(f"{len(names)} DSMs in frame {d['frame_id']}:")
-        for n, c in zip(names, d["input_completeness"], strict=True):
-            print(f"  {n}: {100 * c:.1f} % of the fused grid")
+        for n, c, w in zip(names, d["input_completeness"], d["weights"], strict=True):
+            print(f"  {n}: {100 * c:.1f} % of the fused grid, weight {w:.2f}")
         print("level offsets before fusion (median of row - column over shared cells, m):")
         for line in offsets_table(names, d["median_before_m"]):
             print("  " + line)
@@ -87,6 +88,12 @@ def add_parser(sub: Any) -> None:
         "--no-align",
         action="store_true",
         help="keep each pair's height level (default: remove the pairs' mutual median offsets)",
+    )
+    p.add_argument(
+        "--equal-weights",
+        action="store_true",
+        help="average the kept samples with equal weights (default: each pair weighs 1 / a^2, "
+        "a its metres of height per pixel of disparity)",
     )
     p.add_argument(
         "--cell-m",
