@@ -73,8 +73,9 @@ class SgbmParams:
             ``cv2.STEREO_SGBM_MODE_SGBM`` or ``cv2.STEREO_SGBM_MODE_HH`` (8 paths, much more
             memory).
         lr_check: "flip" (default): a second, right-to-left SGBM pass on both images mirrored
-            and swapped, and the left and right disparities compared; "none": no check (half
-            the time; only partners without data are rejected). OpenCV's own check
+            and swapped, and the left and right disparities compared (where they agree, the
+            disparity is their mean); "none": no check (half the time; only partners without
+            data are rejected). OpenCV's own check
             (``disp12MaxDiff``) is not offered: it removed nothing here that the uniqueness
             test had not removed already.
         lr_tolerance_px: largest |d_left - d_right| of the left-right check, pixels.
@@ -256,6 +257,35 @@ class _Prepared:
         return pix, ok
 
 
+def _average_with_partner(
+    dl: Float32Array, raw_r: NDArray[Any], ok: BoolArray, invalid: int
+) -> Float32Array:
+    """The mean of each left disparity and its partner's right disparity, where both agree.
+
+    The right disparity is interpolated linearly at the partner's position ``x - d`` (not
+    taken at the nearest right pixel): two independent sub-pixel estimates of one parallax,
+    whose mean halves the variance of the matching noise that is not common to both (on the
+    Marseille pair 1-2 against s2p: NMAD 0.85 -> 0.84 m; with 8 paths 0.784 -> 0.774 m).
+
+    Args:
+        dl: left disparities (rows, cols), pixels.
+        raw_r: OpenCV's right disparities of the mirrored pass (16 x pixels), in the right
+            window's columns.
+        ok: the left pixels whose partner passed the left-right check.
+        invalid: OpenCV's code of a right pixel without disparity.
+    """
+    width = dl.shape[1]
+    xr = np.arange(width, dtype=np.float32)[None, :] - dl
+    f0 = np.clip(np.floor(xr).astype(np.int64), 0, width - 2)
+    w = np.clip(xr - f0, 0.0, 1.0).astype(np.float32)
+    rows = np.arange(dl.shape[0])[:, None]
+    r0, r1 = raw_r[rows, f0], raw_r[rows, f0 + 1]
+    both = ok & (r0 != invalid) & (r1 != invalid)
+    partner = ((1.0 - w) * r0 + w * r1) / np.float32(16.0)
+    out: Float32Array = np.where(both, np.float32(0.5) * (dl + partner), dl).astype(np.float32)
+    return out
+
+
 def _match_tile(
     prep: _Prepared,
     matcher: cv2.StereoSGBM,
@@ -301,6 +331,7 @@ def _match_tile(
         lr_ok &= (back != invalid) & (
             np.abs(back.astype(np.float32) / 16.0 - dl) <= params.lr_tolerance_px
         )
+        dl = _average_with_partner(dl, raw_r, lr_ok, invalid)
     code[~lr_ok] = _LR
     code[raw_l == invalid] = _NO_MATCH
     low = _texture(lwin, 2 * params.block_size + 1) < params.min_texture_dn

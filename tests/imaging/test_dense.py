@@ -110,10 +110,16 @@ def test_match_pair_recovers_the_disparity(pair: tuple[np.ndarray, ...]) -> None
     ok = inner & np.isfinite(res.disparity)
     assert ok.sum() >= 0.97 * inner.sum()
     err = res.disparity[ok] - truth[ok]
-    # Sub-pixel: 1/16 px steps, errors well below a pixel.
+    # Sub-pixel: errors well below a pixel.
     assert np.median(np.abs(err)) < 0.2, np.median(np.abs(err))
     assert np.mean(np.abs(err) < 1.0) > 0.99
-    assert np.all(np.isin(np.round(res.disparity[ok] * 16) / 16, res.disparity[ok]))
+    # The left pass alone gives OpenCV's 1/16 px steps; the mean with the right pass (at the
+    # partner) is closer to the truth.
+    one = match_pair(left, right, d_range=(0, 24), params=SgbmParams(lr_check="none"))
+    d1 = one.disparity[ok]
+    assert np.array_equal(np.round(d1[np.isfinite(d1)] * 16) / 16, d1[np.isfinite(d1)])
+    e1 = d1 - truth[ok]
+    assert np.median(np.abs(err)) < 0.98 * np.nanmedian(np.abs(e1))  # 0.088 against 0.091 px
     assert sum(res.counts.values()) == left.size
     assert res.counts["valid"] == int(np.isfinite(res.disparity).sum())
     assert res.d_range[0] == 0 and (res.d_range[1] - res.d_range[0] + 1) % 16 == 0
