@@ -26,6 +26,7 @@ import pytest
 import rasterio
 import tifffile
 from pyproj import CRS, Transformer
+from rio_cogeo.cogeo import cog_validate
 
 from parproj_ros.geometry.geodesy import LocalTangentPlane
 from parproj_ros.imaging.heights import DsmGrid
@@ -313,8 +314,10 @@ def geokeys(path: Path) -> dict[int, int]:
 @pytest.mark.parametrize("kind", ["dsm", "ortho", "map"])
 def test_files_are_cloud_optimized(tmp_path: Path, kind: str) -> None:
     """GDAL's own COG check (IMAGE_STRUCTURE LAYOUT=COG, which its COG driver writes and its
-    reader reports only for a file whose layout is a COG), 256 x 256 tiles, deflate, overviews
-    down to one tile (about 805 cells: levels 2 and 4), the CRS in the file (no .aux.xml)."""
+    reader reports only for a file whose layout is a COG), rio-cogeo's cog_validate (GDAL's
+    validate_cloud_optimized_geotiff.py: IFDs first, tiles in order), 256 x 256 tiles,
+    deflate, overviews down to one tile (about 805 cells: levels 2 and 4), the CRS in the file
+    (no .aux.xml)."""
     z = dsm_of(SURFACES["bump"][0])
     path = tmp_path / f"{kind}.tif"
     if kind == "ortho":
@@ -334,6 +337,7 @@ def test_files_are_cloud_optimized(tmp_path: Path, kind: str) -> None:
         over = src.read(1, out_shape=(1, src.height // 2, src.width // 2))
         assert over.dtype == src.dtypes[0] and np.isfinite(over.astype(float)).mean() > 0.9
     assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+    assert cog_validate(path, quiet=True) == (True, [], [])  # GDAL's validator, ported
     keys = geokeys(path)
     if kind == "map":
         assert 1024 not in keys and keys[3076] == 9001  # no model type (LOCAL_CS), metres
