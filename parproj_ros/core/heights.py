@@ -18,12 +18,14 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from ..imaging.dense import (
     DenseStatus,
     DisparityResult,
+    SgbmParams,
     disparity_range,
     match_pair,
     refine_range,
@@ -34,6 +36,12 @@ from .results import BlockResult, HeightsResult, Issue, Level, Outputs, PairResu
 from .terrain import Terrain, TerrainSource, measure_terrain
 
 Float32Array = NDArray[np.float32]
+
+#: OpenCV SGBM mode of each ``heights_matcher``.
+MATCHER_MODES = {
+    "sgbm_3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "sgbm_8path": cv2.STEREO_SGBM_MODE_HH,
+}
 
 #: Search ranges wider than this share of the image width are first narrowed on a reduced pair.
 REFINE_SHARE = 0.25
@@ -55,6 +63,7 @@ class HeightsOptions:
             images when it does not come measured (parameter ``terrain`` "tie_points").
         prior_m: the heights assumed for a pair that carries none (``z_avg`` +-
             ``height_range``), metres.
+        matcher: OpenCV's SGBM with 3 directions ("sgbm_3way") or 8 paths ("sgbm_8path").
     """
 
     margin_px: float = 8.0
@@ -65,6 +74,7 @@ class HeightsOptions:
     nodata: float = 0.0
     measure_terrain: bool = False
     prior_m: tuple[float, float] = (-500.0, 500.0)
+    matcher: Literal["sgbm_3way", "sgbm_8path"] = "sgbm_3way"
 
 
 def measure_heights(
@@ -132,7 +142,13 @@ def measure_heights(
             rng = narrowed
     tile = int(opt.tile_px)
     res: DisparityResult = match_pair(
-        left, right, d_range=rng, nodata=opt.nodata, tile_rows=tile, tile_cols=tile
+        left,
+        right,
+        d_range=rng,
+        nodata=opt.nodata,
+        tile_rows=tile,
+        tile_cols=tile,
+        params=SgbmParams(mode=MATCHER_MODES[opt.matcher]),
     )
     if res.status != DenseStatus.OK:
         return failed(res.status, res.message, res.d_range)
@@ -183,6 +199,7 @@ def options_of(config: PipelineConfig) -> HeightsOptions:
         fill=config.heights_fill,
         max_fill_cells=config.heights_max_fill_cells,
         tile_px=config.heights_tile_px,
+        matcher=config.heights_matcher,
         nodata=float(config.nodata),
         measure_terrain=config.terrain == "tie_points",
         prior_m=(config.z_avg - config.height_range, config.z_avg + config.height_range),
