@@ -242,6 +242,48 @@ def _spans(n: int, step: int) -> list[tuple[int, int]]:
     return [(s, min(n, s + step)) for s in range(0, n, step)]
 
 
+#: Largest fill distance (cells) done by shifted copies; farther, by a distance transform.
+_SHIFT_FILL_CELLS = 3.0
+
+
+def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
+    """Fill, in place, the NaN cells within ``max_cells`` of a cell with a height.
+
+    Each takes the height of its nearest such cell (Euclidean distance; among equally near
+    ones, the first in a fixed order of offsets). Up to :data:`_SHIFT_FILL_CELLS` by shifted
+    copies of the grid (a handful of array slices), beyond by scipy's exact distance
+    transform. Returns the filled cells.
+    """
+    holes = ~np.isfinite(heights)
+    if max_cells > _SHIFT_FILL_CELLS:
+        from scipy.ndimage import distance_transform_edt
+
+        dist, (ir, ic) = distance_transform_edt(holes, return_indices=True)
+        filled: BoolArray = holes & (dist <= max_cells)
+        heights[filled] = heights[ir[filled], ic[filled]]
+        return filled
+    r = math.floor(max_cells)
+    offsets = sorted(
+        ((dr * dr + dc * dc, dr, dc) for dr in range(-r, r + 1) for dc in range(-r, r + 1)),
+    )
+    src = heights.copy()
+    todo = holes.copy()
+    rows, cols = heights.shape
+    for d2, dr, dc in offsets:
+        if d2 == 0 or d2 > max_cells * max_cells:
+            continue
+        # cell (i, j) takes src[i + dr, j + dc]
+        ti = slice(max(0, -dr), rows - max(0, dr))
+        tj = slice(max(0, -dc), cols - max(0, dc))
+        si = slice(max(0, dr), rows - max(0, -dr))
+        sj = slice(max(0, dc), cols - max(0, -dc))
+        take = todo[ti, tj] & np.isfinite(src[si, sj])
+        heights[ti, tj][take] = src[si, sj][take]
+        todo[ti, tj][take] = False
+    out: BoolArray = holes & ~todo
+    return out
+
+
 def make_dsm(
     disparity: NDArray[np.floating[Any]],
     height_per_disparity_px: float,
@@ -338,12 +380,7 @@ def make_dsm(
     heights = out.reshape(grid.height, grid.width).astype(np.float32)
     filled = np.zeros(heights.shape, dtype=bool)
     if fill == "nearest" and np.isfinite(heights).any():
-        from scipy.ndimage import distance_transform_edt
-
-        holes = ~np.isfinite(heights)
-        dist, (ir, ic) = distance_transform_edt(holes, return_indices=True)
-        filled = holes & (dist <= max_fill_cells)
-        heights[filled] = heights[ir[filled], ic[filled]]
+        filled = _fill_nearest(heights, max_fill_cells)
     return Dsm(
         heights,
         grid,

@@ -304,3 +304,28 @@ def test_full_size_pair_as_the_pipeline_would_call_it() -> None:
     print(f"|a| = {abs(a):.3f} m/px, range {wide} -> {rng}, raw {raw}, filled 1 cell {err}")
     assert err["nmad"] <= abs(a) and raw["nmad"] <= abs(a), (raw, err)
     assert err["completeness"] >= 0.95 and raw["completeness"] >= 0.90, (raw, err)
+
+
+@pytest.mark.parametrize("max_cells", [1.0, 1.5, 2.0, 3.0, 4.0])
+def test_nearest_fill_is_the_distance_transforms(max_cells: float) -> None:
+    """Shifted copies (up to 3 cells) fill the cells the exact distance transform fills, each
+    with the height of a cell at the smallest distance (ties: any of them)."""
+    from scipy.ndimage import distance_transform_edt
+
+    from parproj_ros.imaging.heights import _fill_nearest
+
+    rng = np.random.default_rng(3)
+    h = rng.uniform(0.0, 100.0, (60, 70)).astype(np.float32)
+    h[rng.random(h.shape) < 0.5] = np.nan
+    h[20:30, 20:32] = np.nan  # a large hole: its middle stays empty
+    holes = ~np.isfinite(h)
+    dist = distance_transform_edt(holes)
+    got = h.copy()
+    filled = _fill_nearest(got, max_cells)
+    assert np.array_equal(filled, holes & (dist <= max_cells))
+    assert np.array_equal(got[~holes], h[~holes])
+    known = np.argwhere(~holes)
+    for i, j in np.argwhere(filled):
+        d = np.hypot(*(known - (i, j)).T)
+        near = known[np.isclose(d, d.min())]
+        assert got[i, j] in {float(h[a, b]) for a, b in near}
