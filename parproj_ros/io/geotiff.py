@@ -326,14 +326,21 @@ class _Reprojection:
         self.lonlat = (lon, lat)
         frame = self.frame
         h = np.full(e.shape, frame.h0 + self.z_ref)
+        flat_lon, flat_lat, flat_h = lon.ravel(), lat.ravel(), h.reshape(-1)
+        # Only the cells still moving are iterated: a cell stops once its step is below
+        # HEIGHT_TOL_M, or has no height around it (NaN: its position no longer changes). A cell
+        # on a near-vertical wall (a quarry bench) may have no fixed point and swing for every
+        # round; it alone no longer makes the whole block iterate (Marseille: 1 cell of 55,000).
+        active = np.arange(flat_h.size)
         for _ in range(MAX_ROUNDS):
-            x, y, z = frame.to_local(lon, lat, h)
+            x, y, z = frame.to_local(flat_lon[active], flat_lat[active], flat_h[active])
             total, _, wsum, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
             with np.errstate(invalid="ignore", divide="ignore"):
                 dh = total / wsum - z  # NaN-tolerant (weights of valid neighbours) while iterating
             step = np.isfinite(dh)
-            h = np.where(step, h + np.where(step, dh, 0.0), h)
-            if not step.any() or float(np.max(np.abs(dh[step]))) < HEIGHT_TOL_M:
+            flat_h[active[step]] += dh[step]
+            active = active[step & (np.abs(np.where(step, dh, 0.0)) >= HEIGHT_TOL_M)]
+            if active.size == 0:
                 break
         x, y, z = frame.to_local(lon, lat, h)
         total, ok, _, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
