@@ -28,7 +28,9 @@ Method (../shared/data/marseille_triplet/README.md, "Agreement between the refer
    reference's cells where ours has a height too, which favours neither DSM's holes).
 4. **Statistics** of d = ours - reference over the footprint cells valid in both: median
    (bias), NMAD = 1.4826 median |d - median d|, RMS, 95th percentile of |d|, metres; and the
-   completeness of each (share of footprint cells with a height).
+   completeness of each (share of footprint cells with a height). Besides, the horizontal
+   shift of ours against the reference (:func:`horizontal_shift`: d regressed on the
+   reference's slopes), metres east and north.
 
 Heights of a GeoTIFF are taken as WGS84 ellipsoidal heights (the references' tags and our
 export say so); one whose tags name a geoid is refused unless its undulation is given.
@@ -63,6 +65,7 @@ __all__ = [
     "difference_stats",
     "footprint",
     "frame_dsms_from_bag",
+    "horizontal_shift",
     "import_bag_frame",
     "load_ours",
     "read_geotiff_dsm",
@@ -351,6 +354,64 @@ def difference_stats(d: NDArray[np.floating[Any]]) -> dict[str, float | int]:
     }
 
 
+def horizontal_shift(
+    ours: NDArray[np.floating[Any]],
+    reference: NDArray[np.floating[Any]],
+    cell: float,
+    mask: BoolArray,
+    *,
+    rounds: int = 3,
+) -> dict[str, float | int]:
+    """Horizontal shift of ``ours`` against ``reference`` on one north-up grid, metres.
+
+    If ours(p) = reference(p - s) + dz, then d = ours - reference ~ dz - s . grad(reference)
+    (first order in s). ``(dz, s_e, s_n)`` are fitted by least squares over the cells of
+    ``mask`` valid in both, with slopes from central differences of the reference; cells
+    farther than 3 NMAD from the fit's median residual are left out and the fit is repeated
+    (``rounds`` times). Valid for shifts small against the terrain's curvature (a fraction of a
+    cell to a few cells).
+
+    Returns:
+        ``shift_e_m``, ``shift_n_m`` (where ours lies relative to the reference, metres east
+        and north), ``shift_dz_m`` (metres) and ``shift_cells`` (cells used); NaN and 0 when
+        fewer than 100 cells with a slope are usable.
+    """
+    ref = np.asarray(reference, dtype=float)
+    d = np.asarray(ours, dtype=float) - ref
+    g_row, g_col = np.gradient(ref)
+    de = g_col / cell  # dh / dE, per metre
+    dn = -g_row / cell  # rows run south
+    ok = mask & np.isfinite(d) & np.isfinite(de) & np.isfinite(dn)
+    nan = float("nan")
+    out: dict[str, float | int] = {
+        "shift_e_m": nan,
+        "shift_n_m": nan,
+        "shift_dz_m": nan,
+        "shift_cells": 0,
+    }
+    if ok.sum() < 100:
+        return out
+    dv, ev, nv = d[ok], de[ok], dn[ok]
+    use = np.ones(dv.shape, dtype=bool)
+    sol = np.zeros(3)
+    for _ in range(max(rounds, 1)):
+        a = np.stack([np.ones(int(use.sum())), -ev[use], -nv[use]], axis=1)
+        sol, *_ = np.linalg.lstsq(a, dv[use], rcond=None)
+        res = dv - (sol[0] - sol[1] * ev - sol[2] * nv)
+        m = float(np.median(res))
+        spread = 1.4826 * float(np.median(np.abs(res - m)))
+        use = np.abs(res - m) <= 3.0 * max(spread, 1e-6)
+        if use.sum() < 100:
+            return out
+    out.update(
+        shift_e_m=float(sol[1]),
+        shift_n_m=float(sol[2]),
+        shift_dz_m=float(sol[0]),
+        shift_cells=int(use.sum()),
+    )
+    return out
+
+
 @dataclass(frozen=True)
 class Comparison:
     """Ours - reference on one map grid over a footprint.
@@ -394,9 +455,16 @@ class Comparison:
     def line(self) -> str:
         """One line for a person."""
         s = self.stats
+        sh = self.extra
+        shift = (
+            f"; shift E {sh['shift_e_m']:+.2f} m, N {sh['shift_n_m']:+.2f} m"
+            if math.isfinite(float(sh.get("shift_e_m", float("nan"))))
+            else ""
+        )
         return (
             f"{self.ours} - {self.reference}: median {s['median']:+.2f} m, NMAD {s['nmad']:.2f} "
-            f"m, RMS {s['rms']:.2f} m, p95 |d| {s['p95_abs']:.2f} m over {s['cells']} cells; "
+            f"m, RMS {s['rms']:.2f} m, p95 |d| {s['p95_abs']:.2f} m over {s['cells']} cells"
+            f"{shift}; "
             f"completeness {100 * self.completeness:.1f} % (reference "
             f"{100 * self.reference_completeness:.1f} %) of {self.footprint_cells} footprint "
             f"cells ({self.footprint})"
@@ -441,7 +509,8 @@ def compare(
     stats = difference_stats(d)
     comp = float(np.isfinite(mine[fp]).mean()) if n else 0.0
     rcomp = float(np.isfinite(ref[fp]).mean()) if n else 0.0
-    return Comparison(ours.name, reference.name, stats, n, how, comp, rcomp, g)
+    shift = horizontal_shift(mine, ref, g.cell, fp)
+    return Comparison(ours.name, reference.name, stats, n, how, comp, rcomp, g, shift)
 
 
 def load_ours(

@@ -207,3 +207,23 @@ def test_marseille_references_reproduce_the_readme() -> None:
     assert res.footprint_cells == pytest.approx(1_017_090, abs=200)
     assert res.completeness == pytest.approx(0.906, abs=0.001)
     assert res.reference_completeness == pytest.approx(0.967, abs=0.001)
+
+
+def test_horizontal_shift_recovered(tmp_path: Path) -> None:
+    """Ours = the hills moved 0.30 m east and 0.20 m south, 0.5 m up: the shift comes back."""
+    rows, cols = 240, 240
+    e, n = centres(E0, N0, rows, cols)
+
+    def hills(ee: np.ndarray, nn: np.ndarray) -> np.ndarray:
+        return 100.0 + 5.0 * np.sin((ee - E0) / 9.0) * np.cos((nn - N0) / 11.0)
+
+    ref_path = write_dsm(tmp_path / "ref.tif", hills(e, n), E0, N0)
+    ours_path = write_dsm(tmp_path / "ours.tif", hills(e - 0.30, n + 0.20) + 0.5, E0, N0)
+    res = compare(read_geotiff_dsm(ours_path), read_geotiff_dsm(ref_path))
+    # first order in the shift: the curvature of 9-11 m hills leaves a few cm
+    assert res.extra["shift_e_m"] == pytest.approx(0.30, abs=0.03)
+    assert res.extra["shift_n_m"] == pytest.approx(-0.20, abs=0.03)
+    assert res.extra["shift_dz_m"] == pytest.approx(0.5, abs=0.03)
+    same = compare(read_geotiff_dsm(ref_path), read_geotiff_dsm(ref_path))
+    assert abs(same.extra["shift_e_m"]) < 1e-9 and abs(same.extra["shift_n_m"]) < 1e-9
+    assert "shift E +0.3" in res.line()

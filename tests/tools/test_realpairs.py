@@ -50,6 +50,7 @@ def test_score_on_one_grid_and_footprint() -> None:
     assert {r["footprint_cells"] for r in rows} == {fp}
     assert by["ours", "s2p_x"]["median"] == pytest.approx(0.3, abs=1e-4)
     assert by["ours", "s2p_x"]["nmad"] < 1e-4
+    assert abs(by["ours", "s2p_x"]["shift_e_m"]) < 1e-3  # same surface, same place
     assert by["ours", "s2p_x"]["completeness"] == pytest.approx(0.75, abs=0.02)
     assert by["ours", "cars_x"]["median"] == pytest.approx(0.2, abs=0.01)
     assert by["ours", "cars_x"]["nmad"] == pytest.approx(0.05, abs=0.01)

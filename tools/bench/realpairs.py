@@ -13,7 +13,8 @@ against the s2p and CARS references of the same images, and the fused DSM agains
 s2p_dsm_123 / cars_dsm_123, with :mod:`parproj_ros.eval.dsm_compare`: one grid (the s2p
 reference's), one footprint per case (cells whose ground point projects inside every image of
 the case through its RPC, as the data's README scores the references), median, NMAD, RMS,
-p95 |d| of ours - reference, and completeness (share of footprint cells with a height). Our
+p95 |d| of ours - reference, completeness (share of footprint cells with a height) and the
+horizontal shift of ours (regression of d on the reference's slopes, metres E, N). Our
 DSM is read from the output bag (ElevationGrid in its tangent-plane frame, converted exactly);
 where ``parproj dsm`` wrote a GeoTIFF with a CRS, that file is scored too (its median must
 agree with the bag's: same surface, another path). Beside them, the references' own agreement
@@ -478,8 +479,8 @@ def markdown(doc: dict[str, Any]) -> str:
         f"{doc.get('machine', '')}",
         "",
         "| case | DSM | vs | median m | NMAD m | RMS m | p95 abs m | cells | complete % "
-        "| ref complete % |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| ref complete % | shift E, N m |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case in doc["cases"]:
         for r in case.get("rows", []):
@@ -487,7 +488,8 @@ def markdown(doc: dict[str, Any]) -> str:
                 f"| {case['case']} | {r['dsm']} | {r['vs']} | {_f(r['median'], '+.2f')} "
                 f"| {_f(r['nmad'], '.2f')} | {_f(r['rms'], '.2f')} | {_f(r['p95_abs'], '.2f')} "
                 f"| {r['cells']} | {_f(100 * r['completeness'], '.1f')} "
-                f"| {_f(100 * r['reference_completeness'], '.1f')} |"
+                f"| {_f(100 * r['reference_completeness'], '.1f')} "
+                f"| {_f(r.get('shift_e_m'), '+.2f')}, {_f(r.get('shift_n_m'), '+.2f')} |"
             )
         if case.get("errors"):
             for step, tail in case["errors"].items():
