@@ -118,3 +118,42 @@ def test_bare_sgbm_time_is_finite() -> None:
     right = np.roll(left, -4, axis=1)
     t = realpairs.bare_sgbm_s(left, right, (-8, 8))
     assert math.isfinite(t) and t > 0
+
+
+def test_done_when_verdicts() -> None:
+    def row(dsm: str, vs: str, nmad: float, comp: float, median: float = 0.0) -> dict[str, Any]:
+        return {"dsm": dsm, "vs": vs, "nmad": nmad, "completeness": comp, "median": median,
+                "shift_e_m": 0.1, "shift_n_m": -0.1, "rms": 1.0, "p95_abs": 2.0, "cells": 9,
+                "reference_completeness": 0.9}  # fmt: skip
+
+    doc: dict[str, Any] = {
+        "cases": [
+            {
+                "case": "marseille_12",
+                "rows": [
+                    row("left+right", "s2p_dsm_12", 0.70, 0.95),
+                    row("left+right (GeoTIFF)", "s2p_dsm_12", 0.70, 0.94, 0.6),
+                ],
+                "speed": {"ratio": 2.0},
+            },
+            {
+                "case": "marseille_123",
+                "rows": [
+                    row("fused", "s2p_dsm_123", 0.52, 0.99),
+                    row("img_01+img_02", "s2p_dsm_123", 0.84, 0.987, -0.05),
+                    row("img_01+img_03", "s2p_dsm_123", 0.57, 0.972, 0.60),
+                    row("img_01+img_02", "s2p_dsm_12", 0.5, 0.999, 2.4),  # another reference
+                ],
+            },
+        ]
+    }
+    got = {crit: (value, met) for crit, value, _, met in realpairs.verdicts(doc)}
+    assert got["marseille_12: NMAD vs s2p"] == ("0.70 m", True)
+    assert got["marseille_12: completeness"] == ("95.0 %", True)
+    # median 0.6 m is off by more than 0.5 m; the 0.14 m shift is within half a cell
+    assert got["marseille_12: GeoTIFF lands on s2p"] == ("median +0.60 m, shift 0.14 m", False)
+    assert got["marseille_12: heights step / bare SGBM"] == ("2.00", False)
+    assert got["marseille_123: fused completeness vs best pair"] == ("99.0 %", True)
+    assert got["marseille_123: fused NMAD vs best pair (s2p_dsm_123)"] == ("0.52 m", True)
+    assert got["marseille_123: pair levels agree"] == ("0.65 m", False)
+    assert "| marseille_12: completeness | 95.0 % | >= 90 % | yes |" in markdown(doc)

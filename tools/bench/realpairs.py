@@ -470,6 +470,116 @@ def _f(v: Any, fmt: str) -> str:
     return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, fmt)
 
 
+#: The issue's "Done when" bounds: NMAD vs s2p at most s2p vs CARS on pair 1-2 (README), metres;
+#: completeness; the triplet pairs' levels; the GeoTIFF's level and shift against s2p (half a
+#: cell); the heights step against one bare SGBM pass.
+BOUNDS = {
+    "nmad_m": 0.77,
+    "completeness": 0.90,
+    "pair_levels_m": 0.5,
+    "geotiff_median_m": 0.5,
+    "geotiff_shift_m": 0.25,
+    "heights_over_sgbm": 1.25,
+}
+
+
+def _row(case: dict[str, Any], dsm: str, vs_prefix: str) -> dict[str, Any] | None:
+    for r in case.get("rows", []):
+        if r["dsm"] == dsm and str(r["vs"]).startswith(vs_prefix):
+            return dict(r)
+    return None
+
+
+def verdicts(doc: dict[str, Any]) -> list[tuple[str, str, str, bool]]:
+    """(criterion, measured, bound, met) of the issue's "Done when" items this run measures."""
+    out: list[tuple[str, str, str, bool]] = []
+    b = BOUNDS
+    for case in doc["cases"]:
+        name = case["case"]
+        if name in ("marseille_12", "marseille_13", "marseille_23"):
+            r = _row(case, "left+right", "s2p")
+            if r is None:
+                out.append((f"{name}: a DSM", "none", "a DSM", False))
+                continue
+            out.append(
+                (
+                    f"{name}: NMAD vs s2p",
+                    f"{r['nmad']:.2f} m",
+                    f"<= {b['nmad_m']} m",
+                    r["nmad"] <= b["nmad_m"],
+                )
+            )
+            out.append(
+                (
+                    f"{name}: completeness",
+                    f"{100 * r['completeness']:.1f} %",
+                    f">= {100 * b['completeness']:.0f} %",
+                    r["completeness"] >= b["completeness"],
+                )
+            )
+            t = _row(case, "left+right (GeoTIFF)", "s2p")
+            if t is not None:
+                shift = math.hypot(t.get("shift_e_m", math.nan), t.get("shift_n_m", math.nan))
+                ok = abs(t["median"]) < b["geotiff_median_m"] and shift < b["geotiff_shift_m"]
+                out.append(
+                    (
+                        f"{name}: GeoTIFF lands on s2p",
+                        f"median {t['median']:+.2f} m, shift {shift:.2f} m",
+                        f"< {b['geotiff_median_m']} m, < {b['geotiff_shift_m']} m",
+                        ok,
+                    )
+                )
+        if name == "marseille_123":
+            fused = _row(case, "fused", "s2p")
+            pairs = [
+                r
+                for r in case.get("rows", [])
+                if "+" in r["dsm"] and "(" not in r["dsm"] and str(r["vs"]) == "s2p_dsm_123"
+            ]
+            if fused is None or not pairs:
+                out.append((f"{name}: fused DSM", "none", "a fused DSM", False))
+                continue
+            best_c = max(r["completeness"] for r in pairs)
+            best_n = min(r["nmad"] for r in pairs)
+            out.append(
+                (
+                    f"{name}: fused completeness vs best pair",
+                    f"{100 * fused['completeness']:.1f} %",
+                    f">= {100 * best_c:.1f} %",
+                    fused["completeness"] >= best_c,
+                )
+            )
+            out.append(
+                (
+                    f"{name}: fused NMAD vs best pair (s2p_dsm_123)",
+                    f"{fused['nmad']:.2f} m",
+                    f"<= {best_n:.2f} m",
+                    fused["nmad"] <= best_n,
+                )
+            )
+            meds = [r["median"] for r in pairs]
+            span = max(meds) - min(meds)
+            out.append(
+                (
+                    f"{name}: pair levels agree",
+                    f"{span:.2f} m",
+                    f"<= {b['pair_levels_m']} m",
+                    span <= b["pair_levels_m"],
+                )
+            )
+        sp = case.get("speed", {})
+        if sp.get("ratio") is not None:
+            out.append(
+                (
+                    f"{name}: heights step / bare SGBM",
+                    f"{sp['ratio']:.2f}",
+                    f"<= {b['heights_over_sgbm']}",
+                    sp["ratio"] <= b["heights_over_sgbm"],
+                )
+            )
+    return out
+
+
 def markdown(doc: dict[str, Any]) -> str:
     """The results as markdown tables (accuracy, then speed)."""
     g = doc.get("git", {})
@@ -520,6 +630,9 @@ def markdown(doc: dict[str, Any]) -> str:
                 if j > i
             )
             lines += ["", f"{case['case']}: pair level offsets before fusion (m): {offs}"]
+    lines += ["", "| Done when | measured | bound | met |", "|---|---|---|---|"]
+    for crit, value, bound, met in verdicts(doc):
+        lines.append(f"| {crit} | {value} | {bound} | {'yes' if met else 'NO'} |")
     return "\n".join(lines) + "\n"
 
 
