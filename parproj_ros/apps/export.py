@@ -45,6 +45,22 @@ from ..rpc import HeightFunction
 MIN_VALID_FRACTION = 0.01
 
 
+def heights_made(msg: Any) -> dict[str, Any]:
+    """How a DSM's heights were made, from its ElevationGrid.
+
+    The terrain searched (metres in the object frame) and where it came from, the disparity
+    range (pixels) and the share of pixels matched.
+    """
+    return {
+        "terrain_min_m": float(msg.terrain_min_m),
+        "terrain_max_m": float(msg.terrain_max_m),
+        "terrain_source": str(msg.terrain_source) or "unknown",
+        "terrain_points": int(msg.terrain_points),
+        "disparity_range_px": [int(msg.disparity_min), int(msg.disparity_max)],
+        "matched_share": round(float(msg.matched_share), 4),
+    }
+
+
 class NoHeightsError(Exception):
     """The bag holds no DSM to export (no dsm topic, or no message on it): exit 1."""
 
@@ -117,8 +133,16 @@ def export_dsms(
                 )
         if dem is not None:
             surface = enu_dem_surface(frame, dem)
+        made = heights_made(m)
+        row["heights"] = made
         crs, out_grid = write_dsm_geotiff(
-            folder / f"{name}_dsm.tif", heights, grid, frame, target=target, geoid=geoid
+            folder / f"{name}_dsm.tif",
+            heights,
+            grid,
+            frame,
+            target=target,
+            geoid=geoid,
+            tags={f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()},
         )
         files = [f"{name}_dsm.tif"]
         if ortho is not None:

@@ -46,7 +46,7 @@ import math
 import os
 import struct
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -601,6 +601,7 @@ def write_dsm_geotiff(
     nodata: float = math.nan,
     resolution: float | None = None,
     geoid: Geoid | None = None,
+    tags: Mapping[str, str] | None = None,
 ) -> tuple[CRS, DsmGrid]:
     """Write a DSM as a float32 Cloud Optimized GeoTIFF in the CRS of its frame.
 
@@ -620,6 +621,7 @@ def write_dsm_geotiff(
         resolution: output cell side, map metres (default: ``grid.cell``).
         geoid: (N(lon, lat) metres, EPSG code of its vertical CRS): heights written above that
             geoid (tangent-plane frames only).
+        tags: further dataset tags (e.g. how the heights were made).
 
     Returns:
         (crs, grid) of the file: :func:`file_crs` and the grid in its horizontal metres.
@@ -633,7 +635,7 @@ def write_dsm_geotiff(
     crs = file_crs(frame_id, target=target, geoid_epsg=None if geoid is None else geoid[1])
     profile = _profile(out, np.dtype(np.float32), crs, nodata)
     with _cog(path, profile, crs) as dst:
-        dst.update_tags(**_tags(frame_id, crs, target, "DSM"))
+        dst.update_tags(**_tags(frame_id, crs, target, "DSM"), **dict(tags or {}))
         if frame is None:
             dst.set_band_description(1, f"height Z in frame {frame_id}, metres")
             dst.update_tags(1, HEIGHT="Z in the local frame, metres")

@@ -66,6 +66,9 @@ def dsm_bag(path: Path, dsms: list[tuple[str, np.ndarray[Any, Any]]], frame: str
             m.header.stamp.sec = 1_700_000_000 + k
             m.pair_id = pair
             m.x0, m.y0, m.cell_size = -75.0, 60.0, CELL
+            m.terrain_min_m, m.terrain_max_m = -12.5, 31.0
+            m.terrain_source, m.terrain_points = "tie_points", 381
+            m.disparity_min, m.disparity_max, m.matched_share = -20, 35, 0.93
             m.heights = array_to_image(z.astype(np.float32), Image(), frame_id=frame, stamp_ns=T0)
             ortho = (np.arange(z.size).reshape(z.shape) % 4000 + 1).astype(np.uint16)
             ortho[~np.isfinite(z)] = 0
@@ -94,12 +97,26 @@ def test_real_frame_products(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     assert rc == 0
     (row,) = json.loads(out)["pairs"]
     assert row["status"] == "written" and row["crs"] == "EPSG:32631 + ellipsoidal height (WGS 84)"
+    # How the heights were made travels from the message to dsm.json and the file's tags.
+    made = {
+        "terrain_min_m": -12.5,
+        "terrain_max_m": 31.0,
+        "terrain_source": "tie_points",
+        "terrain_points": 381,
+        "disparity_range_px": [-20, 35],
+        "matched_share": 0.93,
+    }
+    assert row["heights"] == made
     dsm, ortho = tmp_path / "d" / "left_right_dsm.tif", tmp_path / "d" / "left_right_ortho.tif"
     with rasterio.open(dsm) as src:
         h = src.read(1)
         t = src.transform
         crs = CRS.from_wkt(src.crs.to_wkt())
         assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG" and src.units == ("m",)
+        tags = src.tags()
+        assert tags["PARPROJ_TERRAIN_SOURCE"] == "tie_points"
+        assert float(tags["PARPROJ_TERRAIN_MIN_M"]) == -12.5
+        assert tags["PARPROJ_TERRAIN_POINTS"] == "381"
     assert crs.to_2d().to_epsg() == 32631 and crs.axis_info[2].name == "Ellipsoidal height"
     assert (t.a, t.b, t.d, t.e) == (CELL, 0.0, 0.0, -CELL)
     for corner in (t.c, t.f):  # cell centres on multiples of the cell
