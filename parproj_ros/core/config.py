@@ -10,7 +10,7 @@ from the table:
   the units) and builds its :class:`PipelineConfig` with :func:`config_from_values`;
 - ``parproj process`` has one option per row marked ``offline`` (the name with dashes, the same
   range and default);
-- the README's Parameters table is :func:`parameters_markdown` and ``config/parproj_node.yaml``
+- docs/node.md's Parameters table is :func:`parameters_markdown` and ``config/parproj_node.yaml``
   (every parameter at its default, for ``--params-file``) is :func:`parameters_yaml`;
   tests/core/test_params.py fails when either file differs. ``python -m
   parproj_ros.core.config --write .`` (from the repository) rewrites both.
@@ -488,8 +488,8 @@ PARAMS: tuple[Param, ...] = (
         "only if the start-up memory, the raw data held (line buffers, queued strips) or one raw "
         "pair for each pair in flight (admitted, not yet published) and the new one, and the "
         "working set (learnt from the memory held) fit in it less 5 % headroom; otherwise every "
-        "strip of both its scenes is shed, counted and reported on /diagnostics (README, "
-        "Overload). It must hold "
+        "strip of both its scenes is shed, counted and reported on /diagnostics "
+        "(docs/performance.md, Overload). It must hold "
         "two pairs in flight (consecutive pairs overlap), or pairs are shed at any rate (the WARN "
         "names the least budget that would); 6144 MB: 3 IKONOS-size pairs (737 MB each) in flight "
         "with the 3.3 GB peak measured at that size",
@@ -513,9 +513,10 @@ PARAMS: tuple[Param, ...] = (
         "memory touched at start so that the first pairs do not pay for first touches: this "
         "many MB of heap kept for messages, strips and blocks, plus, when > 0, two line "
         "buffers of scene_lines x detectors x 2 bytes per view; on the project's VMs a page "
-        "touched for the first time costs 2.2 ms per MB against 0.05 once resident (README, "
-        "At the full IKONOS rate). -1: two raw pairs of the configured scenes (scene_lines x "
-        "detectors x 2 bytes, both views, twice: 1476 MB for IKONOS-size scenes), 0 when "
+        "touched for the first time costs 2.2 ms per MB against 0.05 once resident "
+        "(docs/performance.md, At the full IKONOS rate). -1: two raw pairs of the configured "
+        "scenes (scene_lines x detectors x 2 bytes, both views, twice: 1476 MB for IKONOS-size "
+        "scenes), 0 when "
         "scene_lines is 0; 0: off, memory as needed",
         unit="MB",
         low=-1.0,
@@ -860,7 +861,7 @@ def _all_params() -> list[tuple[str, Param]]:
 
 
 def parameters_markdown() -> str:
-    """The README's Parameters table (markdown, ends with a newline)."""
+    """docs/node.md's Parameters table (markdown, ends with a newline)."""
     rows = [
         "| parameter | type | default | unit | range | `process` option | meaning |",
         "|---|---|---|---|---|---|---|",
@@ -948,7 +949,9 @@ def default_values() -> dict[str, Any]:
     return out
 
 
-#: README markers around the generated table.
+#: The page that holds the generated Parameters table, relative to the repository.
+NODE_DOC = "docs/node.md"
+#: Markers around the generated table in :data:`NODE_DOC`.
 README_BEGIN = (
     "<!-- parameters: generated from parproj_ros/core/config.py (parameters_markdown) -->"
 )
@@ -965,7 +968,7 @@ def readme_with_table(readme: str) -> str:
     """
     begin, end = readme.find(README_BEGIN), readme.find(README_END)
     if readme.count(README_BEGIN) != 1 or readme.count(README_END) != 1 or end < begin:
-        raise ValueError(f"the README needs the lines {README_BEGIN!r} and {README_END!r}")
+        raise ValueError(f"{NODE_DOC} needs the lines {README_BEGIN!r} and {README_END!r}")
     head = readme[: begin + len(README_BEGIN)]
     return f"{head}\n{parameters_markdown()}{readme[end:]}"
 
@@ -976,13 +979,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--write",
         metavar="REPO",
-        help="rewrite REPO/README.md's table and REPO/config/parproj_node.yaml",
+        help="rewrite REPO/docs/node.md's table and REPO/config/parproj_node.yaml",
     )
     parser.add_argument("--yaml", action="store_true", help="print the parameters file")
     args = parser.parse_args(argv)
     if args.write:
         repo = Path(args.write)
-        readme = repo / "README.md"
+        readme = repo / NODE_DOC
         readme.write_text(readme_with_table(readme.read_text()))
         (repo / PARAMS_FILE).parent.mkdir(exist_ok=True)
         (repo / PARAMS_FILE).write_text(parameters_yaml())

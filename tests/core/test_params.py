@@ -1,6 +1,6 @@
 """The one parameter table (parproj_ros/core/config.py), what is generated from it or must agree.
 
-The README's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
+docs/node.md's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
 has a field per row that fills one, with the table's default; ``parproj process`` has an option
 per offline row with the same default and range; setup.cfg and package.xml list what the code
 imports. The live half (the node started with config/parproj_node.yaml) is in
@@ -35,11 +35,11 @@ BAG = ROOT / "bags" / "ikonos_agile"
 
 
 def test_readme_table_is_the_rendered_one() -> None:
-    readme = (ROOT / "README.md").read_text()
+    readme = (ROOT / config.NODE_DOC).read_text()
     begin = readme.index(config.README_BEGIN) + len(config.README_BEGIN) + 1
     end = readme.index(config.README_END)
     assert readme[begin:end] == config.parameters_markdown(), (
-        "README's Parameters table differs from parproj_ros/core/config.py: "
+        f"{config.NODE_DOC}'s Parameters table differs from parproj_ros/core/config.py: "
         "run `python -m parproj_ros.core.config --write .`"
     )
 
@@ -82,11 +82,12 @@ def test_params_file_comments_give_unit_and_range() -> None:
 
 
 def test_readme_says_how_to_regenerate(tmp_path: Path) -> None:
-    (tmp_path / "README.md").write_text(
+    (tmp_path / "docs").mkdir()
+    (tmp_path / config.NODE_DOC).write_text(
         f"x\n{config.README_BEGIN}\nold table\n{config.README_END}\ny\n"
     )
     assert config.main(["--write", str(tmp_path)]) == 0
-    text = (tmp_path / "README.md").read_text()
+    text = (tmp_path / config.NODE_DOC).read_text()
     assert (
         text == f"x\n{config.README_BEGIN}\n{config.parameters_markdown()}{config.README_END}\ny\n"
     )
