@@ -1,12 +1,13 @@
 """``parproj fuse``: the DSMs of several pairs of one area fused into one DSM, as GeoTIFF.
 
 Reads every ``dsm`` ElevationGrid of the output bags given (``parproj process --heights`` on a
-bag of three or more images imported with ``--pairs all``, or several bags of one area), all in
-one object frame, measures the pairs' mutual level offsets, and fuses them
-(:func:`parproj_ros.imaging.fusion.fuse`: per cell the mean of the samples within a tolerance of
-their median, after removing each pair's level offset). Writes, on the grid of a pair's DSM
-export (:mod:`parproj_ros.io.geotiff`: the UTM zone of a tangent-plane frame with WGS84
-ellipsoidal heights, or the frame as it is):
+bag of three or more images imported with ``--pairs all``, or several bags of one area; DSMs
+of different tangent-plane frames, pairs imported one by one, are brought exactly into the
+first one's frame, :func:`parproj_ros.imaging.fusion.reframe`), measures the pairs' mutual
+level offsets, and fuses them (:func:`parproj_ros.imaging.fusion.fuse`: per cell the mean of
+the samples within a tolerance of their median, after removing each pair's level offset).
+Writes, on the grid of a pair's DSM export (:mod:`parproj_ros.io.geotiff`: the UTM zone of a
+tangent-plane frame with WGS84 ellipsoidal heights, or the frame as it is):
 
 * ``fused_dsm.tif``: the fused heights (float32, NaN holes);
 * ``fused_count.tif``: samples kept per cell (uint8, 0 = none);
@@ -24,7 +25,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ..imaging.fusion import TOLERANCE_M, FusedDsm, fuse, sample_bilinear
+from ..imaging.fusion import TOLERANCE_M, FusedDsm, frame_box, fuse, reframe, sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..io.files import InputError
 from ..io.geotiff import frame_of, write_dsm_geotiff
@@ -48,6 +49,7 @@ class FuseResult:
         names: the inputs' pair ids (with the bag's name when several bags are given).
         completeness: each input's share of the fused grid's cells with a height (0..1).
         weights: each input's weight in the mean (1 / a^2, or 1 each).
+        notes: what was done besides the fusion (frames converted).
     """
 
     fused: FusedDsm
@@ -55,6 +57,7 @@ class FuseResult:
     names: list[str]
     completeness: list[float]
     weights: list[float]
+    notes: list[str]
 
 
 def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]]:
@@ -66,7 +69,10 @@ def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]
         BagError: a bag without a ``dsm`` topic.
     """
     out: list[tuple[str, str, Any, DsmGrid, float]] = []
-    for bag in bags:
+    labels = [b.name for b in bags]
+    if len(set(labels)) < len(labels):  # out/, out/, out/ of three folders: name the folders
+        labels = [f"{b.parent.name}/{b.name}" for b in bags]
+    for bag, label in zip(bags, labels, strict=True):
         reader = BagReader(bag)
         if "dsm" not in reader.topics():
             raise BagError("no dsm topic: process the bag with --heights", bag)
@@ -75,7 +81,7 @@ def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]
             heights, grid, _ = elevation_grid_from_msg(m)
             name = str(m.pair_id) or f"dsm_{len(out)}"
             if len(bags) > 1:
-                name = f"{bag.name}:{name}"
+                name = f"{label}:{name}"
             a = float(m.height_per_disparity_px)
             out.append((name, str(m.header.frame_id), np.asarray(heights, np.float32), grid, a))
     return out
@@ -118,23 +124,50 @@ def fuse_bags(
     frames = []
     for _, f, _, _, _ in dsms:
         frames.append(frame_id if frame_id is not None and frame_of(f) is None else f)
+    planes = [frame_of(f) for f in frames]
+    inputs = [(h, g) for _, _, h, g, _ in dsms]
+    grid: DsmGrid | None = None
+    notes: list[str] = []
     if len(set(frames)) > 1:
-        listed = "; ".join(f"{n} in {f!r}" for (n, *_), f in zip(dsms, frames, strict=True))
-        raise InputError(
-            str(bags[0]),
-            f"DSMs of different object frames cannot be fused ({listed}): import the images "
-            "of one area together (one bag, --pairs all)",
+        if any(p is None for p in planes):
+            listed = "; ".join(f"{n} in {f!r}" for (n, *_), f in zip(dsms, frames, strict=True))
+            raise InputError(
+                str(bags[0]),
+                f"DSMs of different object frames cannot be fused ({listed}): only tangent "
+                "planes on WGS84 (imported pairs) can be brought into one frame",
+            )
+        dst = planes[0]
+        assert dst is not None
+        cell = cell_m or min(g.cell for _, g in inputs)
+        boxes = [frame_box(h, g, p, dst) for (h, g), p in zip(inputs, planes, strict=True) if p]
+        grid = DsmGrid.covering(
+            min(b[0] for b in boxes),
+            max(b[1] for b in boxes),
+            min(b[2] for b in boxes),
+            max(b[3] for b in boxes),
+            cell,
+        )
+        moved = []
+        for (h, g), f, p in zip(inputs, frames, planes, strict=True):
+            if f != frames[0] and p is not None:
+                moved.append((reframe(h, g, p, dst, grid), grid))
+            else:
+                moved.append((h, g))
+        inputs = moved
+        notes.append(
+            f"DSMs of {len(set(frames))} object frames: all brought into {frames[0]} "
+            "(exact conversion through WGS84)"
         )
     a = np.array([abs(d[4]) for d in dsms])
     weights = (
         [float(v) for v in 1.0 / a**2] if weigh and np.all(np.isfinite(a) & (a > 0)) else None
     )
-    fused = fuse([(h, g) for _, _, h, g, _ in dsms], tolerance_m=tolerance_m, align=align,
-                 cell=cell_m, weights=weights)  # fmt: skip
+    fused = fuse(inputs, tolerance_m=tolerance_m, align=align, cell=cell_m, grid=grid,
+                 weights=weights)  # fmt: skip
     x, y = fused.grid.centres()
-    comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for _, _, h, g, _ in dsms]
+    comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for h, g in inputs]
     names = [d[0] for d in dsms]
-    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms))
+    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms), notes)
 
 
 def _matrix(m: Any) -> list[list[float | None]]:
@@ -228,6 +261,7 @@ def export_fused(
         },
         "input_completeness": res.completeness,
         "weights": [w / max(res.weights) for w in res.weights],
+        "notes": res.notes,
         "completeness": f.completeness,
         "cells_by_count": hist,
         "spread_median_m": float(np.median(spread)) if spread.size else None,

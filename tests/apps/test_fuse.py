@@ -54,7 +54,9 @@ def test_two_equal_dsms_fuse_to_the_same_heights(
     capsys.readouterr()
     assert main(["fuse", str(out_bag), str(out_bag), "-o", str(dst), "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    assert doc["inputs"] == [f"out:{pair}", f"out:{pair}"]
+    # two bags of one name: named with their folder
+    label = f"{out_bag.parent.name}/out:{pair}"
+    assert doc["inputs"] == [label, label]
     assert doc["median_before_m"] == [[0.0, 0.0], [0.0, 0.0]]
     assert doc["offsets_m"] == [0.0, 0.0]
     assert doc["weights"] == [1.0, 1.0]  # 1 / a^2 of one pair, twice

@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
 
     def show(d: dict[str, Any]) -> None:
         names = d["inputs"]
+        for note in d.get("notes", []):
+            print(note)
         print(f"{len(names)} DSMs in frame {d['frame_id']}:")
         for n, c, w in zip(names, d["input_completeness"], d["weights"], strict=True):
             print(f"  {n}: {100 * c:.1f} % of the fused grid, weight {w:.2f}")
