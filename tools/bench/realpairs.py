@@ -20,6 +20,11 @@ where ``parproj dsm`` wrote a GeoTIFF with a CRS, that file is scored too (its m
 agree with the bag's: same surface, another path). Beside them, the references' own agreement
 (s2p vs CARS on the same images), computed in the same run on the same grid and footprint.
 
+After the three pair cases, ``parproj fuse`` of their three output bags (pairs imported one by
+one: three frames, three levels) is timed and scored like the triplet's fused DSM
+(``marseille_pairs_fused``). The report ends with the issue's "Done when" bounds, each with
+the figure measured (:func:`verdicts`).
+
 Ventoux has no reference DSM: its DSM is scored against the SRTM tile (90 m, geoid heights +
 50 m undulation, the bags' README): a coarse check of level and completeness only.
 
