@@ -28,7 +28,7 @@ import numpy as np
 from ..imaging.fusion import TOLERANCE_M, FusedDsm, frame_box, fuse, reframe, sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..io.files import InputError
-from ..io.geotiff import frame_of, write_dsm_geotiff
+from ..io.geotiff import frame_of, write_dsm_geotiff, write_like
 from ..ros.bag import BagError, BagReader
 from ..ros.conversions import elevation_grid_from_msg
 
@@ -188,7 +188,6 @@ def _layers_on_export(
     import rasterio
 
     with rasterio.open(dsm_path) as src:
-        profile = src.profile.copy()
         h = src.read(1).astype(float)
         transform = src.transform
         crs = src.crs
@@ -218,13 +217,14 @@ def _layers_on_export(
             good = rows >= 0
             out = np.full(h.shape, nodata, dtype=v.dtype)
             out[good] = v[rows[good], cols[good]]
-        prof = {**profile, "dtype": v.dtype.name, "nodata": nodata,
-                "predictor": 3 if v.dtype.kind == "f" else 2}  # fmt: skip
-        # written in place: the folder is staged as a whole (a 3-D CRS may add an .aux.xml)
-        with rasterio.open(dsm_path.with_name(name), "w", **prof) as dst:
-            dst.write(out, 1)
-            dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=f"parproj_ros fused DSM layer {name}",
-                            PARPROJ_SOURCE_FRAME=frame_id)  # fmt: skip
+        # a COG on the DSM file's grid and CRS, like the DSM
+        write_like(
+            dsm_path.with_name(name),
+            dsm_path,
+            out,
+            nodata=nodata,
+            description=f"parproj_ros fused DSM layer {name} (frame {frame_id})",
+        )
 
 
 def export_fused(
