@@ -12,7 +12,9 @@ tangent-plane frame with WGS84 ellipsoidal heights, or the frame as it is):
 * ``fused_dsm.tif``: the fused heights (float32, NaN holes);
 * ``fused_count.tif``: samples kept per cell (uint8, 0 = none);
 * ``fused_spread.tif``: max - min of the samples kept, metres (float32, NaN holes);
-* ``fuse.json``: the inputs, offsets before and after, and the figures printed.
+* ``fuse.json``: the inputs, offsets before and after, and the figures printed;
+* ``bag/``: the fused DSM as a ``dsm`` ElevationGrid (pair id ``fused``), as a pair's DSM is
+  published: ``parproj dsm DIR/bag -o ...`` exports it like one.
 """
 
 from __future__ import annotations
@@ -30,9 +32,17 @@ from ..imaging.heights import DsmGrid
 from ..io.files import InputError
 from ..io.geotiff import frame_of, write_dsm_geotiff, write_like
 from ..ros.bag import BagError, BagReader
-from ..ros.conversions import elevation_grid_from_msg
+from ..ros.conversions import array_to_image, elevation_grid_from_msg, stamp_to_ns
 
-__all__ = ["FuseResult", "NotEnoughDsmsError", "export_fused", "fuse_bags", "read_dsms"]
+__all__ = [
+    "FuseResult",
+    "NotEnoughDsmsError",
+    "PairDsm",
+    "export_fused",
+    "fuse_bags",
+    "read_dsms",
+    "write_fused_bag",
+]
 
 
 class NotEnoughDsmsError(Exception):
@@ -50,6 +60,7 @@ class FuseResult:
         completeness: each input's share of the fused grid's cells with a height (0..1).
         weights: each input's weight in the mean (1 / a^2, or 1 each).
         notes: what was done besides the fusion (frames converted).
+        stamp_ns: the latest input DSM's stamp, nanoseconds (the fused DSM's).
     """
 
     fused: FusedDsm
@@ -58,17 +69,37 @@ class FuseResult:
     completeness: list[float]
     weights: list[float]
     notes: list[str]
+    stamp_ns: int = 0
 
 
-def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]]:
-    """(name, frame_id, heights, grid, a) of every ``dsm`` of the bags, in their order.
+@dataclass(frozen=True)
+class PairDsm:
+    """One ``dsm`` ElevationGrid of an output bag.
 
-    ``a``: the pair's metres of height per pixel of disparity (``height_per_disparity_px``).
+    Attributes:
+        name: the pair id (``<bag>:<pair id>`` when several bags are read).
+        frame_id: its object frame.
+        heights: Z metres in the frame, float32, NaN holes.
+        grid: its cells.
+        a: the pair's metres of height per pixel of disparity (``height_per_disparity_px``).
+        stamp_ns: the message's stamp, nanoseconds.
+    """
+
+    name: str
+    frame_id: str
+    heights: Any
+    grid: DsmGrid
+    a: float
+    stamp_ns: int
+
+
+def read_dsms(bags: Sequence[Path]) -> list[PairDsm]:
+    """Every ``dsm`` of the bags, in their order.
 
     Raises:
         BagError: a bag without a ``dsm`` topic.
     """
-    out: list[tuple[str, str, Any, DsmGrid, float]] = []
+    out: list[PairDsm] = []
     labels = [b.name for b in bags]
     if len(set(labels)) < len(labels):  # out/, out/, out/ of three folders: name the folders
         labels = [f"{b.parent.name}/{b.name}" for b in bags]
@@ -82,8 +113,16 @@ def read_dsms(bags: Sequence[Path]) -> list[tuple[str, str, Any, DsmGrid, float]
             name = str(m.pair_id) or f"dsm_{len(out)}"
             if len(bags) > 1:
                 name = f"{label}:{name}"
-            a = float(m.height_per_disparity_px)
-            out.append((name, str(m.header.frame_id), np.asarray(heights, np.float32), grid, a))
+            out.append(
+                PairDsm(
+                    name,
+                    str(m.header.frame_id),
+                    np.asarray(heights, np.float32),
+                    grid,
+                    float(m.height_per_disparity_px),
+                    stamp_to_ns(m.header.stamp),
+                )
+            )
     return out
 
 
@@ -115,22 +154,23 @@ def fuse_bags(
     """
     dsms = read_dsms(bags)
     if len(dsms) < 2:
-        found = ", ".join(n for n, *_ in dsms) or "none"
+        found = ", ".join(d.name for d in dsms) or "none"
         raise NotEnoughDsmsError(
             f"fewer than two DSMs to fuse (found {len(dsms)}: {found}) in "
             f"{', '.join(str(b) for b in bags)}; fuse needs the DSMs of two or more pairs of "
             "one area: import three or more images with --pairs all, then process --heights"
         )
     frames = []
-    for _, f, _, _, _ in dsms:
+    for d in dsms:
+        f = d.frame_id
         frames.append(frame_id if frame_id is not None and frame_of(f) is None else f)
     planes = [frame_of(f) for f in frames]
-    inputs = [(h, g) for _, _, h, g, _ in dsms]
+    inputs = [(d.heights, d.grid) for d in dsms]
     grid: DsmGrid | None = None
     notes: list[str] = []
     if len(set(frames)) > 1:
         if any(p is None for p in planes):
-            listed = "; ".join(f"{n} in {f!r}" for (n, *_), f in zip(dsms, frames, strict=True))
+            listed = "; ".join(f"{d.name} in {f!r}" for d, f in zip(dsms, frames, strict=True))
             raise InputError(
                 str(bags[0]),
                 f"DSMs of different object frames cannot be fused ({listed}): only tangent "
@@ -158,7 +198,7 @@ def fuse_bags(
             f"DSMs of {len(set(frames))} object frames: all brought into {frames[0]} "
             "(exact conversion through WGS84)"
         )
-    a = np.array([abs(d[4]) for d in dsms])
+    a = np.array([abs(d.a) for d in dsms])
     weights = (
         [float(v) for v in 1.0 / a**2] if weigh and np.all(np.isfinite(a) & (a > 0)) else None
     )
@@ -166,8 +206,9 @@ def fuse_bags(
                  weights=weights)  # fmt: skip
     x, y = fused.grid.centres()
     comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for h, g in inputs]
-    names = [d[0] for d in dsms]
-    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms), notes)
+    names = [d.name for d in dsms]
+    stamp = max(d.stamp_ns for d in dsms)
+    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms), notes, stamp)
 
 
 def _matrix(m: Any) -> list[list[float | None]]:
@@ -227,6 +268,41 @@ def _layers_on_export(
         )
 
 
+#: Pair id of the fused DSM's ElevationGrid.
+FUSED_ID = "fused"
+
+
+def write_fused_bag(res: FuseResult, path: Path) -> None:
+    """The fused DSM as a ``dsm`` parproj_msgs/ElevationGrid in a bag, like a pair's DSM.
+
+    ``parproj dsm`` exports it like a pair's (``fused_dsm.tif``); the pair fields that do not
+    apply to a fusion (disparity range, matched share, height relation, terrain searched) stay
+    0 / empty; ``filled_cells`` 0, ``completeness`` the share of cells with a height.
+    """
+    from parproj_msgs.msg import ElevationGrid
+    from sensor_msgs.msg import Image
+
+    from ..ros.bag import BagWriter
+    from ..ros.conversions import ns_to_stamp
+
+    f = res.fused
+    m = ElevationGrid()
+    ns_to_stamp(res.stamp_ns, m.header.stamp)
+    m.header.frame_id = res.frame_id
+    m.pair_id = FUSED_ID
+    m.x0, m.y0, m.cell_size = float(f.grid.x0), float(f.grid.y0), float(f.grid.cell)
+    m.heights = array_to_image(
+        np.ascontiguousarray(f.heights, dtype=np.float32),
+        Image(),
+        frame_id=res.frame_id,
+        stamp_ns=res.stamp_ns,
+    )
+    m.completeness = float(f.completeness)
+    with BagWriter(path) as bw:
+        bw.add_topic("dsm", "parproj_msgs/msg/ElevationGrid", "reliable")
+        bw.write("dsm", m, res.stamp_ns)
+
+
 def export_fused(
     res: FuseResult, folder: Path, *, target: Literal["utm", "local"] = "utm"
 ) -> dict[str, Any]:
@@ -235,6 +311,7 @@ def export_fused(
     crs, out = write_dsm_geotiff(
         folder / "fused_dsm.tif", f.heights, f.grid, res.frame_id, target=target
     )
+    write_fused_bag(res, folder / "bag")
     _layers_on_export(
         folder / "fused_dsm.tif",
         {"fused_count.tif": (f.count, 0), "fused_spread.tif": (f.spread, float("nan"))},
@@ -271,7 +348,7 @@ def export_fused(
         "median_before_m": _matrix(f.median_before),
         "median_after_m": _matrix(f.median_after),
         "shared_cells": f.shared_cells.tolist(),
-        "files": ["fused_dsm.tif", "fused_count.tif", "fused_spread.tif", "fuse.json"],
+        "files": ["fused_dsm.tif", "fused_count.tif", "fused_spread.tif", "fuse.json", "bag"],
     }
 
 

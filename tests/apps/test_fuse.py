@@ -75,3 +75,29 @@ def test_two_equal_dsms_fuse_to_the_same_heights(
     with rasterio.open(dst / "fused_spread.tif") as src:
         spread = src.read(1)
     assert np.all(spread[valid] == 0.0) and np.all(np.isnan(spread[~valid]))
+
+
+def test_fused_bag_exports_like_a_pair(
+    out_bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """DIR/bag holds the fused DSM as a 'dsm' ElevationGrid; parproj dsm exports it as a pair's."""
+    dst = tmp_path / "f"
+    assert main(["fuse", str(out_bag), str(out_bag), "-o", str(dst)]) == 0
+    (m,) = [i.msg for i in BagReader(dst / "bag").messages(topics=["dsm"])]
+    src = next(i.msg for i in BagReader(out_bag).messages(topics=["dsm"]))
+    assert m.pair_id == "fused" and m.header.frame_id == src.header.frame_id
+    assert (m.header.stamp.sec, m.header.stamp.nanosec) == (
+        src.header.stamp.sec,
+        src.header.stamp.nanosec,
+    )
+    heights, grid, ortho = elevation_grid_from_msg(m)
+    src_heights, src_grid, _ = elevation_grid_from_msg(src)
+    assert grid == src_grid  # the same DSM twice: its own grid, its own heights
+    assert np.allclose(heights, src_heights, rtol=1e-6, atol=1e-6, equal_nan=True)
+    with rasterio.open(dst / "fused_dsm.tif") as f:
+        fused_tif = f.read(1)
+    assert ortho is None and m.completeness == pytest.approx(np.isfinite(heights).mean())
+    capsys.readouterr()
+    assert main(["dsm", str(dst / "bag"), "-o", str(tmp_path / "d")]) == 0
+    with rasterio.open(tmp_path / "d" / "fused_dsm.tif") as f:
+        assert np.array_equal(f.read(1), fused_tif, equal_nan=True)
