@@ -78,7 +78,12 @@ def add_parser(sub: Any) -> None:
         "fuse",
         help="fuse the pair DSMs of one area (output bags of process --heights) into one DSM",
     )
-    p.add_argument("output_bags", nargs="+", help="output bag(s) with a dsm topic, one frame")
+    p.add_argument(
+        "output_bags",
+        nargs="+",
+        help="output bag(s) with a dsm topic, of one area (DSMs of other tangent-plane frames "
+        "are brought into the first one's)",
+    )
     p.add_argument("-o", "--output", required=True, help="folder to create")
     p.add_argument(
         "--tolerance-m",
