@@ -147,7 +147,18 @@ def test_done_when_verdicts() -> None:
             },
         ]
     }
+    doc["bags"] = [
+        {"bag": "airborne_foreaft", "seconds": {"process": 1.0, "dsm": 2.0},
+         "dsms": [{"pair_id": "l+r", "vs": "truth", "nmad": 0.03, "rms": 0.04,
+                   "completeness": 0.968, "cells_with_height": 500}]},
+        {"bag": "crab_foreaft", "seconds": {"process": 1.0}, "errors": {"dsm": "x"}},
+    ]  # fmt: skip
     got = {crit: (value, met) for crit, value, _, met in realpairs.verdicts(doc)}
+    assert got["bag airborne_foreaft: a DSM"] == ("1 DSM, 500 cells", True)
+    assert got["bag crab_foreaft: a DSM"] == ("0 DSM, 0 cells", False)
+    text = markdown(doc)
+    assert "| airborne_foreaft | l+r | truth | 0.030 | 0.040 | 96.8 | 1.0 | 2.0 |" in text
+    assert "| crab_foreaft | no DSM | - | - | - | - | 1.0 | - |" in text
     assert got["marseille_12: NMAD vs s2p"] == ("0.70 m", True)
     assert got["marseille_12: completeness"] == ("95.0 %", True)
     # median 0.6 m is off by more than 0.5 m; the 0.14 m shift is within half a cell

@@ -25,6 +25,9 @@ one: three frames, three levels) is timed and scored like the triplet's fused DS
 (``marseille_pairs_fused``). The report ends with the issue's "Done when" bounds, each with
 the figure measured (:func:`verdicts`).
 
+The bundled bags (``bags/``) are processed too (``process --heights`` and ``dsm``, no height
+option): a simulated bag's DSM against its scenario's terrain, the Ventoux bag's against SRTM.
+
 Ventoux has no reference DSM: its DSM is scored against the SRTM tile (90 m, geoid heights +
 50 m undulation, the bags' README): a coarse check of level and completeness only.
 
@@ -381,6 +384,61 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     return res
 
 
+#: The bundled bags (bags/README.md): each processed with --heights and no height option.
+BAGS = ("airborne_foreaft", "crab_foreaft", "ikonos_agile", "ventoux")
+
+
+def run_bag_case(name: str, work: Path, log: Callable[[str], None]) -> dict[str, Any]:
+    """``process --heights`` and ``dsm`` on a bundled bag; its DSM against the truth.
+
+    The truth: a simulated bag's terrain (its scenario, rebuilt from its seed:
+    :func:`parproj_ros.eval.heights.scenario_terrain`), scored by
+    :func:`~parproj_ros.eval.heights.dsm_accuracy` (completeness over the convex hull of the
+    DSM's cells); the Ventoux bag's SRTM tile (+ 50 m undulation), a coarse check.
+    """
+    from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
+
+    log(f"bag {name}:")
+    bag = ROOT / "bags" / name
+    out, dsm_dir = work / "out", work / "dsm"
+    res: dict[str, Any] = {"bag": name, "seconds": {}, "exit": {}}
+    for step, args in (
+        ("process", ["process", str(bag), "-o", str(out), "--heights", "-q", "--force"]),
+        ("dsm", ["dsm", str(out), "-o", str(dsm_dir), "--force"]),
+    ):
+        dt, rc, tail = run_step(args, log)
+        res["seconds"][step], res["exit"][step] = dt, rc
+        if rc != 0:
+            res.setdefault("errors", {})[step] = tail
+            if step == "process":
+                return res
+    try:
+        dsms = frame_dsms_from_bag(out)
+    except ValueError as err:
+        res.setdefault("errors", {})["dsm"] = str(err)
+        return res
+    res["dsms"] = []
+    truth = scenario_terrain(name)
+    for d in dsms:
+        row: dict[str, Any] = {
+            "pair_id": d.name,
+            "cells_with_height": int(np.isfinite(d.heights).sum()),
+        }
+        if truth is not None:
+            acc = dsm_accuracy(d.heights, d.grid, truth)
+            row.update(vs="truth", nmad=acc["nmad"], rms=acc["rms"],
+                       median=acc.get("mean"), completeness=acc["completeness"])  # fmt: skip
+        elif name == "ventoux":
+            ref = srtm_reference(VENTOUX / "dem" / "N44E005.hgt", d, VENTOUX_UNDULATION_M)
+            c = compare(d, ref, images=CASES["ventoux"].images)
+            row.update(vs=ref.name, nmad=c.stats["nmad"], rms=c.stats["rms"],
+                       median=c.stats["median"], completeness=c.completeness)  # fmt: skip
+        res["dsms"].append(row)
+        log(f"  {d.name}: {row.get('vs', '-')}: NMAD {row.get('nmad', math.nan):.3f} m, "
+            f"completeness {100 * row.get('completeness', math.nan):.1f} %")  # fmt: skip
+    return res
+
+
 #: The pair cases whose separately imported DSMs are fused (``parproj fuse`` of three bags).
 SEPARATE = ("marseille_12", "marseille_13", "marseille_23")
 
@@ -545,6 +603,17 @@ def verdicts(doc: dict[str, Any]) -> list[tuple[str, str, str, bool]]:
     """(criterion, measured, bound, met) of the issue's "Done when" items this run measures."""
     out: list[tuple[str, str, str, bool]] = []
     b = BOUNDS
+    for bag in doc.get("bags", []):
+        n = len(bag.get("dsms") or [])
+        cells = sum(r["cells_with_height"] for r in bag.get("dsms") or [])
+        out.append(
+            (
+                f"bag {bag['bag']}: a DSM",
+                f"{n} DSM, {cells} cells",
+                ">= 1 DSM",
+                n >= 1 and cells > 0,
+            )
+        )
     for case in doc["cases"]:
         name = case["case"]
         if name in ("marseille_12", "marseille_13", "marseille_23"):
@@ -683,6 +752,21 @@ def markdown(doc: dict[str, Any]) -> str:
                 if j > i
             )
             lines += ["", f"{case['case']}: pair level offsets before fusion (m): {offs}"]
+    if doc.get("bags"):
+        lines += [
+            "",
+            "| bundled bag | pair | vs | NMAD m | RMS m | complete % | process s | dsm s |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        for b in doc["bags"]:
+            s = b.get("seconds", {})
+            for r in b.get("dsms") or [{"pair_id": "no DSM"}]:
+                lines.append(
+                    f"| {b['bag']} | {r['pair_id']} | {r.get('vs', '-')} "
+                    f"| {_f(r.get('nmad'), '.3f')} | {_f(r.get('rms'), '.3f')} "
+                    f"| {_f(100 * r['completeness'] if 'completeness' in r else None, '.1f')} "
+                    f"| {_f(s.get('process'), '.1f')} | {_f(s.get('dsm'), '.1f')} |"
+                )
     lines += ["", "| Done when | measured | bound | met |", "|---|---|---|---|"]
     for crit, value, bound, met in verdicts(doc):
         lines.append(f"| {crit} | {value} | {bound} | {'yes' if met else 'NO'} |")
@@ -693,6 +777,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the cases; print the markdown tables (or JSON); exit 1 if a case made no DSM."""
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--bags", nargs="*", default=list(BAGS), choices=list(BAGS),
+                    help="bundled bags to process (none: --bags with no name)")  # fmt: skip
     ap.add_argument("--json", action="store_true", help="print one JSON document")
     ap.add_argument("-o", "--output", help="also write the report (markdown, or JSON) here")
     ap.add_argument("--keep", help="folder for the bags and DSMs (default: a temporary one)")
@@ -718,11 +804,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         done = {c["case"] for c in doc["cases"] if c.get("rows")}
         if set(SEPARATE) <= done:
             doc["cases"].append(run_separate_fusion(base, log))
+        doc["bags"] = []
+        for name in args.bags:
+            work = base / f"bag_{name}"
+            work.mkdir(parents=True, exist_ok=True)
+            doc["bags"].append(run_bag_case(name, work, log))
     text = json.dumps(doc, indent=1, default=float) if args.json else markdown(doc)
     print(text)
     if args.output:
         Path(args.output).write_text(text)
     failed = [c["case"] for c in doc["cases"] if not c.get("rows")]
+    failed += [f"bag {b['bag']}" for b in doc["bags"] if not b.get("dsms")]
     if failed:
         print(f"realpairs: no DSM scored for {', '.join(failed)}", file=sys.stderr)
         return 1
