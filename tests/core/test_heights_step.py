@@ -112,3 +112,32 @@ def test_bad_cases_get_a_status_and_a_warning(
     assert np.isnan(res.height).all()
     (iss,) = issues
     assert iss.level == Level.WARN and str(status) in iss.message
+
+
+def test_terrain_not_measured_keeps_the_prior_with_a_warn(pair: dict[str, Any]) -> None:
+    """Images without texture give no tie points: the heights searched stay the pair's own
+    (its GCP's), and a WARN says so and what to try; measured on the real images instead."""
+    from parproj_ros.core.heights import HeightsStage
+    from parproj_ros.core.terrain import Terrain, TerrainSource
+
+    p = pair["pair"]
+    gcp = Terrain(-40.0, 140.0, TerrainSource.GCP)
+    p = dataclasses.replace(p, terrain=gcp)
+    stage = HeightsStage(HeightsOptions(measure_terrain=True))
+    flat = np.full_like(p.left_image, 1000)
+    terrain, issues = stage.pair_terrain(p, flat, flat)
+    assert terrain is gcp
+    (warn,) = issues
+    assert warn.level == Level.WARN and warn.where == f"pair {p.pair_id}"
+    assert "too few tie points agree to measure the terrain" in warn.message
+    assert "terrain -40..140 m from the pair's GCP" in warn.message
+    assert "give a DEM at import, or set z_avg / height_range" in warn.message
+    measured, issues = stage.pair_terrain(p, p.left_image, p.right_image)
+    assert issues == [] and measured.source == TerrainSource.TIE_POINTS
+    # the measured terrain holds the pair's ground: searching it gives the full DSM
+    res, _ = measure_heights(p, p.left_image, p.right_image, measured)
+    assert res.ok and res.terrain is measured
+    acc = dsm_accuracy(res.dsm.heights, res.dsm.grid, pair["terrain"].height, res.dsm.filled)
+    assert acc["nmad"] <= abs(p.height_per_disparity_px) and acc["completeness"] >= 0.95, acc
+    # not asked: the pair's own, without a word
+    assert HeightsStage(HeightsOptions()).pair_terrain(p, flat, flat) == (gcp, [])
