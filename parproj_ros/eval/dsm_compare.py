@@ -80,6 +80,9 @@ BoolArray = NDArray[np.bool_]
 #: that ends them early.
 MAX_ROUNDS = 8
 HEIGHT_TOL_M = 1e-6
+#: Largest horizontal shift :func:`horizontal_shift` reports, cells (its first-order fit holds
+#: for a few cells; beyond, e.g. a DSM against a 90 m DEM, it reports none).
+MAX_SHIFT_CELLS = 4.0
 #: Rows of the map grid converted at once (bounds the working memory).
 BLOCK_ROWS = 512
 
@@ -374,7 +377,8 @@ def horizontal_shift(
     Returns:
         ``shift_e_m``, ``shift_n_m`` (where ours lies relative to the reference, metres east
         and north), ``shift_dz_m`` (metres) and ``shift_cells`` (cells used); NaN and 0 when
-        fewer than 100 cells with a slope are usable.
+        fewer than 100 cells with a slope are usable, or when the fit gives a shift beyond
+        :data:`MAX_SHIFT_CELLS` (outside the range where the first-order model holds).
     """
     ref = np.asarray(reference, dtype=float)
     d = np.asarray(ours, dtype=float) - ref
@@ -403,6 +407,8 @@ def horizontal_shift(
         use = np.abs(res - m) <= 3.0 * max(spread, 1e-6)
         if use.sum() < 100:
             return out
+    if math.hypot(float(sol[1]), float(sol[2])) > MAX_SHIFT_CELLS * cell:
+        return out  # beyond the first-order range: not a measurement (e.g. against a coarse DEM)
     out.update(
         shift_e_m=float(sol[1]),
         shift_n_m=float(sol[2]),

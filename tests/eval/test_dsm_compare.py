@@ -227,3 +227,18 @@ def test_horizontal_shift_recovered(tmp_path: Path) -> None:
     same = compare(read_geotiff_dsm(ref_path), read_geotiff_dsm(ref_path))
     assert abs(same.extra["shift_e_m"]) < 1e-9 and abs(same.extra["shift_n_m"]) < 1e-9
     assert "shift E +0.3" in res.line()
+
+
+def test_shift_beyond_the_linear_range_is_not_reported(tmp_path: Path) -> None:
+    """A DSM 20 m off against 9-11 m hills: no first-order fit; no shift is reported."""
+    rows, cols = 200, 200
+    e, n = centres(E0, N0, rows, cols)
+
+    def hills(ee: np.ndarray, nn: np.ndarray) -> np.ndarray:
+        return 100.0 + 5.0 * np.sin((ee - E0) / 9.0) * np.cos((nn - N0) / 11.0)
+
+    ref = write_dsm(tmp_path / "ref.tif", hills(e, n), E0, N0)
+    ours = write_dsm(tmp_path / "ours.tif", hills(e - 20.0, n), E0, N0)
+    res = compare(read_geotiff_dsm(ours), read_geotiff_dsm(ref))
+    assert math.isnan(res.extra["shift_e_m"]) and res.extra["shift_cells"] == 0
+    assert "shift" not in res.line()
