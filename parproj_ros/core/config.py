@@ -378,6 +378,18 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "heights_fuse_mb",
+        "double",
+        512.0,
+        "DSMs of earlier pairs kept to fuse each new pair's DSM with those it overlaps (topic "
+        "dsm_fused: per cell the weighted mean of the samples near their median, after the "
+        "pairs' level offsets); oldest dropped first; 0 = no fusion",
+        unit="MB",
+        low=0.0,
+        high=1.0e6,
+        offline=True,
+    ),
+    _p(
         "heights_tile_px",
         "integer",
         1024,
@@ -691,6 +703,7 @@ class PipelineConfig:
     heights_fill: Literal["none", "nearest"] = _default("heights_fill")
     heights_max_fill_cells: float = _default("heights_max_fill_cells")
     heights_tile_px: int = _default("heights_tile_px")
+    heights_fuse_mb: float = _default("heights_fuse_mb")
     heights_matcher: Literal["sgbm_3way", "sgbm_8path"] = _default("heights_matcher")
     nav_jump_s: float = _default("nav_jump_s")
     nav_position_tolerance_m: float = _default("nav_position_tolerance_m")

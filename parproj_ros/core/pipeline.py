@@ -14,7 +14,9 @@ call into a focused module, and :meth:`Pipeline._process_scene` reads as those s
 5. refine: tie points remove the y-parallax left (:mod:`parproj_ros.core.tiepoints`);
 6. publish: the :class:`Outputs` returned;
 7. heights (``heights`` on): disparity, heights, DSM and ortho-image of every finished pair
-   (:class:`~parproj_ros.core.heights.HeightsStage`, applied to what each public call returns).
+   (:class:`~parproj_ros.core.heights.HeightsStage`, applied to what each public call returns);
+8. fuse (``heights`` on): each pair's DSM with those of the earlier pairs it overlaps
+   (:class:`~parproj_ros.core.fusion.FusionStage`).
 
 Navigation (its holds and pruning) is :class:`~parproj_ros.core.navigation.NavigationFeed`, GCP
 memory :class:`~parproj_ros.core.gcp_store.GcpStore`; streaming (two views, normalized blocks
@@ -33,6 +35,7 @@ from numpy.typing import NDArray
 from ..imaging.assembly import Scene, SceneAssembler, SceneEnd, StripRejectedError
 from .config import PipelineConfig as PipelineConfig
 from .config import ViewConfig as ViewConfig
+from .fusion import FusionStage
 from .gcp_store import GcpStore
 from .heights import HeightsStage, options_of
 from .navigation import NavigationFeed
@@ -97,6 +100,11 @@ class Pipeline:
         )
         self.pairs_done = 0
         self.heights = HeightsStage(options_of(config)) if config.heights else None
+        self.fusion = (
+            FusionStage(config.heights_fuse_mb)
+            if config.heights and config.heights_fuse_mb > 0
+            else None
+        )
 
     def use_render_process(self, renderer: RenderProcess) -> None:
         """Render streamed blocks in ``renderer``'s process; line buffers in its shared memory.
@@ -132,8 +140,14 @@ class Pipeline:
         self.streamer.block_sink = keep_and_sink
 
     def _step7(self, out: Outputs) -> Outputs:
-        """7. heights of the pairs ``out`` finishes (``heights`` on); ``out`` itself."""
-        return out if self.heights is None else self.heights(out)
+        """7. heights of the pairs ``out`` finishes (``heights`` on); ``out`` itself.
+
+        And 8.: their DSMs fused with those of the earlier pairs they overlap.
+        """
+        if self.heights is None:
+            return out
+        out = self.heights(out)
+        return out if self.fusion is None else self.fusion(out)
 
     @property
     def nav(self) -> TrajectoryBuffer:

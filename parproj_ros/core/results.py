@@ -29,6 +29,7 @@ from ..geometry import (
 )
 from ..imaging.assembly import Scene, SceneEnd
 from ..imaging.dense import DenseStatus
+from ..imaging.fusion import FusedDsm
 from ..imaging.heights import Dsm
 from ..imaging.resample import OutputGrid, SceneGeometry
 from .terrain import Terrain
@@ -351,6 +352,26 @@ class HeightsResult:
         return self.status == DenseStatus.OK and self.dsm is not None
 
 
+@dataclass(frozen=True)
+class FusedResult:
+    """The DSMs of overlapping pairs fused into one (:mod:`~parproj_ros.core.fusion`).
+
+    Attributes:
+        pair_ids: the pairs fused, oldest first.
+        stamp_ns: the stamp of the newest pair, nanoseconds.
+        fused: the fused heights, count and spread layers, grid and level offsets.
+    """
+
+    pair_ids: tuple[str, ...]
+    stamp_ns: int
+    fused: FusedDsm
+
+    @property
+    def name(self) -> str:
+        """The message's ``pair_id``: ``fused:`` and the pair ids joined by commas."""
+        return "fused:" + ",".join(self.pair_ids)
+
+
 @dataclass
 class Outputs:
     """What one call of the pipeline produced."""
@@ -360,6 +381,7 @@ class Outputs:
     issues: list[Issue] = field(default_factory=list)
     blocks: list[BlockResult] = field(default_factory=list)
     heights: list[HeightsResult] = field(default_factory=list)
+    fused: list[FusedResult] = field(default_factory=list)
 
     def extend(self, other: Outputs) -> None:
         """Append another call's outputs."""
@@ -368,3 +390,4 @@ class Outputs:
         self.issues += other.issues
         self.blocks += other.blocks
         self.heights += other.heights
+        self.fused += other.fused

@@ -410,6 +410,8 @@ def outputs_to_messages(
         msgs.append(("stereo_pair", sp, pair.stamp_ns))
     for h in getattr(out, "heights", []):
         msgs += heights_to_msgs(h, frame_id=frame_id)
+    for f in getattr(out, "fused", []):
+        msgs.append(("dsm_fused", fused_to_msg(f, frame_id=frame_id), f.stamp_ns))
     if out.issues:
         msgs.append(
             (
@@ -494,11 +496,39 @@ OUTPUT_TOPICS = {
     "disparity": "stereo_msgs/msg/DisparityImage",
     "height": "sensor_msgs/msg/Image",
     "dsm": "parproj_msgs/msg/ElevationGrid",
+    "dsm_fused": "parproj_msgs/msg/ElevationGrid",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 #: The images of a pair sent whole, published after its StereoPair (a streamed pair's pixels
 #: come before it, as NormalizedBlock messages).
 PAIR_IMAGE_TOPICS = ("left/image_normalized", "right/image_normalized", "anaglyph")
+
+
+def fused_to_msg(f: Any, *, frame_id: str) -> Any:
+    """A :class:`~parproj_ros.core.results.FusedResult` -> parproj_msgs/ElevationGrid.
+
+    ``pair_id`` ``fused:<pair>,<pair>,...``; ``heights`` the fused heights (32FC1, metres in
+    the object frame, NaN holes); no ortho-image and no disparity fields (several pairs); the
+    terrain fields empty. The count and spread layers are in ``parproj fuse``'s GeoTIFFs.
+    """
+    from parproj_msgs.msg import ElevationGrid
+    from sensor_msgs.msg import Image
+
+    d = f.fused
+    g = d.grid
+    m = ElevationGrid()
+    ns_to_stamp(f.stamp_ns, m.header.stamp)
+    m.header.frame_id = frame_id
+    m.pair_id = f.name
+    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
+    m.heights = array_to_image(
+        np.ascontiguousarray(d.heights, dtype=np.float32),
+        Image(),
+        frame_id=frame_id,
+        stamp_ns=f.stamp_ns,
+    )
+    m.completeness = float(d.completeness)
+    return m
 
 
 def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:

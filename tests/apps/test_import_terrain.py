@@ -227,3 +227,25 @@ def test_triplet_pair_dsms_agree_after_the_adjustment(tmp_path: Path) -> None:
     assert max(abs(r["median"]) for r in result[True]) < 0.5
     worst = max(abs(r["median"]) for r in result[False])
     assert worst > 4.0  # 2-3 against 1-2: 4.9 m in s2p's and CARS's DSMs
+    # Step 8, the pair DSMs fused as they come (topic dsm_fused): against s2p's triplet DSM
+    # at least as complete as the best pair and no worse in NMAD (s2p vs CARS: 0.50 m).
+    from parproj_ros.eval.dsm_compare import (
+        FrameDsm,
+        compare,
+        frame_dsms_from_bag,
+        read_geotiff_dsm,
+    )
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.ros.conversions import elevation_grid_from_msg
+
+    out = tmp_path / "out_True"
+    fused_msgs = [m.msg for m in BagReader(out).messages(topics=["dsm_fused"])]
+    assert [m.pair_id.count(",") + 1 for m in fused_msgs] == [2, 3]
+    last = fused_msgs[-1]
+    h, g, _ = elevation_grid_from_msg(last)
+    ref = read_geotiff_dsm(MARSEILLE / "reference" / "s2p_dsm_123.tif")
+    fused = compare(FrameDsm(h, g, last.header.frame_id, last.pair_id), ref, images=paths)
+    pairs = [compare(d, ref, images=paths) for d in frame_dsms_from_bag(out)]
+    print(fused.line(), *(p.line() for p in pairs), sep="\n")
+    assert fused.completeness >= max(p.completeness for p in pairs)
+    assert fused.stats["nmad"] <= min(p.stats["nmad"] for p in pairs)
