@@ -339,6 +339,18 @@ def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int
     return best
 
 
+def match_pair_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
+    """Seconds of one :func:`~parproj_ros.imaging.dense.match_pair` call: the step's matching.
+
+    Default settings and 1024 px tiles, as the heights step calls it.
+    """
+    from parproj_ros.imaging.dense import match_pair
+
+    t0 = time.perf_counter()
+    match_pair(left, right, d_range=d_range, nodata=0.0)
+    return time.perf_counter() - t0
+
+
 def _cv2_threads() -> int:
     import cv2
 
@@ -363,6 +375,8 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     mpx = sum(lft.size for lft, _, _ in pairs.values()) / 1e6
     per_pair = {k: bare_sgbm_s(lft, rgt, rng) for k, (lft, rgt, rng) in pairs.items()}
     sgbm = sum(per_pair.values())
+    matched = {k: match_pair_s(lft, rgt, rng) for k, (lft, rgt, rng) in pairs.items()}
+    match = sum(matched.values())
     step = float(sum(times))
     res = {
         "pairs": len(pairs),
@@ -374,12 +388,14 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "ratio": step / sgbm if sgbm else None,
         "ranges": {k: list(v[2]) for k, v in pairs.items()},
         "sgbm_s_by_pair": per_pair,
+        "match_pair_s": match,
+        "match_pair_over_sgbm": match / sgbm if sgbm else None,
         "heights_s_by_call": times,
         "cv2_threads": _cv2_threads(),
     }
     log(
         f"  heights step {step:.2f} s for {mpx:.2f} Mpx ({res['heights_s_per_mpx']:.2f} s/Mpx), "
-        f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f}"
+        f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f}; match_pair alone {match:.2f} s"
     )
     return res
 
@@ -729,8 +745,8 @@ def markdown(doc: dict[str, Any]) -> str:
     lines += [
         "",
         "| case | import s | process s | dsm s | fuse s | heights step s/Mpx | bare SGBM s/Mpx "
-        "| heights / SGBM |",
-        "|---|---|---|---|---|---|---|---|",
+        "| heights / SGBM | match_pair / SGBM |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for case in doc["cases"]:
         s = case.get("seconds", {})
@@ -739,7 +755,7 @@ def markdown(doc: dict[str, Any]) -> str:
             f"| {case['case']} | {_f(s.get('import'), '.1f')} | {_f(s.get('process'), '.1f')} "
             f"| {_f(s.get('dsm'), '.1f')} | {_f(s.get('fuse'), '.1f')} "
             f"| {_f(sp.get('heights_s_per_mpx'), '.2f')} | {_f(sp.get('sgbm_s_per_mpx'), '.2f')} "
-            f"| {_f(sp.get('ratio'), '.2f')} |"
+            f"| {_f(sp.get('ratio'), '.2f')} | {_f(sp.get('match_pair_over_sgbm'), '.2f')} |"
         )
     for case in doc["cases"]:
         fu = case.get("fusion")
