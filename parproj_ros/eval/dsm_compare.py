@@ -181,27 +181,30 @@ def import_bag_frame(path: str | Path) -> str | None:
     return None
 
 
-def frame_dsms_from_bag(path: str | Path, *, frame_id: str | None = None) -> list[FrameDsm]:
-    """Every ``dsm`` ElevationGrid of an output bag (``parproj process --heights``).
+def frame_dsms_from_bag(
+    path: str | Path, *, frame_id: str | None = None, topic: str = "dsm"
+) -> list[FrameDsm]:
+    """Every ElevationGrid of an output bag's ``dsm`` topic (``parproj process --heights``).
 
     Args:
         path: the output bag folder.
         frame_id: the frame to take for a DSM labelled with a frame that is not a tangent
             plane (``parproj process`` labelled every output ``map`` before the frame
             travelled through it: give the import bag's, :func:`import_bag_frame`).
+        topic: the topic read (``dsm_fused``: the pipeline's fused DSMs).
 
     Raises:
-        BagError: the bag has no ``dsm`` topic.
+        BagError: the bag has no such topic.
     """
     from ..io.geotiff import frame_of
     from ..ros.bag import BagError, BagReader
     from ..ros.conversions import elevation_grid_from_msg
 
     reader = BagReader(Path(path))
-    if "dsm" not in reader.topics():
-        raise BagError("no dsm topic: process the bag with --heights", Path(path))
+    if topic not in reader.topics():
+        raise BagError(f"no {topic} topic: process the bag with --heights", Path(path))
     out: list[FrameDsm] = []
-    for item in reader.messages(topics=["dsm"]):
+    for item in reader.messages(topics=[topic]):
         m = item.msg
         heights, grid, _ = elevation_grid_from_msg(m)
         frame = str(m.header.frame_id)
