@@ -214,22 +214,26 @@ def zero_disparity_height(z_avg: float, terrain: Terrain) -> float:
     return float(round(0.5 * (terrain.low_m + terrain.high_m)))
 
 
+#: Longest side of the reduced pair the terrain is first measured on, pixels.
+PREPASS_PX = 1024
+
+
 def terrain_prepass(
     frame: PairFrame, left: SceneResult, right: SceneResult, config: PipelineConfig, prior: Terrain
 ) -> Terrain:
     """The pair's terrain measured on a reduced normalized pair covering both footprints whole.
 
-    Both scenes are resampled at a reduced resolution (the longer side at most 1024 px) onto
-    the union of their footprints, whatever heights are assumed, so that tie points are found
-    even when the prior heights are far from the ground (an output extent chosen at them
-    would hold little or no common ground); their heights give the terrain
+    Both scenes are resampled at a reduced resolution (the longer side at most
+    :data:`PREPASS_PX`) onto the union of their footprints, whatever heights are assumed, so
+    that tie points are found even when the prior heights are far from the ground (an output
+    extent chosen at them would hold little or no common ground); their heights give the terrain
     (:func:`~parproj_ros.core.terrain.measure_terrain`). ``prior`` when too few agree.
     """
     x0, x1 = frame.union_columns()
     y0, y1 = frame.rows
     full_w = int(np.floor((x1 - x0) / frame.pixel)) + 1
     full_h = int(np.floor((y1 - y0) / frame.pixel)) + 1
-    f = reduction_factor(full_w, full_h)
+    f = reduction_factor(full_w, full_h, PREPASS_PX)
     pix = frame.pixel * f
     w, h = int(np.floor((x1 - x0) / pix)) + 1, int(np.floor((y1 - y0) / pix)) + 1
     grid_l = OutputGrid(pix, x0, y0, w, h)

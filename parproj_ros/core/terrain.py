@@ -38,6 +38,9 @@ TERRAIN_PERCENTILES = (1.0, 99.0)
 TERRAIN_PAD_SHARE = 0.2
 #: ... and by at least this many pixels of x-parallax (heights of the matching's noise).
 TERRAIN_PAD_PX = 4.0
+#: Smallest correlation of a terrain tie point (a reduced pair of views 20 degrees apart keeps
+#: few at the tie-point refinement's 0.85; the row check below removes gross errors).
+MIN_CORRELATION = 0.6
 #: Tie points whose y-parallax differs from the median by more are gross errors, pixels.
 Y_OUTLIER_PX = 3.0
 
@@ -172,9 +175,18 @@ def measure_terrain(
         left, left_grid = reduce_image(left, left_grid, f, nodata)
         right, right_grid = reduce_image(right, right_grid, f, nodata)
     # One window over the whole (reduced) image: conjugate points may lie far apart along
-    # the rows when the heights assumed so far are far from the ground.
+    # the rows when the heights assumed so far are far from the ground. ORB, not SIFT: SIFT
+    # doubles the image first and holds some 200 bytes per input pixel (the overload test's
+    # node peaked 60 MB higher with it), ORB a few.
     m = match_normalized(
-        left, right, nodata=nodata, whole=True, max_per_window=1000, max_y_px=None
+        left,
+        right,
+        nodata=nodata,
+        whole=True,
+        max_per_window=1000,
+        max_y_px=None,
+        min_corr=MIN_CORRELATION,
+        detector="orb",
     )
     m = m.subset(consistent_rows(m))
     z = match_heights(m, left_grid, right_grid, norm)
