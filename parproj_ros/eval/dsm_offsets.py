@@ -19,35 +19,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..imaging.fusion import sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..ros.bag import BagError, BagReader
 from ..ros.conversions import elevation_grid_from_msg
 
 FloatArray = NDArray[np.float64]
-
-
-def sample_bilinear(
-    heights: NDArray[Any], grid: DsmGrid, x: FloatArray, y: FloatArray
-) -> FloatArray:
-    """Heights of a DSM at object points (x, y) metres, bilinear; NaN unless all 4 cells valid."""
-    fc = (np.asarray(x, dtype=np.float64) - grid.x0) / grid.cell
-    fr = (grid.y0 - np.asarray(y, dtype=np.float64)) / grid.cell
-    c0, r0 = np.floor(fc).astype(np.int64), np.floor(fr).astype(np.int64)
-    inside = (c0 >= 0) & (r0 >= 0) & (c0 + 1 < grid.width) & (r0 + 1 < grid.height)
-    out = np.full(fc.shape, np.nan)
-    if not np.any(inside):
-        return out
-    c, r = c0[inside], r0[inside]
-    u, v = fc[inside] - c, fr[inside] - r
-    z = np.asarray(heights, dtype=np.float64)
-    val = (
-        z[r, c] * (1 - u) * (1 - v)
-        + z[r, c + 1] * u * (1 - v)
-        + z[r + 1, c] * (1 - u) * v
-        + z[r + 1, c + 1] * u * v
-    )  # NaN if any of the four is NaN
-    out[inside] = val
-    return out
 
 
 def dsm_difference(a: tuple[NDArray[Any], DsmGrid], b: tuple[NDArray[Any], DsmGrid]) -> FloatArray:
@@ -56,7 +33,7 @@ def dsm_difference(a: tuple[NDArray[Any], DsmGrid], b: tuple[NDArray[Any], DsmGr
     x, y = ga.centres()
     za = np.asarray(ha, dtype=np.float64)
     ok = np.isfinite(za)
-    zb = sample_bilinear(b[0], b[1], x[ok], y[ok])
+    zb = sample_bilinear(b[0], b[1], x[ok], y[ok], min_weight=1.0)
     d = za[ok] - zb
     return np.asarray(d[np.isfinite(d)], dtype=np.float64)
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from parproj_ros.eval.dsm_offsets import format_offsets, pair_offsets, sample_bilinear
+from parproj_ros.eval.dsm_offsets import format_offsets, pair_offsets
+from parproj_ros.imaging.fusion import sample_bilinear
 from parproj_ros.imaging.heights import DsmGrid
 
 FRAME = "enu_wgs84:lat=43.2617452,lon=5.4429476,h=189.84"
@@ -39,11 +40,11 @@ def test_sample_bilinear_exact_on_a_plane() -> None:
     x, y = grid.centres()
     z = 2.0 * x - 3.0 * y + 1.0
     px, py = np.array([0.1, 3.33, 9.9, -1.0]), np.array([9.7, 5.55, 0.2, 5.0])
-    got = sample_bilinear(z, grid, px, py)
+    got = sample_bilinear(z, grid, px, py, min_weight=1.0)  # as dsm_offsets samples
     assert np.allclose(got[:3], 2.0 * px[:3] - 3.0 * py[:3] + 1.0, atol=1e-9)
     assert np.isnan(got[3])  # outside the grid
     z[10, 10] = np.nan
-    assert np.isnan(sample_bilinear(z, grid, np.array([5.2]), np.array([4.8]))[0])
+    assert np.isnan(sample_bilinear(z, grid, np.array([5.2]), np.array([4.8]), min_weight=1.0)[0])
 
 
 @pytest.mark.ros
