@@ -43,7 +43,15 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("rpc", ("parproj_ros.rpc",)),  # RPC sensor models and their files
     ("core", ("parproj_ros.core",)),  # parameters, results, the pipeline
     ("io", ("parproj_ros.io",)),  # GCP files, DEM, rasters, safe files (no ROS)
-    ("messages", ("parproj_ros.ros.conversions", "parproj_ros.ros.bag", "parproj_ros.ros.cdr")),
+    (
+        "messages",
+        (
+            "parproj_ros.ros.conversions",
+            "parproj_ros.ros.bag",
+            "parproj_ros.ros.cdr",
+            "parproj_ros.ros.inputs",
+        ),
+    ),
     ("sim", ("parproj_ros.sim",)),  # the simulator and its recordings
     ("ros", ("parproj_ros.ros",)),  # the node, the live graph
     ("eval", ("parproj_ros.eval",)),  # evaluation, paper, reference grids
@@ -282,6 +290,19 @@ def test_imports_go_down_the_layers() -> None:
         if i.target in MODULES and layer[i.target] > layer[i.source]
     ]
     assert not up, "imports up the layers:\n" + "\n".join(up)
+
+
+def test_the_node_and_the_bags_need_no_simulator() -> None:
+    """The node, the live graph and the bag contract import nothing of the simulator: what they
+    read of a bag is the contract's reader (ros/inputs.py), beside the bag code."""
+    found = [
+        f"{i.source} -> {i.target} at {_where(i)}"
+        for name, imps in ALL_IMPORTS.items()
+        if name.startswith("parproj_ros.ros")
+        for i in imps
+        if i.target.startswith("parproj_ros.sim")
+    ]
+    assert not found, "the ROS side imports the simulator:\n" + "\n".join(found)
 
 
 def test_core_imports_only_core() -> None:

@@ -13,8 +13,8 @@ import json
 from pathlib import Path
 
 from ..ros.bag import BagReader
+from ..ros.inputs import node_parameters, views_from_bag
 from ..ros.live import ros_environment, run_through_node
-from ..sim.recording import node_parameters, views_from_bag
 
 
 def run_demo(

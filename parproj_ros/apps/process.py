@@ -18,7 +18,7 @@ from ..core.pipeline import Pipeline
 from ..core.results import Issue, Level, Outputs
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
-from ..sim.recording import config_from_bag, frame_from_bag
+from ..ros.inputs import config_from_bag, frame_from_bag
 
 T = TypeVar("T")
 
@@ -265,7 +265,7 @@ def process_bag(
     output bag is written past the page cache (``O_DIRECT``, where the file system allows it;
     ``summary.direct`` tells): a large output then takes no fresh memory for its pages
     (io/direct.py). ``frame_id`` labels the outputs; "" (default): the frame of the bag's
-    GCP / truth / navigation messages, else ``map`` (:func:`~parproj_ros.sim.recording.
+    GCP / truth / navigation messages, else ``map`` (:func:`~parproj_ros.ros.inputs.
     frame_from_bag`; an input in another frame is a WARN naming both).
     """
     from tqdm import tqdm

@@ -34,7 +34,7 @@ from ..ros.conversions import (
     image_to_array,
     stamp_to_ns,
 )
-from ..sim.recording import truth_from_bag
+from ..ros.inputs import truth_from_bag
 from .heights import (
     Surface,
     disparities_by_stamp,

@@ -405,7 +405,7 @@ def rpc_points_y_parallax(
     offsets: tuple[tuple[float, float], tuple[float, float]],
 ) -> dict[str, dict[str, float]]:
     """y-parallax of the RPC-exact truth points of an imported bag, for every method, pixels."""
-    from ..sim.recording import truth_from_bag
+    from ..ros.inputs import truth_from_bag
 
     lid, rid = sp.left_params.scene_id, sp.right_params.scene_id
     pts = [

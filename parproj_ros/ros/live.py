@@ -393,8 +393,8 @@ def run_through_node(
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from ..sim.recording import views_from_bag
     from .conversions import OUTPUT_TOPICS
+    from .inputs import views_from_bag
 
     workdir.mkdir(parents=True, exist_ok=True)
     env = env or ros_environment(log_dir=workdir / "ros_log")

@@ -1,5 +1,5 @@
 """``parproj dsm`` (apps/export.py, apps/commands/dsm.py): georeferenced products, and the object
-frame travelling from the input bag to them (core/frames.py, sim/recording.frame_from_bag).
+frame travelling from the input bag to them (core/frames.py, ros/inputs.frame_from_bag).
 
 Synthetic output bags hold one ElevationGrid each (a tilted plane with a bump, 0.5 m cells,
 some holes) in the tangent plane of the imported Marseille pair, or in ``map``. The files are
@@ -209,7 +209,7 @@ def test_frame_comes_from_the_bag(tmp_path: Path) -> None:
     from parproj_msgs.msg import GroundControlPoints
 
     from parproj_ros.core.trajectory import NavSample
-    from parproj_ros.sim.recording import frame_from_bag
+    from parproj_ros.ros.inputs import frame_from_bag
 
     bag = tmp_path / "in"
     nav = NavSample(T0 + 5, np.zeros(3), np.eye(3), np.zeros(3))

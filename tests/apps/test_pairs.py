@@ -32,8 +32,8 @@ from parproj_ros.ros.conversions import (
     pairs_to_msg,
     stamp_to_ns,
 )
+from parproj_ros.ros.inputs import config_from_bag, node_parameters, views_from_bag
 from parproj_ros.ros.live import run_through_node
-from parproj_ros.sim.recording import config_from_bag, node_parameters, views_from_bag
 
 #: Along-track look of each view (line shift per unit normalized height) and its crop.
 LOOKS = {"a": 0.1, "b": 0.08, "c": -0.1}

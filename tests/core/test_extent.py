@@ -18,7 +18,7 @@ from parproj_ros.core.pipeline import PairResult, Pipeline
 from parproj_ros.eval.evaluate import normalized_px
 from parproj_ros.geometry.navigation import virtual_points
 from parproj_ros.ros.bag import BagReader
-from parproj_ros.sim.recording import truth_from_bag
+from parproj_ros.ros.inputs import truth_from_bag
 from parproj_ros.sim.scenarios import SCENARIOS
 
 

@@ -201,7 +201,7 @@ def test_view_values_is_the_inverse_of_view_config() -> None:
 @pytest.mark.ros
 def test_node_parameters_of_a_bag_are_table_names() -> None:
     from parproj_ros.ros.bag import BagReader
-    from parproj_ros.sim.recording import node_parameters, views_from_bag
+    from parproj_ros.ros.inputs import node_parameters, views_from_bag
 
     params = node_parameters(views_from_bag(BagReader(BAG)))
     assert set(params) == {"views"} | {f"pan.{p.name}" for p in VIEW_PARAMS}

@@ -14,7 +14,7 @@ from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import Pipeline
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.conversions import assemble_blocks, image_to_array, stamp_to_ns
-from parproj_ros.sim.recording import config_from_bag
+from parproj_ros.ros.inputs import config_from_bag
 
 pytestmark = pytest.mark.ros  # reads and processes bags
 

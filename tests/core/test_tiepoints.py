@@ -10,7 +10,7 @@ from parproj_ros.core.pipeline import GroundPoint, Outputs, Pipeline
 from parproj_ros.eval.evaluate import normalized_px
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
-from parproj_ros.sim.recording import config_from_bag, truth_from_bag
+from parproj_ros.ros.inputs import config_from_bag, truth_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # reads bags/ikonos_agile
 

@@ -48,6 +48,7 @@ from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import Outputs, PairResult
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader, BagWriter, get_message_class
+from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import (
     NodeProcess,
     Recorder,
@@ -55,7 +56,6 @@ from parproj_ros.ros.live import (
     node_params_yaml,
     ros_environment,
 )
-from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

@@ -14,8 +14,8 @@ import pytest
 
 from parproj_ros.apps.importer import import_pair
 from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import run_through_node
-from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

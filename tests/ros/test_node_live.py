@@ -18,8 +18,8 @@ from parproj_ros.apps.process import process_bag
 from parproj_ros.eval.evaluate import evaluate_bag
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.conversions import image_to_array
+from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import run_through_node
-from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

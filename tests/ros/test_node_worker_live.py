@@ -73,9 +73,9 @@ from test_faults_live import base_messages as faults_base_messages
 from parproj_ros.core.pipeline import GroundPoint
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
 from parproj_ros.ros.node import StartupError, check_mounting, check_views
-from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

@@ -110,8 +110,8 @@ def overload(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
+    from parproj_ros.ros.inputs import node_parameters
     from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
-    from parproj_ros.sim.recording import node_parameters
     from tools.harness import FAST_REPAIR_PROFILE, ROOT, RssMonitor, proc_status
 
     plat = make_platform(LINES, DETECTORS)

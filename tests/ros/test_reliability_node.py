@@ -40,6 +40,7 @@ from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import PipelineConfig
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import (
     NodeProcess,
     Recorder,
@@ -47,7 +48,6 @@ from parproj_ros.ros.live import (
     replay,
     ros_environment,
 )
-from parproj_ros.sim.recording import node_parameters, views_from_bag
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 

@@ -8,7 +8,7 @@ from testkit.paths import BAGS
 
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.conversions import image_to_array, stamp_to_ns
-from parproj_ros.sim.recording import truth_from_bag, views_from_bag
+from parproj_ros.ros.inputs import truth_from_bag, views_from_bag
 from parproj_ros.sim.scenarios import SCENARIOS
 from parproj_ros.sim.simulate import render_scene
 from parproj_ros.sim.terrain import procedural_terrain

@@ -21,7 +21,7 @@ from testkit.paths import BAGS
 from parproj_ros.core.pipeline import Outputs, Pipeline
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
-from parproj_ros.sim.recording import config_from_bag, truth_from_bag
+from parproj_ros.ros.inputs import config_from_bag, truth_from_bag
 from tools.longrun.checks import (
     PairChecker,
     compare_pairs,

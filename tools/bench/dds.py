@@ -163,8 +163,8 @@ def bench_live(
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
+    from parproj_ros.ros.inputs import node_parameters
     from parproj_ros.ros.live import NodeProcess, node_params_yaml
-    from parproj_ros.sim.recording import node_parameters
 
     workdir.mkdir(parents=True, exist_ok=True)
     plat = make_platform(cfg.lines, cfg.detectors)

@@ -197,7 +197,7 @@ def bench_offline(
     from parproj_ros.core.pipeline import PipelineConfig
     from parproj_ros.core.results import Outputs
     from parproj_ros.ros.bag import BagReader
-    from parproj_ros.sim.recording import config_from_bag
+    from parproj_ros.ros.inputs import config_from_bag
 
     plat = make_platform(cfg.lines, cfg.detectors)
     pairs = cfg.offline_pairs

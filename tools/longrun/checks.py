@@ -20,7 +20,7 @@ from parproj_ros.eval.evaluate import normalized_px
 from parproj_ros.imaging.encodings import ENCODING_DTYPES
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader, get_message_class
-from parproj_ros.sim.recording import views_from_bag
+from parproj_ros.ros.inputs import views_from_bag
 
 SUMMARY_NAME = "parproj_node: summary"
 _REP = re.compile(r"^r(\d+)_(.*)$")

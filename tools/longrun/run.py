@@ -16,9 +16,9 @@ import numpy as np
 
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader, get_message_class
+from parproj_ros.ros.inputs import node_parameters, truth_from_bag, views_from_bag
 from parproj_ros.ros.live import NodeProcess, _qos, node_params_yaml
 from parproj_ros.ros.live import wait_until as _wait_until
-from parproj_ros.sim.recording import node_parameters, truth_from_bag, views_from_bag
 from tools.harness import (
     ROOT,
     RssMonitor,

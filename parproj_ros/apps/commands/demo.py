@@ -16,7 +16,7 @@ from .common import FORCE_HELP, bags_dir
 
 def run(args: argparse.Namespace) -> int:
     """``parproj demo``: the default bag through the live node; pair, anaglyph and evaluation."""
-    from ...sim.recording import check_input_bag
+    from ...ros.inputs import check_input_bag
     from ..demo import run_demo
 
     args.inputs = [args.bag]

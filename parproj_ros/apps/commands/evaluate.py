@@ -17,7 +17,7 @@ from .common import report
 def run(args: argparse.Namespace) -> int:
     """``parproj evaluate``: y-parallax, x-parallax linearity and object errors of an output."""
     from ...eval.evaluate import evaluate_bag, print_evaluation
-    from ...sim.recording import check_output_bag, check_truth_bag
+    from ...ros.inputs import check_output_bag, check_truth_bag
 
     args.inputs = [args.output_bag, args.truth]
     out_bag = input_path(args.output_bag, "bag")

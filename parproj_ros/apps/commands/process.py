@@ -64,7 +64,7 @@ def overrides_from(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """``parproj process``: the pipeline over a bag without DDS."""
-    from ...sim.recording import check_input_bag
+    from ...ros.inputs import check_input_bag
     from ..process import process_bag
 
     args.inputs = [args.bag]

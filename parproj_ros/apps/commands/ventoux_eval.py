@@ -15,7 +15,7 @@ from .common import check_tiff, report
 def run(args: argparse.Namespace) -> int:
     """``parproj ventoux-eval``: y-parallax of matches, ours vs reference epipolar grids."""
     from ...eval.reference_grids import evaluate_against_grids, format_table
-    from ...sim.recording import check_output_bag
+    from ...ros.inputs import check_output_bag
 
     args.inputs = [args.output_bag, args.left, args.right, args.grids, args.truth]
     check_output_bag(input_path(args.output_bag, "bag"))
