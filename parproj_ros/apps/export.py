@@ -31,9 +31,9 @@ from ..eval.heights import (
 from ..io.files import InputError
 from ..io.geotiff import (
     Geoid,
+    Ortho,
     frame_of,
     write_dsm_geotiff,
-    write_ortho_geotiff,
     write_plain_tiff,
 )
 from ..io.pointcloud import write_point_cloud
@@ -135,6 +135,7 @@ def export_dsms(
             surface = enu_dem_surface(frame, dem)
         made = heights_made(m)
         row["heights"] = made
+        with_ortho = None if ortho is None else Ortho(folder / f"{name}_ortho.tif", ortho)
         crs, out_grid = write_dsm_geotiff(
             folder / f"{name}_dsm.tif",
             heights,
@@ -143,18 +144,10 @@ def export_dsms(
             target=target,
             geoid=geoid,
             tags={f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()},
+            ortho=with_ortho,  # on the same grid, from the same reprojection
         )
         files = [f"{name}_dsm.tif"]
         if ortho is not None:
-            write_ortho_geotiff(
-                folder / f"{name}_ortho.tif",
-                ortho,
-                grid,
-                frame,
-                heights=heights,
-                target=target,
-                geoid_epsg=None if geoid is None else geoid[1],
-            )
             files.append(f"{name}_ortho.tif")
         if point_cloud is not None:
             cloud = f"{name}_dsm.{point_cloud}"

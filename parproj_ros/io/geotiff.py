@@ -47,6 +47,7 @@ import os
 import struct
 import warnings
 from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -62,6 +63,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "Geoid",
+    "Ortho",
     "Target",
     "crs_for_frame",
     "engineering_crs",
@@ -591,6 +593,36 @@ def _open_writer(tmp: Path, profile: dict[str, Any]) -> Any:
         return rasterio.open(tmp, "w", **profile)
 
 
+@dataclass(frozen=True)
+class Ortho:
+    """An ortho-image written beside a DSM, on its grid and CRS (:func:`write_dsm_geotiff`).
+
+    Attributes:
+        path: the GeoTIFF to write (replaced if it exists).
+        image: uint8, uint16, int16, float32 ... (grid.height, grid.width), on the DSM grid.
+        nodata: the image's no-data value.
+        interpolation: see :func:`write_ortho_geotiff`.
+    """
+
+    path: str | os.PathLike[str]
+    image: NDArray[Any]
+    nodata: float = 0
+    interpolation: Literal["bilinear", "nearest"] = "bilinear"
+
+
+def _ortho_header(dst: Any, frame_id: str, crs: CRS, target: Target) -> None:
+    dst.update_tags(**_tags(frame_id, crs, target, "ortho-image"))
+    dst.set_band_description(1, "ortho-image (left scene on the DSM)")
+
+
+def _ortho_block(
+    ortho: Ortho, grid: DsmGrid, x: FloatArray, y: FloatArray, h: FloatArray
+) -> NDArray[Any]:
+    """The ortho-image's values at the object (x, y) of output cells with a height ``h``."""
+    v = _sample_image(ortho.image, grid, x, y, ortho.nodata, ortho.interpolation)
+    return _cast(np.where(np.isfinite(h), v, ortho.nodata), ortho.image.dtype)
+
+
 def write_dsm_geotiff(
     path: str | os.PathLike[str],
     dsm_heights: ArrayLike,
@@ -602,6 +634,7 @@ def write_dsm_geotiff(
     resolution: float | None = None,
     geoid: Geoid | None = None,
     tags: Mapping[str, str] | None = None,
+    ortho: Ortho | None = None,
 ) -> tuple[CRS, DsmGrid]:
     """Write a DSM as a float32 Cloud Optimized GeoTIFF in the CRS of its frame.
 
@@ -622,6 +655,9 @@ def write_dsm_geotiff(
         geoid: (N(lon, lat) metres, EPSG code of its vertical CRS): heights written above that
             geoid (tangent-plane frames only).
         tags: further dataset tags (e.g. how the heights were made).
+        ortho: an ortho-image to write beside it on the same grid and CRS, from the same
+            reprojection (as :func:`write_ortho_geotiff` would write it, without computing the
+            cells' positions a second time).
 
     Returns:
         (crs, grid) of the file: :func:`file_crs` and the grid in its horizontal metres.
@@ -634,12 +670,22 @@ def write_dsm_geotiff(
         raise ValueError(f"frame {frame_id!r} has no geodetic anchor: no geoid heights")
     crs = file_crs(frame_id, target=target, geoid_epsg=None if geoid is None else geoid[1])
     profile = _profile(out, np.dtype(np.float32), crs, nodata)
-    with _cog(path, profile, crs) as dst:
+    if ortho is not None:
+        _check_grid("ortho image", np.asarray(ortho.image), grid)
+    with contextlib.ExitStack() as files:
+        dst = files.enter_context(_cog(path, profile, crs))
+        odst = None
+        if ortho is not None:
+            oprofile = _profile(out, ortho.image.dtype, crs, ortho.nodata)
+            odst = files.enter_context(_cog(ortho.path, oprofile, crs))
+            _ortho_header(odst, frame_id, crs, target)
         dst.update_tags(**_tags(frame_id, crs, target, "DSM"), **dict(tags or {}))
         if frame is None:
             dst.set_band_description(1, f"height Z in frame {frame_id}, metres")
             dst.update_tags(1, HEIGHT="Z in the local frame, metres")
             dst.write(np.where(np.isfinite(z), z, np.float32(nodata)).astype(np.float32), 1)
+            if odst is not None and ortho is not None:
+                odst.write(ortho.image, 1)
         else:
             vertical = ELLIPSOIDAL if geoid is None else f"height above {crs.sub_crs_list[1].name}"
             dst.set_band_description(1, vertical)
@@ -650,11 +696,14 @@ def write_dsm_geotiff(
             )
             rep = _Reprojection(frame, horizontal, z, grid, out)
             for r0, r1 in _spans(out.height):
-                _, _, h = rep.rows(r0, r1)
+                x, y, h = rep.rows(r0, r1)
+                window = ((r0, r1), (0, out.width))
+                if odst is not None and ortho is not None:
+                    odst.write(_ortho_block(ortho, grid, x, y, h), 1, window=window)
                 if geoid is not None:
                     h = h - np.asarray(geoid[0](*rep.lonlat), dtype=float)
                 block = np.where(np.isfinite(h), h, nodata).astype(np.float32)
-                dst.write(block, 1, window=((r0, r1), (0, out.width)))
+                dst.write(block, 1, window=window)
         # "m": GDAL stores no unit equal to the name of a vertical CRS unit ("metre"), which the
         # ellipsoidal-height key then does not give back
         dst.set_band_unit(1, "m")
@@ -747,19 +796,16 @@ def write_ortho_geotiff(
     horizontal, out = export_grid(grid, frame_id, z, target=target, resolution=resolution)
     crs = file_crs(frame_id, target=target, geoid_epsg=geoid_epsg)
     profile = _profile(out, img.dtype, crs, nodata)
+    spec = Ortho(path, img, nodata, interpolation)
     with _cog(path, profile, crs) as dst:
-        dst.update_tags(**_tags(frame_id, crs, target, "ortho-image"))
-        dst.set_band_description(1, "ortho-image (left scene on the DSM)")
+        _ortho_header(dst, frame_id, crs, target)
         if frame is None or z is None:
             dst.write(img, 1)
         else:
             rep = _Reprojection(frame, horizontal, z, grid, out)
             for r0, r1 in _spans(out.height):
                 x, y, h = rep.rows(r0, r1)
-                ok = np.isfinite(h)
-                v = _sample_image(img, grid, x, y, nodata, interpolation)
-                block = _cast(np.where(ok, v, nodata), img.dtype)
-                dst.write(block, 1, window=((r0, r1), (0, out.width)))
+                dst.write(_ortho_block(spec, grid, x, y, h), 1, window=((r0, r1), (0, out.width)))
     return crs, out
 
 

@@ -183,6 +183,32 @@ def test_ortho_shares_the_grid_and_is_placed_to_a_millimetre(tmp_path: Path, tar
         assert err.max() < 1e-3, err.max()
 
 
+@pytest.mark.parametrize("frame", [FID, "map"])
+def test_ortho_beside_the_dsm_equals_the_ortho_alone(tmp_path: Path, frame: str) -> None:
+    """write_dsm_geotiff(..., ortho=Ortho(...)) writes the DSM and the ortho-image of
+    write_dsm_geotiff and write_ortho_geotiff, to the bit, from one reprojection."""
+    from parproj_ros.io.geotiff import Ortho
+
+    z = dsm_of(SURFACES["bump"][0])
+    z[300:320, 400:430] = np.nan  # a hole: the ortho's nodata follows it
+    gx, _ = GRID.centres()
+    img = (np.abs(gx) * 7 % 4000 + 1).astype(np.uint16)
+    write_dsm_geotiff(tmp_path / "alone_dsm.tif", z, GRID, frame)
+    write_ortho_geotiff(tmp_path / "alone_ortho.tif", img, GRID, frame, heights=z)
+    write_dsm_geotiff(
+        tmp_path / "both_dsm.tif", z, GRID, frame, ortho=Ortho(tmp_path / "both_ortho.tif", img)
+    )
+    for kind in ("dsm", "ortho"):
+        with (
+            rasterio.open(tmp_path / f"alone_{kind}.tif") as a,
+            rasterio.open(tmp_path / f"both_{kind}.tif") as b,
+        ):
+            assert a.transform == b.transform and a.crs == b.crs and a.dtypes == b.dtypes
+            assert a.tags() == b.tags() and a.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
+            assert np.array_equal(a.read(1), b.read(1), equal_nan=True)
+    assert not list(tmp_path.glob(".*partial*"))  # nothing left behind
+
+
 def test_ortho_dtypes_and_nodata_follow_the_dsm_holes(tmp_path: Path) -> None:
     """A hole in the DSM: NaN exactly where a weighed neighbour is in it (less than one cell
     around it), the ortho nodata exactly there; uint8, uint16 and float32 kept."""
