@@ -65,9 +65,9 @@ from ..core.memory import (
     rss_bytes,
     tune_malloc,
 )
-from ..core.pipeline import Issue, Outputs, Pipeline
+from ..core.pipeline import Pipeline
 from ..core.render_process import RenderProcess
-from ..core.results import BlockResult, Level
+from ..core.results import BlockResult, Issue, Level, Outputs
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
 from .cdr import CdrError, ImageView, parse_image
@@ -368,7 +368,7 @@ class PairAdmission:
                     self.counts["pairs_shed"] += 1
                     issues.append(
                         Issue(
-                            "warn",
+                            Level.WARN,
                             f"{view}/{frame_id}",
                             f"overload: pair {group} (this scene and the other scene of its "
                             f"pair) shed whole: {why}; {self.counts['pairs_shed']} pairs shed "
@@ -522,13 +522,15 @@ class ParprojNode(Node):
             if p.strict:
                 raise StartupError(f"parameter {name}: {err}") from err
             self._startup_issues.append(
-                Issue("error", f"parameter {name}", f"{err}; the default {p.default!r} is used")
+                Issue(
+                    Level.ERROR, f"parameter {name}", f"{err}; the default {p.default!r} is used"
+                )
             )
             return self.declare_parameter(name, p.default, desc, ignore_override=True).value
         if p.choices and value not in p.choices:
             self._startup_issues.append(
                 Issue(
-                    "error",
+                    Level.ERROR,
                     f"parameter {name}",
                     f"{value!r} is not one of {list(p.choices)}; "
                     f"the default {p.default!r} is used",
@@ -578,7 +580,7 @@ class ParprojNode(Node):
             except Exception as err:  # no /dev/shm, no process: render in the worker
                 self._startup_issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         "render_process",
                         f"cannot start the render process ({type(err).__name__}: {err}): "
                         "streamed blocks are rendered in the worker thread",
@@ -697,7 +699,7 @@ class ParprojNode(Node):
                 why = f"{type(err).__name__}: {err}"
                 self._startup_issues.append(
                     Issue(
-                        "error",
+                        Level.ERROR,
                         "gcp_file",
                         f"{why if path in str(err) else f'{path}: {why}'}; continuing without it",
                     )
@@ -718,7 +720,7 @@ class ParprojNode(Node):
         given = self._parameter_overrides  # rclpy: every override for this node
         return [
             Issue(
-                "error",
+                Level.ERROR,
                 f"parameter {name}",
                 f"{_shown(given[name].value)} given, but parproj_node has no such parameter "
                 "(misspelt, or a view not in views?): ignored",
@@ -764,7 +766,9 @@ class ParprojNode(Node):
         # navigation sample per wait fell behind a 50 Hz stream and held the streaming decision
         # of every pair until the scene was complete (``python -m tools.bench``).
         sub = getattr(self, "_nav_sub", None)
-        for _ in range(NAV_DRAIN_MAX if sub is not None else 0):
+        if sub is None:
+            return
+        for _ in range(NAV_DRAIN_MAX):
             try:
                 with sub.handle:
                     taken = sub.handle.take_message(Odometry, False)
@@ -779,7 +783,7 @@ class ParprojNode(Node):
             sample = conv.odometry_to_sample(msg)
         except conv.ConversionError as err:
             self._count("nav_rejected")
-            self._report([Issue("warn", "navigation", f"{err}: sample dropped")])
+            self._report([Issue(Level.WARN, "navigation", f"{err}: sample dropped")])
             return
         except Exception as err:
             self.internal_error("a navigation message (callback)", err)
@@ -801,7 +805,8 @@ class ParprojNode(Node):
         except Exception as err:
             self.internal_error(f"a strip of {view} (CDR)", err)
             return
-        ok, shed, close = True, [], False
+        ok, close = True, False
+        shed: list[Issue] = []
         try:
             fields = (str(msg.header.frame_id), int(msg.height), len(msg.data))
         except Exception:  # not an Image at all: the conversion below reports it
@@ -824,7 +829,13 @@ class ParprojNode(Node):
         except conv.ConversionError as err:
             self._count("strips_rejected")
             self._report(
-                [Issue("warn", f"{view}/{msg.header.frame_id}", f"strip rejected: {err}: dropped")]
+                [
+                    Issue(
+                        Level.WARN,
+                        f"{view}/{msg.header.frame_id}",
+                        f"strip rejected: {err}: dropped",
+                    )
+                ]
             )
             return
         except Exception as err:
@@ -853,7 +864,7 @@ class ParprojNode(Node):
         try:
             self._enqueue((InputKind.PAIRS, conv.pairs_from_msg(msg)))
         except conv.ConversionError as err:
-            self._report([Issue("error", "pairs", f"{err}: pair selection dropped")])
+            self._report([Issue(Level.ERROR, "pairs", f"{err}: pair selection dropped")])
         except Exception as err:
             self.internal_error("a pair selection (callback)", err)
 
@@ -956,7 +967,7 @@ class ParprojNode(Node):
             self._report(
                 [
                     Issue(
-                        "error",
+                        Level.ERROR,
                         "internal error",
                         f"{type(err).__name__}: {err}{at}, while processing {what}: that input "
                         f"is dropped and the node carries on "
@@ -975,7 +986,7 @@ class ParprojNode(Node):
             if opened is not None:
                 issues.append(
                     Issue(
-                        "warn",
+                        Level.WARN,
                         f"{view}/{opened.scene_id}",
                         f"node stopping with this scene open ({opened.lines} lines received): it "
                         "is closed and processed as it is; lines still to come are not in it",
@@ -1017,7 +1028,7 @@ class ParprojNode(Node):
         timeout_s = self.stop_timeout_s if timeout_s is None else timeout_s
         if not self._worker.is_alive():
             self._report(
-                [Issue("error", "stop", "the worker thread is not running: open scenes lost")]
+                [Issue(Level.ERROR, "stop", "the worker thread is not running: open scenes lost")]
             )
             return False
         req = _FlushRequest()
@@ -1040,7 +1051,7 @@ class ParprojNode(Node):
                 self._report(
                     [
                         Issue(
-                            "error",
+                            Level.ERROR,
                             "stop",
                             f"not flushed: {why}; {max(0, self._queue.qsize() - 1)} inputs "
                             "still queued and the open scenes are lost",
