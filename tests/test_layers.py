@@ -292,6 +292,35 @@ def test_imports_go_down_the_layers() -> None:
     assert not up, "imports up the layers:\n" + "\n".join(up)
 
 
+def test_every_module_is_under_strict_mypy() -> None:
+    """setup.cfg's mypy runs strict on every module of the package (the node included): its
+    ``files`` name the package whole or a folder or file holding each module, and no section
+    relaxes a parproj_ros module's checks (an ``ignore_errors`` or a silenced import)."""
+    import configparser
+
+    cfg = configparser.ConfigParser()
+    cfg.read(ROOT / "setup.cfg")
+    assert cfg.getboolean("mypy", "strict")
+    files = [f.strip().rstrip("/") for f in cfg.get("mypy", "files").split(",")]
+    uncovered = [
+        m
+        for m, path in MODULES.items()
+        if not any(
+            path.relative_to(ROOT).as_posix() == f or path.relative_to(ROOT).is_relative_to(f)
+            for f in files
+        )
+    ]
+    assert not uncovered, f"modules outside strict mypy: {uncovered}"
+    relaxed = [
+        f"[{name}] {key}"
+        for name in cfg.sections()
+        if name.startswith("mypy-parproj_ros")
+        for key in ("ignore_errors", "follow_imports")
+        if cfg.has_option(name, key)
+    ]
+    assert not relaxed, f"relaxed for the package: {relaxed}"
+
+
 def test_the_node_and_the_bags_need_no_simulator() -> None:
     """The node, the live graph and the bag contract import nothing of the simulator: what they
     read of a bag is the contract's reader (ros/inputs.py), beside the bag code."""
