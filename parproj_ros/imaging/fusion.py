@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..geometry.geodesy import LocalTangentPlane
-from .heights import DsmGrid
+from .heights import DsmGrid, bilinear_terms
 
 __all__ = [
     "FusedDsm",
@@ -92,32 +92,9 @@ def sample_bilinear(
         raise ValueError(f"values of shape {v.shape} on a grid of {grid.height} x {grid.width}")
     xa = np.asarray(x, dtype=float)
     ya = np.asarray(y, dtype=float)
-    w, h = grid.width, grid.height
-    c = (xa - grid.x0) / grid.cell
-    r = (grid.y0 - ya) / grid.cell
-    inside = (c >= 0.0) & (c <= w - 1) & (r >= 0.0) & (r <= h - 1)  # False for NaN
-    c = np.where(inside, c, 0.0)
-    r = np.where(inside, r, 0.0)
-    c0 = np.clip(np.floor(c).astype(np.int64), 0, max(w - 2, 0))
-    r0 = np.clip(np.floor(r).astype(np.int64), 0, max(h - 2, 0))
-    c1 = np.minimum(c0 + 1, w - 1)
-    r1 = np.minimum(r0 + 1, h - 1)
-    fc = c - c0
-    fr = r - r0
-    total = np.zeros(c.shape)
-    wsum = np.zeros(c.shape)
-    for rr, cc, wk in (
-        (r0, c0, (1.0 - fr) * (1.0 - fc)),
-        (r0, c1, (1.0 - fr) * fc),
-        (r1, c0, fr * (1.0 - fc)),
-        (r1, c1, fr * fc),
-    ):
-        val = v[rr, cc].astype(float)
-        good = np.isfinite(val)
-        total += np.where(good, wk * np.where(good, val, 0.0), 0.0)
-        wsum += np.where(good, wk, 0.0)
-    ok = inside & (wsum >= min_weight - 1e-12) & (wsum > 0.0)
+    total, _, wsum, _ = bilinear_terms(v, grid, xa, ya, np.isfinite(v))
     with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(wsum) & (wsum >= min_weight - 1e-12) & (wsum > 0.0)
         return np.where(ok, total / np.where(ok, wsum, 1.0), np.nan)
 
 

@@ -35,6 +35,7 @@ __all__ = [
     "DsmGrid",
     "GroundMapping",
     "PairLike",
+    "bilinear_terms",
     "dsm_errors",
     "heights_from_disparity",
     "make_dsm",
@@ -240,6 +241,59 @@ class Dsm:
 
 def _spans(n: int, step: int) -> list[tuple[int, int]]:
     return [(s, min(n, s + step)) for s in range(0, n, step)]
+
+
+def bilinear_terms(
+    values: NDArray[Any], grid: DsmGrid, x: FloatArray, y: FloatArray, valid: NDArray[np.bool_]
+) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
+    """The terms of a bilinear sample of a grid at object (x, y), metres, nodata kept out.
+
+    Shared by every sampler of a grid (the GeoTIFF export, the fusion, the DSM comparisons),
+    each of which decides what a point with some invalid neighbours gets.
+
+    Args:
+        values: (grid.height, grid.width).
+        grid: where the cells are (centre of cell (r, c) at x0 + c cell, y0 - r cell).
+        x: X of the points, metres (any shape; NaN allowed: outside).
+        y: Y of the points, same shape.
+        valid: (grid.height, grid.width), True where ``values`` holds data.
+
+    Returns:
+        (value, ok, weight_ok, nearest): ``value`` the weighted sum over the neighbours of
+        non-zero weight that are ``valid``, ``ok`` True where all of those are valid and the
+        point lies within the box of the cell centres, ``weight_ok`` their total weight (NaN
+        outside the box), ``nearest`` the value of the nearest cell (NaN outside the box).
+    """
+    w, h = grid.width, grid.height
+    c = (x - grid.x0) / grid.cell
+    r = (grid.y0 - y) / grid.cell
+    inside = (c >= 0.0) & (c <= w - 1) & (r >= 0.0) & (r <= h - 1)  # False for NaN
+    c = np.where(inside, c, 0.0)
+    r = np.where(inside, r, 0.0)
+    c0 = np.clip(np.floor(c).astype(np.int64), 0, max(w - 2, 0))
+    r0 = np.clip(np.floor(r).astype(np.int64), 0, max(h - 2, 0))
+    c1 = np.minimum(c0 + 1, w - 1)
+    r1 = np.minimum(r0 + 1, h - 1)
+    fc = c - c0
+    fr = r - r0
+    total = np.zeros(c.shape)
+    wsum = np.zeros(c.shape)
+    ok = inside.copy()
+    for rr, cc, wk in (
+        (r0, c0, (1.0 - fr) * (1.0 - fc)),
+        (r0, c1, (1.0 - fr) * fc),
+        (r1, c0, fr * (1.0 - fc)),
+        (r1, c1, fr * fc),
+    ):
+        good = valid[rr, cc]
+        use = good & (wk > 0.0)
+        total += np.where(use, wk * np.where(good, values[rr, cc], 0.0).astype(float), 0.0)
+        wsum += np.where(use, wk, 0.0)
+        ok &= good | (wk <= 0.0)
+    nr = np.where(fr < 0.5, r0, r1)
+    nc = np.where(fc < 0.5, c0, c1)
+    nearest = np.where(inside, values[nr, nc].astype(float), np.nan)
+    return total, ok, np.where(inside, wsum, np.nan), nearest
 
 
 #: Largest fill distance (cells) done by shifted copies; farther, by a distance transform.

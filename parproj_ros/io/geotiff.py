@@ -55,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..geometry.geodesy import LocalTangentPlane
-from ..imaging.heights import DsmGrid
+from ..imaging.heights import DsmGrid, bilinear_terms
 from .scene_import import FRAME_PREFIX, frame_from_id
 
 if TYPE_CHECKING:
@@ -247,49 +247,6 @@ def file_crs(frame_id: str, *, target: Target = "utm", geoid_epsg: int | None = 
 # Sampling a grid at object (x, y)
 
 
-def _bilinear(
-    values: NDArray[Any], grid: DsmGrid, x: FloatArray, y: FloatArray, valid: NDArray[np.bool_]
-) -> tuple[FloatArray, NDArray[np.bool_], FloatArray, FloatArray]:
-    """Bilinear sample of ``values`` (grid.height, grid.width) at object (x, y), metres.
-
-    Returns:
-        (value, ok, weight_ok, nearest): ``value`` the weighted sum over the neighbours of
-        non-zero weight that are ``valid``, ``ok`` True where all of those are valid and the
-        point lies within the box of the cell centres, ``weight_ok`` their total weight (NaN
-        outside the box), ``nearest`` the value of the nearest cell (NaN outside the box).
-    """
-    w, h = grid.width, grid.height
-    c = (x - grid.x0) / grid.cell
-    r = (grid.y0 - y) / grid.cell
-    inside = (c >= 0.0) & (c <= w - 1) & (r >= 0.0) & (r <= h - 1)  # False for NaN
-    c = np.where(inside, c, 0.0)
-    r = np.where(inside, r, 0.0)
-    c0 = np.clip(np.floor(c).astype(np.int64), 0, max(w - 2, 0))
-    r0 = np.clip(np.floor(r).astype(np.int64), 0, max(h - 2, 0))
-    c1 = np.minimum(c0 + 1, w - 1)
-    r1 = np.minimum(r0 + 1, h - 1)
-    fc = c - c0
-    fr = r - r0
-    total = np.zeros(c.shape)
-    wsum = np.zeros(c.shape)
-    ok = inside.copy()
-    for rr, cc, wk in (
-        (r0, c0, (1.0 - fr) * (1.0 - fc)),
-        (r0, c1, (1.0 - fr) * fc),
-        (r1, c0, fr * (1.0 - fc)),
-        (r1, c1, fr * fc),
-    ):
-        good = valid[rr, cc]
-        use = good & (wk > 0.0)
-        total += np.where(use, wk * np.where(good, values[rr, cc], 0.0).astype(float), 0.0)
-        wsum += np.where(use, wk, 0.0)
-        ok &= good | (wk <= 0.0)
-    nr = np.where(fr < 0.5, r0, r1)
-    nc = np.where(fc < 0.5, c0, c1)
-    nearest = np.where(inside, values[nr, nc].astype(float), np.nan)
-    return total, ok, np.where(inside, wsum, np.nan), nearest
-
-
 class _Reprojection:
     """Output cells of a map grid -> object (x, y) and ellipsoidal height on the DSM surface."""
 
@@ -336,7 +293,7 @@ class _Reprojection:
         active = np.arange(flat_h.size)
         for _ in range(MAX_ROUNDS):
             x, y, z = frame.to_local(flat_lon[active], flat_lat[active], flat_h[active])
-            total, _, wsum, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
+            total, _, wsum, _ = bilinear_terms(self.heights, self.grid, x, y, self.valid)
             with np.errstate(invalid="ignore", divide="ignore"):
                 dh = total / wsum - z  # NaN-tolerant (weights of valid neighbours) while iterating
             step = np.isfinite(dh)
@@ -345,7 +302,7 @@ class _Reprojection:
             if active.size == 0:
                 break
         x, y, z = frame.to_local(lon, lat, h)
-        total, ok, _, _ = _bilinear(self.heights, self.grid, x, y, self.valid)
+        total, ok, _, _ = bilinear_terms(self.heights, self.grid, x, y, self.valid)
         return x, y, np.where(ok, h + (total - z), np.nan)
 
 
@@ -724,7 +681,7 @@ def _sample_image(
     grid's centre box or where (x, y) is NaN.
     """
     valid = image != nodata if image.dtype.kind != "f" else np.isfinite(image) & (image != nodata)
-    total, ok, _, nearest = _bilinear(image, grid, x, y, valid)
+    total, ok, _, nearest = bilinear_terms(image, grid, x, y, valid)
     out = nearest if interpolation == "nearest" else np.where(ok, total, nearest)
     return np.where(np.isfinite(out), out, nodata)
 
