@@ -33,6 +33,7 @@ __all__ = [
     "disparity_range",
     "match_pair",
     "refine_range",
+    "sgbm_matcher",
     "to_uint8",
 ]
 
@@ -190,7 +191,11 @@ def to_uint8(image: NDArray[Any], low: float, high: float) -> UInt8Array:
     return cast("UInt8Array", np.clip(np.rint(out), 0, 255).astype(np.uint8))
 
 
-def _matcher(params: SgbmParams, dmin: int, ndisp: int) -> cv2.StereoSGBM:
+def sgbm_matcher(params: SgbmParams, dmin: int, ndisp: int) -> cv2.StereoSGBM:
+    """OpenCV's StereoSGBM with ``params``' settings: ``ndisp`` disparities from ``dmin``.
+
+    The matcher of :func:`match_pair`, and the benchmarks' bare pass (tools/bench).
+    """
     bs = params.block_size
     return cv2.StereoSGBM.create(
         minDisparity=dmin,
@@ -480,7 +485,7 @@ def match_pair(
         max(abs(rng[0] - shift), abs(rng[1] - shift)) + 1,
         shift,
     )
-    matcher = _matcher(p, prep.dmin, ndisp)
+    matcher = sgbm_matcher(p, prep.dmin, ndisp)
     disp = np.full((h, w), np.nan, dtype=np.float32)
     counts = np.zeros(len(_REASONS), dtype=np.int64)
     for r0, r1 in _balanced_spans(h, tile_rows):

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from parproj_ros.geometry import AffineModel
-from parproj_ros.imaging.dense import SgbmParams, match_pair, to_uint8
+from parproj_ros.imaging.dense import SgbmParams, match_pair, sgbm_matcher, to_uint8
 from parproj_ros.imaging.heights import GroundMapping, make_dsm, orthoimage
 from parproj_ros.imaging.resample import OutputGrid
 
@@ -74,20 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     l8 = to_uint8(left, *np.percentile(left, p.stretch_percentiles))
     r8 = to_uint8(right, *np.percentile(right, p.stretch_percentiles))
     ndisp = int(np.ceil((d_range[1] - d_range[0] + 1) / 16)) * 16
-    bs = p.block_size
-    sgbm = cv2.StereoSGBM.create(
-        minDisparity=d_range[0],
-        numDisparities=ndisp,
-        blockSize=bs,
-        P1=8 * bs * bs,
-        P2=32 * bs * bs,
-        disp12MaxDiff=-1,
-        preFilterCap=63,
-        uniquenessRatio=p.uniqueness_ratio,
-        speckleWindowSize=p.speckle_window,
-        speckleRange=p.speckle_range,
-        mode=p.mode,
-    )
+    sgbm = sgbm_matcher(p, d_range[0], ndisp)
     l8f, r8f = np.ascontiguousarray(l8[:, ::-1]), np.ascontiguousarray(r8[:, ::-1])
     res = match_pair(left, right, d_range=d_range)
     rows: list[tuple[str, float]] = [

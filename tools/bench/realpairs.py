@@ -304,9 +304,7 @@ def normalized_pairs(
 
 def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
     """Seconds of one bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), best of three."""
-    import cv2
-
-    from parproj_ros.imaging.dense import SgbmParams, to_uint8
+    from parproj_ros.imaging.dense import SgbmParams, sgbm_matcher, to_uint8
 
     p = SgbmParams()
 
@@ -317,20 +315,7 @@ def bare_sgbm_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int
 
     l8, r8 = stretch(left), stretch(right)
     ndisp = int(np.ceil((d_range[1] - d_range[0] + 1) / 16)) * 16
-    bs = p.block_size
-    sgbm = cv2.StereoSGBM.create(
-        minDisparity=d_range[0],
-        numDisparities=ndisp,
-        blockSize=bs,
-        P1=8 * bs * bs,
-        P2=32 * bs * bs,
-        disp12MaxDiff=-1,
-        preFilterCap=63,
-        uniquenessRatio=p.uniqueness_ratio,
-        speckleWindowSize=p.speckle_window,
-        speckleRange=p.speckle_range,
-        mode=p.mode,
-    )
+    sgbm = sgbm_matcher(p, d_range[0], ndisp)
     best = math.inf
     for _ in range(3):
         t0 = time.perf_counter()
