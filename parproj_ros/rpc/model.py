@@ -414,16 +414,24 @@ class RPCModel:
         The start of :meth:`localize`'s Newton iteration: a rough footprint (lon, lat degrees)
         that needs no convergence, so it also exists where the full model fails.
         """
+        ln, sn, H = self._normalized_image(line, sample, h_m)
+        L, P = self._linear_start(ln, sn, H)
+        return L * self.long_scale + self.long_off, P * self.lat_scale + self.lat_off
+
+    def _normalized_image(
+        self, line: ArrayLike, sample: ArrayLike, h_m: ArrayLike
+    ) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Image points and heights in the model's normalized units (broadcast, float64)."""
         li, sa, hh = np.broadcast_arrays(
             np.asarray(line, dtype=np.float64),
             np.asarray(sample, dtype=np.float64),
             np.asarray(h_m, dtype=np.float64),
         )
-        ln = (li - self.line_off) / self.line_scale
-        sn = (sa - self.samp_off) / self.samp_scale
-        H = (hh - self.height_off) / self.height_scale
-        L, P = self._linear_start(ln, sn, H)
-        return L * self.long_scale + self.long_off, P * self.lat_scale + self.lat_off
+        return (
+            (li - self.line_off) / self.line_scale,
+            (sa - self.samp_off) / self.samp_scale,
+            (hh - self.height_off) / self.height_scale,
+        )
 
     def _linear_start(
         self, ln: FloatArray, sn: FloatArray, H: FloatArray
@@ -561,14 +569,7 @@ class RPCModel:
             RPCConvergenceError: not converged to 1e-6 px (``outside == "raise"``).
 
         """
-        li, sa, hh = np.broadcast_arrays(
-            np.asarray(line, dtype=np.float64),
-            np.asarray(sample, dtype=np.float64),
-            np.asarray(h_m, dtype=np.float64),
-        )
-        ln = (li - self.line_off) / self.line_scale
-        sn = (sa - self.samp_off) / self.samp_scale
-        H = (hh - self.height_off) / self.height_scale
+        ln, sn, H = self._normalized_image(line, sample, h_m)
         with np.errstate(invalid="ignore"):
             bad_in = ~((np.abs(ln) <= _LIMIT) & (np.abs(sn) <= _LIMIT) & (np.abs(H) <= _LIMIT))
         if domain != "limit":
