@@ -6,7 +6,7 @@ is read, and each of these must resolve in the repository:
 - a module path, ``parproj_ros/.../x.py`` or a shorter one in backticks (``core/memory.py``,
   ``node.py``: some file of the package, the tests or the tools ends with it), and a dotted
   module, ``parproj_ros.x.y`` (anywhere in the text, code blocks included);
-- a name written with its module in backticks: ``parproj_ros.core.config.parameters_markdown``,
+- a name written with its module in backticks: ``parproj_ros.core.param_docs.parameters_markdown``,
   ``core/memory.held_bytes``, ``gcp_file.load_gcp_file`` (a module's base name), or a class's
   attribute, ``Pipeline.add_strip``, ``ElevationGrid.filled_cells`` (a message field);
 - a test named as ``tests/x/test_y.py::test_z`` (or ``test_y.py::test_z``);
@@ -365,7 +365,7 @@ def test_doc_names_what_exists(page: Path) -> None:
 
 def test_the_checker_catches_what_is_gone(tmp_path: Path) -> None:
     """The checks fail on names that do not exist and pass on ones that do."""
-    assert check_span("parproj_ros.core.config.parameters_markdown") is None
+    assert check_span("parproj_ros.core.param_docs.parameters_markdown") is None
     assert check_span("core/memory.held_bytes") is None
     assert check_span("gcp_file.load_gcp_file") is None
     assert check_span("Pipeline.add_strip") is None

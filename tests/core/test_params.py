@@ -1,4 +1,4 @@
-"""The one parameter table (parproj_ros/core/config.py), what is generated from it or must agree.
+"""The one parameter table (parproj_ros/core/params.py), what is generated from it or must agree.
 
 docs/node.md's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
 has a field per row that fills one, with the table's default; ``parproj process`` has an option
@@ -25,8 +25,9 @@ import yaml
 from testkit.paths import ROOT
 
 from parproj_ros.apps import cli
-from parproj_ros.core import config
-from parproj_ros.core.config import PARAMS, VIEW_PARAMS, PipelineConfig, config_from_values
+from parproj_ros.core import config, param_docs, params
+from parproj_ros.core.config import PipelineConfig, config_from_values
+from parproj_ros.core.params import PARAMS, VIEW_PARAMS
 
 BAG = ROOT / "bags" / "ikonos_agile"
 
@@ -35,19 +36,19 @@ BAG = ROOT / "bags" / "ikonos_agile"
 
 
 def test_readme_table_is_the_rendered_one() -> None:
-    readme = (ROOT / config.NODE_DOC).read_text()
-    begin = readme.index(config.README_BEGIN) + len(config.README_BEGIN) + 1
-    end = readme.index(config.README_END)
-    assert readme[begin:end] == config.parameters_markdown(), (
-        f"{config.NODE_DOC}'s Parameters table differs from parproj_ros/core/config.py: "
-        "run `python -m parproj_ros.core.config --write .`"
+    readme = (ROOT / param_docs.NODE_DOC).read_text()
+    begin = readme.index(param_docs.README_BEGIN) + len(param_docs.README_BEGIN) + 1
+    end = readme.index(param_docs.README_END)
+    assert readme[begin:end] == param_docs.parameters_markdown(), (
+        f"{param_docs.NODE_DOC}'s Parameters table differs from parproj_ros/core/params.py: "
+        "run `python -m parproj_ros.core.param_docs --write .`"
     )
 
 
 def test_params_file_is_the_rendered_one() -> None:
-    assert (ROOT / config.PARAMS_FILE).read_text() == config.parameters_yaml(), (
-        "config/parproj_node.yaml differs from parproj_ros/core/config.py: "
-        "run `python -m parproj_ros.core.config --write .`"
+    assert (ROOT / param_docs.PARAMS_FILE).read_text() == param_docs.parameters_yaml(), (
+        "config/parproj_node.yaml differs from parproj_ros/core/params.py: "
+        "run `python -m parproj_ros.core.param_docs --write .`"
     )
 
 
@@ -62,16 +63,16 @@ def _flat(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 
 def test_params_file_holds_every_default_with_its_type() -> None:
-    doc = yaml.safe_load(config.parameters_yaml())
+    doc = yaml.safe_load(param_docs.parameters_yaml())
     values = _flat(doc["parproj_node"]["ros__parameters"])
-    want = config.default_values()
+    want = params.default_values()
     assert values == want
     for name, v in values.items():
         assert type(v) is type(want[name]), name
 
 
 def test_params_file_comments_give_unit_and_range() -> None:
-    text = config.parameters_yaml()
+    text = param_docs.parameters_yaml()
     for p in (*PARAMS, *VIEW_PARAMS):
         block = re.search(rf"((?:\s*#.*\n)+)\s*{p.name}: ", text)
         assert block, p.name
@@ -83,15 +84,14 @@ def test_params_file_comments_give_unit_and_range() -> None:
 
 def test_readme_says_how_to_regenerate(tmp_path: Path) -> None:
     (tmp_path / "docs").mkdir()
-    (tmp_path / config.NODE_DOC).write_text(
-        f"x\n{config.README_BEGIN}\nold table\n{config.README_END}\ny\n"
+    (tmp_path / param_docs.NODE_DOC).write_text(
+        f"x\n{param_docs.README_BEGIN}\nold table\n{param_docs.README_END}\ny\n"
     )
-    assert config.main(["--write", str(tmp_path)]) == 0
-    text = (tmp_path / config.NODE_DOC).read_text()
-    assert (
-        text == f"x\n{config.README_BEGIN}\n{config.parameters_markdown()}{config.README_END}\ny\n"
-    )
-    assert (tmp_path / config.PARAMS_FILE).read_text() == config.parameters_yaml()
+    assert param_docs.main(["--write", str(tmp_path)]) == 0
+    text = (tmp_path / param_docs.NODE_DOC).read_text()
+    table = param_docs.parameters_markdown()
+    assert text == f"x\n{param_docs.README_BEGIN}\n{table}{param_docs.README_END}\ny\n"
+    assert (tmp_path / param_docs.PARAMS_FILE).read_text() == param_docs.parameters_yaml()
 
 
 # ---- the table and PipelineConfig ---------------------------------------------------------------
@@ -121,7 +121,7 @@ def test_table_rows_are_consistent() -> None:
             assert p.field is not None, f"{p.name}: an offline option fills no pipeline setting"
 
 
-def _other_value(p: config.Param) -> Any:
+def _other_value(p: params.Param) -> Any:
     """A valid value of ``p`` other than its default."""
     if p.type == "bool":
         return not p.default
@@ -253,7 +253,7 @@ def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]
 
 @pytest.mark.parametrize("p", [p for p in PARAMS if p.offline and p.low is not None], ids=str)
 def test_process_option_takes_the_parameter_range(
-    p: config.Param, capsys: pytest.CaptureFixture[str]
+    p: params.Param, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert p.low is not None and p.high is not None
     fmt = (lambda v: str(int(v))) if p.type == "integer" else repr
@@ -444,7 +444,7 @@ def test_numbers_in_the_table_are_finite() -> None:
 
 def test_encoding_choices_are_the_supported_pixel_types() -> None:
     """``<view>.encoding`` offers exactly the encodings the pipeline writes (and "")."""
-    from parproj_ros.core.config import VIEW_PARAMS
+    from parproj_ros.core.params import VIEW_PARAMS
     from parproj_ros.imaging.encodings import DTYPE_ENCODINGS
 
     choices = next(p.choices for p in VIEW_PARAMS if p.name == "encoding")

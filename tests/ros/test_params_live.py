@@ -2,7 +2,7 @@
 localhost), started with ``--params-file config/parproj_node.yaml``.
 
 It must start with no parameter ERROR (its 1 Hz summary OK), declare exactly the table's
-parameters (parproj_ros/core/config.py), with the table's defaults, descriptions (with units) and
+parameters (parproj_ros/core/params.py), with the table's defaults, descriptions (with units) and
 ranges, as its own parameter services report them, and stop cleanly.
 """
 
@@ -24,7 +24,7 @@ from rclpy.parameter import parameter_value_to_python
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from testkit.paths import ROOT
 
-from parproj_ros.core import config
+from parproj_ros.core import param_docs, params
 from parproj_ros.ros.live import NodeProcess, ros_environment, wait_until
 
 pytestmark = pytest.mark.ros
@@ -58,7 +58,7 @@ def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
     proc = NodeProcess(
-        ROOT / config.PARAMS_FILE, ros_environment(log_dir=tmp / "ros_log"), tmp / "node.log"
+        ROOT / param_docs.PARAMS_FILE, ros_environment(log_dir=tmp / "ros_log"), tmp / "node.log"
     )
     result: dict[str, Any] = {}
 
@@ -118,20 +118,20 @@ def test_declares_exactly_the_table(started: dict[str, Any]) -> None:
     names = {
         n for n in started["names"] if n not in ROS_OWN and not n.startswith("qos_overrides.")
     }
-    assert names == set(config.default_values())
+    assert names == set(params.default_values())
 
 
 def test_values_are_the_table_defaults(started: dict[str, Any]) -> None:
     got = started["values"]
-    for name, want in config.default_values().items():
+    for name, want in params.default_values().items():
         assert got[name] == want and type(got[name]) is type(want), (name, got[name], want)
 
 
 def test_descriptors_are_the_table_rows(started: dict[str, Any]) -> None:
     descs = started["descriptors"]
-    rows = [(p.name, p) for p in config.PARAMS]
-    for view in config.default_values()["views"]:
-        rows += [(f"{view}.{p.name}", p) for p in config.VIEW_PARAMS]
+    rows = [(p.name, p) for p in params.PARAMS]
+    for view in params.default_values()["views"]:
+        rows += [(f"{view}.{p.name}", p) for p in params.VIEW_PARAMS]
     for name, p in rows:
         d = descs[name]
         assert d.description == p.ros_description and d.read_only, name
@@ -151,8 +151,9 @@ def test_auto_prefault_is_two_raw_pairs() -> None:
     """prefault_mb -1 (the default): two raw pairs of the configured scenes, 0 without them."""
     from dataclasses import replace
 
-    from parproj_ros.core.config import PARAMS, PipelineConfig
-    from parproj_ros.ros.node import auto_prefault_mb
+    from parproj_ros.core.config import PipelineConfig
+    from parproj_ros.core.params import PARAMS
+    from parproj_ros.core.admission import auto_prefault_mb
     from parproj_ros.sim.synthetic import make_platform
 
     assert next(p for p in PARAMS if p.name == "prefault_mb").default == -1.0

@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING, Any
 
-from ...core.config import PARAMS
+from ...core.params import PARAMS
 from ...io.files import (
     check_output,
     input_path,
