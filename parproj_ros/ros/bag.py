@@ -61,6 +61,7 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Schema
 from mcap.writer import CompressionType, Writer
 
+from ..core import contract
 from ..io.direct import DirectFile
 from .cdr import CdrError, parse_image
 
@@ -90,15 +91,11 @@ Compression = Literal["zstd", "lz4", "none"]
 _INFINITE = {"sec": 9223372036, "nsec": 854775807}
 
 #: QoS presets that ``BagWriter.add_topic`` records as the offered profile of a topic (the rclpy
-#: defaults: ``QoSProfile(depth=10)``, ``qos_profile_sensor_data``, and a latched depth-1 topic).
+#: defaults: ``QoSProfile(depth=10)``, ``qos_profile_sensor_data``, and a latched depth-1 topic;
+#: the interface contract's :data:`~parproj_ros.core.contract.BAG_QOS`).
 QOS_PRESETS: dict[str, dict[str, Any]] = {
-    "reliable": {"history": "keep_last", "depth": 10, "reliability": "reliable",
-                 "durability": "volatile"},
-    "sensor_data": {"history": "keep_last", "depth": 5, "reliability": "best_effort",
-                    "durability": "volatile"},
-    "transient_local": {"history": "keep_last", "depth": 1, "reliability": "reliable",
-                        "durability": "transient_local"},
-}  # fmt: skip
+    name: q.as_dict() for name, q in contract.BAG_QOS.items()
+}
 
 _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")
@@ -570,6 +567,17 @@ class BagWriter:
                 name, msgtype, qos, channel_id, metadata["topic_type_hash"],
                 compression=None if chosen is None else str(chosen),
             )  # fmt: skip
+
+    def add_topics(self, topics: Iterable[contract.Topic]) -> None:
+        """Declare topics of the interface contract (:mod:`parproj_ros.core.contract`).
+
+        Each with its name, type and recorded QoS (``Topic.recorded``), in the order given.
+
+        Raises:
+            BagError: A topic exists with another type, or the bag is closed.
+        """
+        for t in topics:
+            self.add_topic(t.name, t.msgtype, t.recorded)
 
     def write(self, topic: str, msg: Any, stamp_ns: int) -> None:
         """Serialize an rclpy message and append it.

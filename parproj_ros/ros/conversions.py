@@ -14,6 +14,9 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
+from ..core.contract import OUTPUT_TOPICS as OUTPUT_TOPICS  # the node's, process's (for now)
+from ..core.contract import PAIR_IMAGE_TOPICS as PAIR_IMAGE_TOPICS
 from ..core.results import METHODS, BlockResult, GroundPoint, Level, PairResult, SceneResult
 from ..core.trajectory import NavSample, make_sample
 from ..geometry.rotation import rotation_to_quaternion
@@ -289,7 +292,7 @@ def pair_to_msgs(
     images, empty = [], []
     for img, side in ((pair.left_image, "left"), (pair.right_image, "right")):
         bare = Image()
-        bare.header.frame_id = f"{frame_id}/normalized_{side}"
+        bare.header.frame_id = contract.normalized_frame(frame_id, side)
         ns_to_stamp(pair.stamp_ns, bare.header.stamp)
         empty.append(bare)
         if img is None:  # streamed: the pixels went out as NormalizedBlock messages
@@ -297,7 +300,10 @@ def pair_to_msgs(
         else:
             images.append(
                 array_to_image(
-                    img, Image(), frame_id=f"{frame_id}/normalized_{side}", stamp_ns=pair.stamp_ns
+                    img,
+                    Image(),
+                    frame_id=contract.normalized_frame(frame_id, side),
+                    stamp_ns=pair.stamp_ns,
                 )
             )
     left, right = images
@@ -379,7 +385,7 @@ def outputs_to_messages(
     for res in out.scenes:
         msgs.append(
             (
-                "parallel_projection",
+                contract.PARALLEL_PROJECTION,
                 scene_to_msg(res, ParallelProjection(), frame_id=frame_id),
                 res.scene.first_line_ns,
             )
@@ -387,7 +393,11 @@ def outputs_to_messages(
     to_block = block_to_cdr if raw_blocks else block_to_msg
     for blk in out.blocks:
         msgs.append(
-            (f"{blk.side}/normalized_block", to_block(blk, frame_id=frame_id), blk.stamp_ns)
+            (
+                contract.normalized_block_topic(blk.side),
+                to_block(blk, frame_id=frame_id),
+                blk.stamp_ns,
+            )
         )
     for pair in out.pairs:
         sp, left, right = pair_to_msgs(
@@ -395,8 +405,8 @@ def outputs_to_messages(
         )
         if pair.left_image is not None and pair.right_image is not None:
             msgs += [
-                ("left/image_normalized", left, pair.stamp_ns),
-                ("right/image_normalized", right, pair.stamp_ns),
+                (contract.normalized_image_topic("left"), left, pair.stamp_ns),
+                (contract.normalized_image_topic("right"), right, pair.stamp_ns),
             ]
             if anaglyph:
                 ana = array_to_image(
@@ -406,16 +416,16 @@ def outputs_to_messages(
                     stamp_ns=pair.stamp_ns,
                     encoding="rgb8",
                 )
-                msgs.append(("anaglyph", ana, pair.stamp_ns))
-        msgs.append(("stereo_pair", sp, pair.stamp_ns))
+                msgs.append((contract.ANAGLYPH, ana, pair.stamp_ns))
+        msgs.append((contract.STEREO_PAIR, sp, pair.stamp_ns))
     for h in getattr(out, "heights", []):
         msgs += heights_to_msgs(h, frame_id=frame_id)
     for f in getattr(out, "fused", []):
-        msgs.append(("dsm_fused", fused_to_msg(f, frame_id=frame_id), f.stamp_ns))
+        msgs.append((contract.DSM_FUSED, fused_to_msg(f, frame_id=frame_id), f.stamp_ns))
     if out.issues:
         msgs.append(
             (
-                "/diagnostics",
+                contract.DIAGNOSTICS,
                 issues_to_diagnostics(out.issues, stamp_ns=stamp_ns, hardware_id=frame_id),
                 stamp_ns,
             )
@@ -430,7 +440,7 @@ def block_to_msg(blk: BlockResult, *, frame_id: str) -> Any:
 
     msg = NormalizedBlock()
     ns_to_stamp(blk.stamp_ns, msg.header.stamp)
-    msg.header.frame_id = f"{frame_id}/normalized_{blk.side}"
+    msg.header.frame_id = contract.normalized_frame(frame_id, blk.side)
     msg.pair_id, msg.side = blk.pair_id, blk.side
     msg.col0 = int(blk.col0)
     msg.full_width, msg.full_height = int(blk.grid.width), int(blk.grid.height)
@@ -455,7 +465,7 @@ def block_to_cdr(blk: BlockResult, *, frame_id: str) -> bytes:
     from .cdr import serialize_block
 
     return serialize_block(
-        frame_id=f"{frame_id}/normalized_{blk.side}",
+        frame_id=contract.normalized_frame(frame_id, blk.side),
         stamp_ns=blk.stamp_ns,
         pair_id=blk.pair_id,
         side=blk.side,
@@ -484,24 +494,20 @@ def assemble_blocks(blocks: list[Any]) -> Any:
     return out
 
 
-#: Published topics and their types (node and offline process alike).
-OUTPUT_TOPICS = {
-    "parallel_projection": "parproj_msgs/msg/ParallelProjection",
-    "stereo_pair": "parproj_msgs/msg/StereoPair",
-    "left/image_normalized": "sensor_msgs/msg/Image",
-    "right/image_normalized": "sensor_msgs/msg/Image",
-    "anaglyph": "sensor_msgs/msg/Image",
-    "left/normalized_block": "parproj_msgs/msg/NormalizedBlock",
-    "right/normalized_block": "parproj_msgs/msg/NormalizedBlock",
-    "disparity": "stereo_msgs/msg/DisparityImage",
-    "height": "sensor_msgs/msg/Image",
-    "dsm": "parproj_msgs/msg/ElevationGrid",
-    "dsm_fused": "parproj_msgs/msg/ElevationGrid",
-    "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
-}
-#: The images of a pair sent whole, published after its StereoPair (a streamed pair's pixels
-#: come before it, as NormalizedBlock messages).
-PAIR_IMAGE_TOPICS = ("left/image_normalized", "right/image_normalized", "anaglyph")
+def qos_profile(qos: contract.Qos) -> Any:
+    """The contract's QoS (plain data) -> rclpy ``QoSProfile`` (keep last ``qos.depth``)."""
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=qos.depth,
+        reliability=ReliabilityPolicy.RELIABLE
+        if qos.reliability == "reliable"
+        else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL
+        if qos.durability == "transient_local"
+        else DurabilityPolicy.VOLATILE,
+    )
 
 
 def fused_to_msg(f: Any, *, frame_id: str) -> Any:
@@ -546,7 +552,7 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
     from sensor_msgs.msg import Image
     from stereo_msgs.msg import DisparityImage
 
-    left_frame = f"{frame_id}/normalized_left"
+    left_frame = contract.normalized_frame(frame_id, "left")
     dmin, dmax = (float(v) for v in h.d_range)
     disp = np.where(np.isfinite(h.disparity), h.disparity, dmin - 1.0).astype(np.float32)
     dm = DisparityImage()
@@ -565,8 +571,8 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
         stamp_ns=h.stamp_ns,
     )
     out: list[tuple[str, Any, int]] = [
-        ("disparity", dm, h.stamp_ns),
-        ("height", height, h.stamp_ns),
+        (contract.DISPARITY, dm, h.stamp_ns),
+        (contract.HEIGHT, height, h.stamp_ns),
     ]
     if h.dsm is None:
         return out
@@ -595,7 +601,7 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
         m.terrain_min_m, m.terrain_max_m = (float(v) for v in h.terrain.range_m)
         m.terrain_source = str(h.terrain.source)
         m.terrain_points = int(h.terrain.points)
-    out.append(("dsm", m, h.stamp_ns))
+    out.append((contract.DSM, m, h.stamp_ns))
     return out
 
 

@@ -1,18 +1,9 @@
-"""The interface contract of the bags the pipeline reads and writes, and reading it back.
+"""The bags the pipeline reads and writes, checked against the interface contract, read back.
 
-An input bag (``parproj simulate``, ``parproj import``, a recording of a sensor) holds, as
-relative topic names, as the node subscribes to them:
-
-| topic | type | content |
-|---|---|---|
-| navigation | nav_msgs/msg/Odometry | platform position, attitude, body-frame velocity |
-| <view>/image_strip | sensor_msgs/msg/Image | strips of scan lines; frame_id = scene id |
-| <view>/scanner_info | parproj_msgs/msg/ScannerInfo | the camera, once (transient local) |
-| gcp | parproj_msgs/msg/GroundControlPoints | GCP and check points, once (transient local) |
-| truth/points | parproj_msgs/msg/GroundControlPoints | exact points for the evaluation |
-
-An output bag (``parproj process``, a recording of the node) holds
-:data:`~parproj_ros.ros.conversions.OUTPUT_TOPICS`. This module checks both kinds, and reads
+An input bag (``parproj simulate``, ``parproj import``, a recording of a sensor) holds the input
+topics of :mod:`parproj_ros.core.contract` (navigation, each view's strips and camera, GCP, the
+pair selection, truth points); an output bag (``parproj process``, a recording of the node) its
+output topics (``contract.OUTPUTS``). This module checks both kinds, and reads
 back what the pipeline and the node need from an input bag: its cameras, its truth, its object
 frame, the settings and node parameters that fit it. It sits beside the bag code (the messages
 layer), so that the node, ``parproj process`` and the evaluation need nothing of the simulator.
@@ -23,24 +14,20 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from ..core import contract
 from ..core.config import PipelineConfig, ViewConfig, view_values
 from ..core.frames import ObjectFrame
 from ..core.results import GroundPoint, Issue
 from ..geometry import GeometryError, LineCamera, quaternion_to_rotation
 from .bag import BagError, BagReader
-from .conversions import OUTPUT_TOPICS, gcp_from_msg
+from .conversions import gcp_from_msg
 
-#: Input topics whose header.frame_id names the object frame, in the order they are read.
-FRAME_TOPICS = ("gcp", "truth/points", "navigation")
-
-#: Topics of an input bag and their types (``*`` stands for a view name).
-INPUT_TOPICS = {
-    "navigation": "nav_msgs/msg/Odometry",
-    "*/image_strip": "sensor_msgs/msg/Image",
-    "*/scanner_info": "parproj_msgs/msg/ScannerInfo",
-    "gcp": "parproj_msgs/msg/GroundControlPoints",
-    "truth/points": "parproj_msgs/msg/GroundControlPoints",
-}
+#: Topics of an input bag whose type is checked (``*`` stands for a view name): the contract's
+#: inputs but the pair selection, whose messages ``parproj process`` converts one by one (a
+#: malformed one is a WARN, the message dropped).
+CHECKED_INPUTS = {k: v for k, v in contract.INPUT_TYPES.items() if k != contract.PAIRS}
+_TRUTH = {contract.TRUTH_POINTS: contract.INPUT_TYPES[contract.TRUTH_POINTS]}
+_SCANNER_INFO = "*/" + contract.SCANNER_INFO
 
 
 def _expected_type(topic: str, expected: dict[str, str]) -> str | None:
@@ -86,7 +73,7 @@ def check_input_bag(path: Path) -> tuple[ViewConfig, ...]:
         FileNotFoundError: no such bag.
     """
     reader = BagReader(path)
-    check_topic_types(reader, INPUT_TOPICS)
+    check_topic_types(reader, CHECKED_INPUTS)
     views = views_from_bag(reader)
     if not views:
         rec = reader.recovery
@@ -99,9 +86,11 @@ def check_input_bag(path: Path) -> tuple[ViewConfig, ...]:
     if len(views) > 2:
         raise BagError(f"{len(views)} cameras ({[v.name for v in views]}); 1 or 2 needed", path)
     topics = reader.topics()
-    lacking = [v.name for v in views if f"{v.name}/image_strip" not in topics]
+    lacking = [v.name for v in views if contract.strip_topic(v.name) not in topics]
     if lacking:
-        raise BagError(f"no image strips for camera {lacking[0]} ({lacking[0]}/image_strip)", path)
+        raise BagError(
+            f"no image strips for camera {lacking[0]} ({contract.strip_topic(lacking[0])})", path
+        )
     return views
 
 
@@ -112,8 +101,8 @@ def check_output_bag(path: Path) -> None:
         BagError: not a bag, no stereo_pair topic, topics of the wrong type.
     """
     reader = BagReader(path)
-    check_topic_types(reader, {**OUTPUT_TOPICS, "truth/points": INPUT_TOPICS["truth/points"]})
-    if "stereo_pair" not in {t.lstrip("/") for t in reader.topics()}:
+    check_topic_types(reader, {**contract.OUTPUT_TOPICS, **_TRUTH})
+    if contract.STEREO_PAIR not in {t.lstrip("/") for t in reader.topics()}:
         raise BagError(
             "no stereo_pair topic: not an output of parproj process or of the node", path
         )
@@ -126,8 +115,8 @@ def check_truth_bag(path: Path) -> None:
         BagError: not a bag, no truth/points topic, or of the wrong type.
     """
     reader = BagReader(path)
-    check_topic_types(reader, {"truth/points": INPUT_TOPICS["truth/points"]})
-    if "truth/points" not in reader.topics():
+    check_topic_types(reader, _TRUTH)
+    if contract.TRUTH_POINTS not in reader.topics():
         raise BagError("no truth/points topic: no truth to evaluate against", path)
 
 
@@ -137,10 +126,10 @@ def views_from_bag(reader: BagReader) -> tuple[ViewConfig, ...]:
     Raises:
         BagError: a ``*/scanner_info`` topic is not a ScannerInfo, or describes no camera.
     """
-    topics = [t for t in reader.topics() if t.endswith("/scanner_info")]
+    topics = [t for t in reader.topics() if t.endswith(_SCANNER_INFO[1:])]
     if not topics:
         return ()  # (an empty topic list would read every topic)
-    check_topic_types(reader, {"*/scanner_info": INPUT_TOPICS["*/scanner_info"]})
+    check_topic_types(reader, {_SCANNER_INFO: contract.INPUT_TYPES[_SCANNER_INFO]})
     views = []
     for item in reader.messages(topics=topics):
         m = item.msg
@@ -168,11 +157,13 @@ def views_from_bag(reader: BagReader) -> tuple[ViewConfig, ...]:
 def truth_from_bag(reader: BagReader) -> list[GroundPoint]:
     """Truth points recorded on truth/points."""
     out: list[GroundPoint] = []
-    for item in reader.messages(topics=["truth/points"]):
+    for item in reader.messages(topics=[contract.TRUTH_POINTS]):
         try:
             out += gcp_from_msg(item.msg)
         except ValueError as err:  # ConversionError, or a GroundPoint refused
-            raise BagError(f"truth/points: malformed message: {err}", reader.path) from err
+            raise BagError(
+                f"{contract.TRUTH_POINTS}: malformed message: {err}", reader.path
+            ) from err
     return out
 
 
@@ -193,7 +184,7 @@ def config_from_bag(reader: BagReader, **overrides: Any) -> PipelineConfig:
 def frame_from_bag(reader: BagReader, given: str = "") -> tuple[ObjectFrame, list[Issue]]:
     """The object frame of a bag's outputs (:mod:`parproj_ros.core.frames`).
 
-    Reads the ``header.frame_id`` of the first message of each of :data:`FRAME_TOPICS` present
+    Reads the ``header.frame_id`` of the first message of each of ``contract.FRAME_TOPICS`` present
     (GCP, truth points, navigation), in log-time order: the first that names a frame is the
     outputs' frame unless ``given`` is.
 
@@ -207,7 +198,7 @@ def frame_from_bag(reader: BagReader, given: str = "") -> tuple[ObjectFrame, lis
     """
     frame = ObjectFrame(given)
     issues: list[Issue] = []
-    present = [t for t in FRAME_TOPICS if t in reader.topics()]
+    present = [t for t in contract.FRAME_TOPICS if t in reader.topics()]
     firsts: dict[str, tuple[int, str]] = {}
     if present:
         # Only the chunks holding these topics are read, up to the first message of each.
@@ -216,7 +207,7 @@ def frame_from_bag(reader: BagReader, given: str = "") -> tuple[ObjectFrame, lis
                 firsts[item.topic] = (item.log_time_ns, str(item.msg.header.frame_id))
             if len(firsts) == len(present):
                 break
-    order = sorted(firsts.items(), key=lambda kv: (kv[1][0], FRAME_TOPICS.index(kv[0])))
+    order = sorted(firsts.items(), key=lambda kv: (kv[1][0], contract.FRAME_TOPICS.index(kv[0])))
     for topic, (_, frame_id) in order:
         issues += frame.observe(topic, frame_id)
     return frame, issues
