@@ -14,8 +14,8 @@ from typing import Any, Generic, TypeVar
 
 from ..core.config import PipelineConfig
 from ..core.memory import raw_pair_bytes, tune_malloc
-from ..core.pipeline import Pipeline
 from ..core.results import Issue, Level, Outputs
+from ..core.session import InputKind, Session, Strip
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
 from ..ros.inputs import config_from_bag, frame_from_bag
@@ -243,6 +243,25 @@ IMAGE_TOPICS = (
 )
 
 
+def _input(topic: str, msg: Any, strip_topics: dict[str, str]) -> tuple[InputKind, Any] | None:
+    """The session input of a bag message (None: a topic the pipeline does not take).
+
+    Raises:
+        conversions.ConversionError: a message that does not convert.
+    """
+    if topic == "navigation":
+        return InputKind.NAV, conv.odometry_to_sample(msg)
+    if topic in strip_topics:
+        pixels = conv.image_to_array(msg)
+        stamp = conv.stamp_to_ns(msg.header.stamp)
+        return InputKind.STRIP, Strip(strip_topics[topic], stamp, msg.header.frame_id, pixels)
+    if topic == "gcp":
+        return InputKind.GCP, conv.gcp_from_msg(msg)
+    if topic == "pairs":
+        return InputKind.PAIRS, conv.pairs_from_msg(msg)
+    return None
+
+
 def process_bag(
     src: Path,
     dst: Path,
@@ -277,7 +296,7 @@ def process_bag(
     # Freed strips, blocks and images reused, not given back and faulted in again: up to two
     # raw pairs of free heap kept (a pair's blocks freed at once; core/memory.py)
     tune_malloc(2 * raw_pair_bytes(cfg))
-    pipe = Pipeline(cfg)
+    session = Session(cfg)
     summary = ProcessSummary()
     strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}
     per_topic = (
@@ -321,28 +340,18 @@ def process_bag(
                 last = item.log_time_ns
                 out = Outputs()
                 try:
-                    if item.topic == "navigation":
-                        out = pipe.add_navigation(conv.odometry_to_sample(item.msg))
-                    elif item.topic in strip_topics:
-                        arr = conv.image_to_array(item.msg)
-                        out = pipe.add_strip(
-                            strip_topics[item.topic],
-                            conv.stamp_to_ns(item.msg.header.stamp),
-                            item.msg.header.frame_id,
-                            arr,
-                        )
-                    elif item.topic == "gcp":
-                        out = pipe.add_gcp(conv.gcp_from_msg(item.msg))
-                    elif item.topic == "pairs":
-                        out = pipe.set_pairs(conv.pairs_from_msg(item.msg))
+                    fed = _input(item.topic, item.msg, strip_topics)
                 except conv.ConversionError as err:
                     out.issues.append(Issue(Level.WARN, item.topic, f"{err}: message dropped"))
+                else:
+                    if fed is not None:
+                        out = session.feed(*fed)
                 if frame_issues:  # inputs in another frame: with the first outputs
                     out.issues[:0] = frame_issues
                     frame_issues = []
                 emit(out, item.log_time_ns)
             emit(_bag_issues(reader, Path(src).name), last)
-            emit(pipe.flush(), last)
+            emit(session.feed(InputKind.FLUSH, None), last)
         except BaseException:
             try:
                 inputs.close(timeout=ABORT_TIMEOUT_S)

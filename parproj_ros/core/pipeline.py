@@ -32,7 +32,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from ..imaging.assembly import Scene, SceneAssembler, SceneEnd, StripRejectedError
+from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd, StripRejectedError
 from .config import PipelineConfig as PipelineConfig
 from .config import ViewConfig as ViewConfig
 from .fusion import FusionStage
@@ -306,13 +306,21 @@ class Pipeline:
             f"lines, and the strips after the hole make a new scene{rest}",
         )
 
-    def _scene_closed(self, scene: Scene) -> Outputs:
-        """A scene is complete: the end of its stream, or processed whole (:meth:`_scene_done`).
+    def close_view(self, view: str) -> Outputs:
+        """Close and process the open scene of ``view`` alone (its next scene was shed whole).
 
-        Called by the node (``ParprojNode._close_view``) for a scene it closes itself; inside,
-        the streamer's ``scene_closed`` is called directly (step 7 once, at the entry point).
+        What :meth:`close_scenes` does, for one view: the scene is whole (its next one has
+        begun), and the other view's open scene is left as it is.
         """
-        return self._step7(self.streamer.scene_closed(scene))
+        out = Outputs()
+        for scene in self.assemblers[view].flush():
+            out.extend(self.streamer.scene_closed(scene))
+        return self._step7(out)
+
+    def open_scenes(self) -> dict[str, OpenScene]:
+        """The scene each view is assembling, by view (views with none left out)."""
+        opened = {v: a.open_scene() for v, a in self.assemblers.items()}
+        return {v: o for v, o in opened.items() if o is not None}
 
     def close_scenes(self) -> Outputs:
         """Close the open scene of every view (strips stopped coming) and process them."""

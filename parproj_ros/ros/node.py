@@ -9,20 +9,13 @@ See README for the topic and parameter tables.
 
 from __future__ import annotations
 
-import array
 import contextlib
-import math
 import os
-import queue
-import re
 import sys
 import threading
 import time
 import traceback
-from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +29,6 @@ from parproj_msgs.msg import (
     ParallelProjection,
     StereoPair,
 )
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.exceptions import (
     InvalidParameterTypeException,
     InvalidParameterValueException,
@@ -55,32 +47,34 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 from stereo_msgs.msg import DisparityImage
 
+from ..core.admission import PairAdmission, auto_prefault_mb, working_set_floor
 from ..core.config import PARAMS, VIEW_PARAMS, Param, config_from_values
 from ..core.frames import ObjectFrame
 from ..core.memory import (
     held_bytes,
-    malloc_trim,
     prefault_heap,
-    raw_pair_bytes,
     rss_bytes,
     tune_malloc,
 )
-from ..core.pipeline import Pipeline
 from ..core.render_process import RenderProcess
 from ..core.results import BlockResult, Issue, Level, Outputs
+from ..core.session import InputKind, Session, Strip, Worker
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
 from .cdr import CdrError, ImageView, parse_image
-
-
-def auto_prefault_mb(config: Any) -> float:
-    """``prefault_mb`` -1: two raw pairs of the configured scenes, MB (0 without scene_lines).
-
-    scene_lines x detectors x 2 bytes (uint16; an upper bound for 8-bit strips) summed over
-    the views, twice: 1476 MB for two IKONOS-size views (14000 x 13816), the reserve with
-    which the node keeps up at the full rate (bench/BENCHMARKS.md).
-    """
-    return float(2.0 * raw_pair_bytes(config) / 2**20)
+from .startup import (
+    EXIT_BAD_START,
+    EXIT_NOT_FLUSHED,
+    EXIT_OK,
+    StartupError,
+    check_mounting,
+    check_views,
+    descriptor,
+    init_rclpy,
+    one_line,
+    shown,
+    to_stderr,
+)
 
 
 def _read_strip(raw: bytes | Image) -> ImageView | Image:
@@ -105,403 +99,8 @@ def _read_strip(raw: bytes | Image) -> ImageView | Image:
         raise CdrError(f"rclpy could not deserialize it: {type(err).__name__}: {err}") from None
 
 
-class InputKind(StrEnum):
-    """What an item of the worker's queue holds (callbacks and timers queue, the worker runs)."""
-
-    NAV = "nav"  # a NavSample
-    STRIP = "strip"  # (view, stamp_ns, frame_id, array)
-    GCP = "gcp"  # a list of GroundPoint
-    PAIRS = "pairs"  # a pair selection: [(left scene id, right scene id)]
-    CLOSE = "close"  # the scene timeout: close the idle scenes
-    CLOSE_VIEW = "close_view"  # a view's next scene was shed: close its open (whole) scene
-    FLUSH = "flush"  # the flush at stop (a _FlushRequest)
-
-
-#: Exit codes of parproj_node (README, "Exit codes").
-EXIT_OK, EXIT_NOT_FLUSHED, EXIT_BAD_START = 0, 1, 2
-
-
-class StartupError(Exception):
-    """The node cannot start.
-
-    A parameter without a safe default, the parameters file, a QoS override: ``main`` prints it
-    as one line and exits with :data:`EXIT_BAD_START`.
-    """
-
-
-def _descriptor(p: Param) -> ParameterDescriptor:
-    """The descriptor of ``p``: description with the unit, read-only, range, choices."""
-    # Strict parameters take any type, so that the node's own check (check_views,
-    # check_mounting) gives the message, and [1, 2, 3] (integers) is a valid mounting.
-    d = ParameterDescriptor(
-        description=p.ros_description, read_only=p.read_only, dynamic_typing=p.strict
-    )
-    if p.choices:
-        d.additional_constraints = f"one of {p.range_text}"
-    if p.low is not None and p.high is not None:
-        if p.type == "integer":
-            d.integer_range = [IntegerRange(from_value=int(p.low), to_value=int(p.high), step=0)]
-        else:
-            d.floating_point_range = [
-                FloatingPointRange(from_value=float(p.low), to_value=float(p.high), step=0.0)
-            ]
-    return d
-
-
-#: A view name: a ROS name token (it prefixes topic and parameter names), not hidden ("_...").
-VIEW_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
-
-
-def _shown(value: Any) -> str:
-    return repr(list(value) if isinstance(value, array.array | tuple) else value)
-
-
-def check_views(value: Any) -> list[str]:
-    """The ``views`` parameter as 1 or 2 distinct view names.
-
-    Raises:
-        StartupError: not a list of names, not 1 or 2 of them, a name that is not a ROS name
-            token (a letter, then letters, digits, underscores), or a name given twice.
-    """
-    if value is None:
-        raise StartupError("parameter views: no view names given (an empty list?)")
-    if not isinstance(value, list | tuple) or not all(isinstance(n, str) for n in value):
-        raise StartupError(
-            f"parameter views: {_shown(value)} is not a list of view names "
-            "(e.g. [left, right], or [pan] for one camera)"
-        )
-    names = list(value)
-    if not 1 <= len(names) <= 2:
-        raise StartupError(
-            f"parameter views: {names!r} has {len(names)} names; 1 (single-camera mode) or "
-            "2 (fore/aft cameras) are needed"
-        )
-    for n in names:
-        if not VIEW_NAME.fullmatch(n):
-            raise StartupError(
-                f"parameter views: {n!r} is not a valid view name (a letter, then letters, "
-                "digits or underscores: it prefixes topic and parameter names)"
-            )
-    if len(set(names)) != len(names):
-        raise StartupError(f"parameter views: {names!r} names the same view twice")
-    return names
-
-
-def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
-    """A ``<view>.mounting_rpy_deg`` parameter as (roll, pitch, yaw) in degrees.
-
-    Raises:
-        StartupError: not exactly 3 numbers, or one not finite or beyond +-360 degrees.
-    """
-    ok = isinstance(value, list | tuple | array.array) and len(value) == 3
-    if not ok or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
-        raise StartupError(
-            f"parameter {name}: {_shown(value)} is not 3 numbers [roll, pitch, yaw] in degrees"
-        )
-    rpy = (float(value[0]), float(value[1]), float(value[2]))
-    if not all(math.isfinite(a) and abs(a) <= 360.0 for a in rpy):
-        raise StartupError(
-            f"parameter {name}: {list(rpy)!r}: each angle must be finite and within +-360 deg"
-        )
-    return rpy
-
-
 #: Navigation samples the navigation callback takes besides its own (those already waiting).
 NAV_DRAIN_MAX = 100
-#: Raw pairs' worth of memory the node is first assumed to need besides the pairs in flight
-#: (the normalized images of the pair being finished, the messages being serialized); the
-#: admission then learns the working set from the resident memory (the benchmark, streaming:
-#: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
-#: 2048 x 2048: about 13).
-WORKING_SET_PAIRS = 2
-#: The same when pairs are normalized as whole images (not streamed: ``streaming`` false, or
-#: ``scene_lines`` 0, or one view), as raw pairs plus a fixed amount: both normalized images,
-#: their messages and what DDS copies of them. At 2048 x 2048 (16 MB pairs) the memory held
-#: beyond start-up and raw data was 52-89 MB and the resident memory 100-145 MB
-#: (tests/ros/test_overload_live.py, 2026-11-24); 64 MB + 4 pairs (128 MB there) kept the
-#: resident memory under the budget in that test, and at IKONOS size (738 MB pairs) it is
-#: 3 GB, so that the default budget still holds 3 pairs.
-WHOLE_IMAGE_WORKING_SET_PAIRS = 4
-WHOLE_IMAGE_WORKING_SET_MB = 64.0
-#: Least time between two returns of the free heap to the system by :meth:`PairAdmission.sample`
-#: (each costs milliseconds, and the pages given back cost 2.2 ms per MB to touch again), s.
-TRIM_INTERVAL_S = 1.0
-#: Resident memory samples (two per pair: at its decision and at its publication) over which
-#: the working set is the largest.
-WORKING_SET_SAMPLES = 4
-#: Share of ``memory_budget_mb`` the admission leaves free: what it cannot foresee, the strips
-#: DDS holds before the executor takes them and heap fragmentation (the overload test went
-#: 1-4 % over its budget without it, 2026-11-24).
-HEADROOM = 0.05
-
-
-def working_set_floor(config: Any) -> tuple[float, float]:
-    """(raw pairs, MB): the least working set the admission assumes for this configuration.
-
-    Streamed pairs (``streaming``, a ``scene_lines``, two views: what :class:`Streamer` needs)
-    hold column blocks; the others are normalized as whole images.
-    """
-    if config.streaming and config.scene_lines > 0 and not config.single_camera:
-        return float(WORKING_SET_PAIRS), 0.0
-    return float(WHOLE_IMAGE_WORKING_SET_PAIRS), WHOLE_IMAGE_WORKING_SET_MB
-
-
-@dataclass
-class _ViewStream:
-    """Where a view's strip stream is: its current scene (frame_id), lines in it, ordinal."""
-
-    frame_id: str | None = None
-    lines: int = 0
-    ordinal: int = -1
-    max_lines: int = 0  # longest scene seen, lines (the size of a pair when scene_lines = 0)
-    row_bytes: int = 0
-
-
-class PairAdmission:
-    """Admission of whole pairs under ``memory_budget_mb`` (README, "Overload").
-
-    The decision is taken for a pair at the first strip of either of its scenes (scene k of each
-    view; scenes 2k and 2k+1 in single-camera mode) and holds for every strip of both: a pair is
-    processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
-    by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
-
-    The memory the node holds (resident, less the free heap glibc keeps for reuse:
-    :func:`held_bytes`) is read in two parts: the raw scene data (``raw_held``: the
-    assemblers' line buffers, kept or in use, and the strips queued for the worker), and the
-    rest. The start-up memory is the rest at the first strip; the working set (normalized
-    images, messages being sent, DDS buffers, a strip backlog in DDS) is the largest excess of
-    the rest over the start-up memory in the last :data:`WORKING_SET_SAMPLES` samples, taken at
-    each decision and each pair published, each holding the peak the worker read (:meth:`sample`,
-    after every input) since the one before; a burst's transient is forgotten once the load
-    drops. It is at least ``floor_mb`` + ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`;
-    :data:`WHOLE_IMAGE_WORKING_SET_MB` + :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are
-    normalized as whole images). A pair
-    is admitted when
-
-        start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working set
-
-    is within the budget less :data:`HEADROOM` (when the resident memory is over the budget,
-    the free heap is first given back). Otherwise every strip of the pair is shed (dropped in
-    the subscription callback, before conversion or queueing) and one WARN says so. A pair is
-    in flight from its admission until its StereoPair is published (with every earlier one),
-    or the flush. With nothing in flight a pair is always admitted (the node can hold no
-    less); when the budget cannot hold two pairs in flight (consecutive pairs overlap in time:
-    the fore view's next scene begins before the aft view's scene ends), the WARN says so and
-    names the budget that would.
-
-    Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
-    """
-
-    def __init__(
-        self,
-        views: Sequence[str],
-        budget_mb: float,
-        scene_lines: int,
-        raw_held: Callable[[], int] = lambda: 0,
-        floor_pairs: float = WORKING_SET_PAIRS,
-        floor_mb: float = 0.0,
-    ) -> None:
-        self.views = list(views)
-        #: The working set is at least ``floor_mb`` MB + this many raw pairs.
-        self.floor_pairs = float(floor_pairs)
-        self.floor = int(floor_mb * 2**20)
-        self._trimmed = 0.0  # monotonic time of sample()'s last malloc_trim
-        #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
-        self.raw_held = raw_held
-        self.single = len(self.views) == 1
-        self.budget = int(budget_mb * 2**20)
-        self.scene_lines = int(scene_lines)
-        self.base = 0  # memory held at the first strip less its raw data, bytes
-        self.working_set = 0  # largest excess of the non-raw memory over base, recent, bytes
-        self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
-        self._peak_rest = 0  # the largest non-raw memory read by sample() since the last sample
-        self._streams = {v: _ViewStream() for v in self.views}
-        self._decided: dict[int, bool] = {}
-        self._in_flight: set[int] = set()
-        self._scene_group: dict[tuple[str, str], int] = {}
-        self._lock = threading.Lock()
-        self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
-
-    def pair_bytes(self) -> int:
-        """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
-        lines = self.scene_lines or max(s.max_lines for s in self._streams.values())
-        # A view with no strip yet: taken as wide as the widest seen (its scene is coming).
-        widest = max(s.row_bytes for s in self._streams.values())
-        per_view = [lines * (s.row_bytes or widest) for s in self._streams.values()]
-        return 2 * per_view[0] if self.single else sum(per_view)
-
-    def admit(
-        self, view: str, frame_id: str, rows: int, nbytes: int
-    ) -> tuple[bool, list[Issue], bool]:
-        """Whether to take this strip; the WARN when it sheds a pair; whether to close the view.
-
-        The last: this strip begins a shed scene right after an admitted one, which the pipeline
-        would otherwise close only at the view's next admitted strip.
-        """
-        issues: list[Issue] = []
-        close = False
-        with self._lock:
-            st = self._streams.get(view)
-            if st is None:  # not a configured view: the pipeline reports it
-                return True, issues, close
-            if not self.base:
-                self.base = max(1, self._memory()[2])
-            if rows > 0:
-                st.row_bytes = max(st.row_bytes, nbytes // rows)
-            new_scene = st.frame_id != frame_id or (
-                self.scene_lines > 0 and st.lines >= self.scene_lines
-            )
-            previous = self._group_of(st.ordinal) if st.ordinal >= 0 else None
-            if new_scene:
-                st.frame_id, st.lines, st.ordinal = frame_id, 0, st.ordinal + 1
-            st.lines += rows
-            st.max_lines = max(st.max_lines, st.lines)
-            group = self._group_of(st.ordinal)
-            if new_scene:
-                self._scene_group[(view, frame_id)] = group
-            if group not in self._decided:
-                ok, why = self._decide()
-                self._decided[group] = ok
-                if ok:
-                    self._in_flight.add(group)
-                else:
-                    self.counts["pairs_shed"] += 1
-                    issues.append(
-                        Issue(
-                            Level.WARN,
-                            f"{view}/{frame_id}",
-                            f"overload: pair {group} (this scene and the other scene of its "
-                            f"pair) shed whole: {why}; {self.counts['pairs_shed']} pairs shed "
-                            "so far",
-                        )
-                    )
-                self._prune()
-            ok = self._decided[group]
-            if not ok:
-                self.counts["strips_shed"] += 1
-                if new_scene:
-                    self.counts["scenes_shed"] += 1
-                    close = previous is not None and self._decided.get(previous, False)
-            return ok, issues, close
-
-    def _memory(self) -> tuple[int, int, int]:
-        """(resident memory, raw data held, the rest of what is held), bytes.
-
-        Held: resident less the free heap glibc keeps for reuse (:func:`held_bytes`), which the
-        next allocations take before the resident memory grows again.
-        """
-        rss = rss_bytes()
-        held = held_bytes(rss)
-        raw = min(held, max(0, int(self.raw_held())))
-        return rss, raw, held - raw
-
-    def _group_of(self, ordinal: int) -> int:
-        return ordinal // 2 if self.single else ordinal
-
-    def _learn(self, rest: int) -> None:
-        """Update the working set from a sample of the non-raw memory (lock held).
-
-        The sample is the largest of ``rest`` and what :meth:`sample` saw since the last one.
-        """
-        if self.base:
-            self._samples.append(max(0, max(rest, self._peak_rest) - self.base))
-            self.working_set = max(self._samples)
-        self._peak_rest = 0
-
-    def sample(self) -> None:
-        """Read the memory now (the worker, after each input): keeps the peak between samples.
-
-        The reading is of memory still in use after the input (the free heap left out), so a
-        transient the input freed is not seen: the floor of the working set and
-        :data:`HEADROOM` are for those. When the resident memory is over the budget less the
-        headroom, the free heap is given back (``malloc_trim``, at most every
-        :data:`TRIM_INTERVAL_S`): a fragmented heap otherwise grew the resident memory pair by
-        pair after a burst.
-        """
-        rss, _, rest = self._memory()
-        now = time.monotonic()
-        if rss > self.usable and now - self._trimmed >= TRIM_INTERVAL_S:
-            self._trimmed = now  # the free heap kept beyond what the budget leaves: given back
-            malloc_trim()
-        with self._lock:
-            self._peak_rest = max(self._peak_rest, rest)
-
-    @property
-    def usable(self) -> int:
-        """The budget less :data:`HEADROOM`, bytes: what admitted pairs may need."""
-        return int(self.budget * (1 - HEADROOM))
-
-    def _work(self, pair: int) -> int:
-        """The working set counted for a pair of ``pair`` bytes: learnt, or the floor, bytes."""
-        return max(self.working_set, self.floor + int(self.floor_pairs * pair))
-
-    def need(self, in_flight: int, raw: int = 0) -> int:
-        """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
-        pair = self.pair_bytes()
-        return self.base + max(raw, (in_flight + 1) * pair) + self._work(pair)
-
-    def _decide(self) -> tuple[bool, str]:
-        if rss_bytes() > self.budget:
-            malloc_trim()
-        _rss, raw, rest = self._memory()
-        self._learn(rest)
-        if not self._in_flight:
-            return True, ""
-        n = len(self._in_flight)
-        pair = self.pair_bytes()
-        need = self.need(n, raw)
-        mb = 2**20
-        usable = self.usable
-        # Consecutive pairs overlap in time: a budget below this sheds at any rate.
-        least = self.need(1)
-        short = (
-            f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
-            f"any rate: memory_budget_mb >= {math.ceil(least / (1 - HEADROOM) / mb)} would)"
-            if least > usable
-            else ""
-        )
-        if need > usable:
-            work = self._work(pair)
-            return False, (
-                f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
-                f"(start-up {self.base / mb:.0f} MB + raw data "
-                f"{max(raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
-                f"held + working set {work / mb:.0f} MB), over {usable / mb:.0f} MB "
-                f"(memory_budget_mb {self.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
-                f"{short}"
-            )
-        return True, ""
-
-    def _prune(self) -> None:
-        if len(self._decided) > 64:
-            for g in sorted(self._decided)[: len(self._decided) - 64]:
-                if g not in self._in_flight:
-                    del self._decided[g]
-        if len(self._scene_group) > 256:
-            for key in list(self._scene_group)[: len(self._scene_group) - 256]:
-                del self._scene_group[key]
-
-    def published(self, view: str, scene_id: str) -> None:
-        """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
-        rest = self._memory()[2]  # the pair's working set is still held
-        with self._lock:
-            self._learn(rest)
-            group = self._scene_group.get((view, scene_id))
-            if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
-                group = min(self._in_flight)  # come out in order, so it is the oldest one
-            if group is not None:
-                self._in_flight = {g for g in self._in_flight if g > group}
-
-    def release_all(self) -> None:
-        """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
-        with self._lock:
-            self._in_flight.clear()
-        malloc_trim()
-
-    @property
-    def in_flight(self) -> int:
-        """Pairs admitted and not yet published."""
-        return len(self._in_flight)
 
 
 class ParprojNode(Node):
@@ -515,7 +114,7 @@ class ParprojNode(Node):
         safe default (``p.strict``: ``views``, ``<view>.mounting_rpy_deg``) is checked by its
         caller instead; rclpy refusing it raises :class:`StartupError`.
         """
-        desc = _descriptor(p)
+        desc = descriptor(p)
         try:
             value = self.declare_parameter(name, p.default, desc).value
         except (InvalidParameterValueException, InvalidParameterTypeException) as err:
@@ -571,7 +170,8 @@ class ParprojNode(Node):
         # outputs in the frame_id parameter, or ("") in the frame of the inputs (core/frames.py)
         self._frame = ObjectFrame(str(vals["frame_id"]))
         config = config_from_values(vals)
-        self.pipeline = Pipeline(config)
+        self.session = Session(config)
+        self.pipeline = self.session.pipeline
         self.renderer: RenderProcess | None = None
         if bool(vals["render_process"]) and config.scene_lines > 0 and len(config.views) == 2:
             try:
@@ -615,11 +215,8 @@ class ParprojNode(Node):
         }
         self._counts_lock = threading.Lock()
         self._last_error: tuple[float, str] | None = None  # (monotonic, "where: message")
-        self._busy: tuple[str, float] | None = None  # the worker's input and since when
         self._closed = False  # set at shutdown: nothing more is published
-        self._queue: queue.Queue[tuple[InputKind, Any] | None] = queue.Queue()
-        self._queue_peak = 0  # longest input queue since the last 1 Hz summary, items
-        self._queued_bytes = 0  # pixels of the strips in the queue, bytes
+        self.worker = Worker(self._handle, self.internal_error)
         # Inputs: sensor-data QoS (REP 2003: best effort, volatile) with a deep queue, since a
         # strip lost is a gap in a scene; reliability can be overridden per topic
         # (qos_overrides.<topic>.subscription.reliability) for lossless replay.
@@ -694,7 +291,7 @@ class ParprojNode(Node):
             path = str(vals["gcp_file"])
             self._log("info", f"gcp_file {path}: loading")
             try:
-                self._queue.put((InputKind.GCP, load_gcp_file(path)))
+                self.worker.put(InputKind.GCP, load_gcp_file(path))
             except Exception as err:  # whatever the loader raises: a clear error, not a crash
                 why = f"{type(err).__name__}: {err}"
                 self._startup_issues.append(
@@ -706,8 +303,7 @@ class ParprojNode(Node):
                 )
         self._startup_issues += self._unknown_parameters()
         self._report(self._startup_issues)
-        self._worker = threading.Thread(target=self._work, name="parproj_pipeline", daemon=True)
-        self._worker.start()
+        self.worker.start()
 
     def _unknown_parameters(self) -> list[Issue]:
         """An ERROR per parameter given (``--params-file``, ``-p``) that the node does not have.
@@ -722,7 +318,7 @@ class ParprojNode(Node):
             Issue(
                 Level.ERROR,
                 f"parameter {name}",
-                f"{_shown(given[name].value)} given, but parproj_node has no such parameter "
+                f"{shown(given[name].value)} given, but parproj_node has no such parameter "
                 "(misspelt, or a view not in views?): ignored",
             )
             for name in sorted(given)
@@ -825,7 +421,7 @@ class ParprojNode(Node):
             return
         try:
             arr = conv.image_to_array(msg)
-            item = (view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
+            item = Strip(view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
         except conv.ConversionError as err:
             self._count("strips_rejected")
             self._report(
@@ -869,17 +465,13 @@ class ParprojNode(Node):
             self.internal_error("a pair selection (callback)", err)
 
     def _enqueue(self, item: tuple[InputKind, Any]) -> None:
-        """Queue an input for the worker and keep the queue's peak length for the summary."""
-        if item[0] == InputKind.STRIP:
-            with self._counts_lock:
-                self._queued_bytes += item[1][3].nbytes
-        self._queue.put(item)
-        self._queue_peak = max(self._queue_peak, self._queue.qsize())
+        """Queue an input for the worker."""
+        self.worker.put(*item)
 
     def _raw_held(self) -> int:
         """Raw scene data the node holds: line buffers (kept or in use), queued strips, bytes."""
         lines = sum(a.pool.live_bytes for a in list(self.pipeline.assemblers.values()))
-        return lines + self._queued_bytes
+        return lines + self.worker.queued_bytes
 
     def _count(self, key: str, n: int = 1) -> None:
         """Add to a summary counter (callbacks and the worker count from two threads)."""
@@ -887,72 +479,15 @@ class ParprojNode(Node):
             self.counts[key] += n
 
     # ---- worker: run the pipeline, publish ------------------------------------------------
-    def _work(self) -> None:
-        """The worker loop: one input at a time; no exception ends it (see :meth:`_handle`)."""
-        while True:
-            item = self._queue.get()
-            try:
-                if item is None:
-                    return
-                if item[0] == InputKind.STRIP:
-                    with self._counts_lock:
-                        self._queued_bytes -= item[1][3].nbytes
-                self._handle(*item)
-                self.admission.sample()
-            except BaseException as err:  # _handle catches Exception; this is the last guard
-                self.internal_error(f"an input ({item[0] if item else item})", err)
-            finally:
-                self._busy = None
-                self._queue.task_done()
-
     def _handle(self, kind: InputKind, payload: Any) -> None:
-        """Run one input through the pipeline and publish the outputs.
-
-        Any exception is caught, counted (``internal_errors``) and reported as an ERROR naming
-        the input and the exception; the input is dropped and the worker goes on.
-        """
-        try:
-            what = _describe(kind, payload)
-        except Exception:
-            what = f"an input of kind {kind!r}"
-        self._busy = (what, time.monotonic())
-        flush_req = payload if kind == InputKind.FLUSH else None
-        try:
-            if kind == InputKind.NAV:
-                out = self.pipeline.add_navigation(payload)
-            elif kind == InputKind.STRIP:
-                out = self.pipeline.add_strip(*payload)
-            elif kind == InputKind.GCP:
-                out = self.pipeline.add_gcp(payload)
-            elif kind == InputKind.PAIRS:
-                out = self.pipeline.set_pairs(payload)
-            elif kind == InputKind.CLOSE:
-                out = self.pipeline.close_idle_scenes()
-            elif kind == InputKind.CLOSE_VIEW:
-                out = self._close_view(payload)
-            else:
-                out = Outputs(issues=self._open_at_stop())
-                out.extend(self.pipeline.flush())
-                self.admission.release_all()
-            self._publish(out)
-            if flush_req is not None:
-                flush_req.ok = True
-        except Exception as err:
-            self.internal_error(what, err)
-        finally:
-            if flush_req is not None:
-                flush_req.done.set()
-
-    def _close_view(self, view: str) -> Outputs:
-        """Close and process the open scene of ``view`` (its next scene was shed whole).
-
-        What ``Pipeline.close_scenes`` does, for one view: the scene is whole (its next one has
-        begun), and the other view's open scene is left as it is.
-        """
-        out = Outputs()
-        for scene in self.pipeline.assemblers[view].flush():
-            out.extend(self.pipeline._scene_closed(scene))
-        return out
+        """Run one input through the session and publish the outputs (the worker's thread)."""
+        early = self.session.open_at_stop() if kind == InputKind.FLUSH else []
+        out = self.session.feed(kind, payload)
+        out.issues[:0] = early
+        if kind == InputKind.FLUSH:
+            self.admission.release_all()
+        self._publish(out)
+        self.admission.sample()
 
     def internal_error(self, what: str, err: BaseException) -> None:
         """Count an exception caught in the node and report it. Never raises.
@@ -976,47 +511,17 @@ class ParprojNode(Node):
                 ]
             )
         except BaseException as again:
-            _stderr(f"parproj_node: internal error {err!r} on {what}; reporting it: {again!r}")
-
-    def _open_at_stop(self) -> list[Issue]:
-        """A WARN per scene still open when the node stops: the flush publishes it as it is."""
-        issues = []
-        for view, asm in self.pipeline.assemblers.items():
-            opened = asm.open_scene()
-            if opened is not None:
-                issues.append(
-                    Issue(
-                        Level.WARN,
-                        f"{view}/{opened.scene_id}",
-                        f"node stopping with this scene open ({opened.lines} lines received): it "
-                        "is closed and processed as it is; lines still to come are not in it",
-                    )
-                )
-        return issues
+            to_stderr(f"parproj_node: internal error {err!r} on {what}; reporting it: {again!r}")
 
     def _check_idle(self) -> None:
         idle = time.monotonic() - self._last_strip
         if self.scene_timeout > 0 and idle > self.scene_timeout and self.pipeline.has_open_scene:
             self._last_strip = time.monotonic()
-            self._queue.put((InputKind.CLOSE, None))
+            self.worker.put(InputKind.CLOSE, None)
 
     def worker_problem(self) -> str | None:
         """Why the worker is not doing its job (dead, or stalled on one input), or None."""
-        if not self._worker.is_alive():
-            return (
-                "the worker thread is not running: inputs are no longer processed "
-                f"({self._queue.qsize()} queued)"
-            )
-        busy = self._busy
-        if busy is not None:
-            held = time.monotonic() - busy[1]
-            if held > self.worker_stall_s:
-                return (
-                    f"the worker has been processing {busy[0]} for {held:.0f} s "
-                    f"(more than worker_stall_s, {self.worker_stall_s:g} s); "
-                    f"{self._queue.qsize()} inputs queued behind it"
-                )
-        return None
+        return self.worker.problem(self.worker_stall_s)
 
     def flush(self, timeout_s: float | None = None, abort: Callable[[], bool] = bool) -> bool:
         """Close the open scenes (end of a pass) and wait until the worker has published them.
@@ -1025,41 +530,10 @@ class ParprojNode(Node):
         true (a second signal); with no worker running it does not wait at all. Returns whether
         the flush was done; if not, says why in an ERROR.
         """
-        timeout_s = self.stop_timeout_s if timeout_s is None else timeout_s
-        if not self._worker.is_alive():
-            self._report(
-                [Issue(Level.ERROR, "stop", "the worker thread is not running: open scenes lost")]
-            )
-            return False
-        req = _FlushRequest()
-        self._queue.put((InputKind.FLUSH, req))
-        deadline = time.monotonic() + timeout_s
-        why = ""
-        while not req.done.wait(0.05):
-            if not self._worker.is_alive():
-                why = "the worker thread stopped"
-            elif abort():
-                why = "a second signal"
-            elif time.monotonic() > deadline:
-                busy = self._busy
-                why = f"stop_timeout_s ({timeout_s:g} s) passed" + (
-                    f" with the worker on {busy[0]} for {time.monotonic() - busy[1]:.0f} s"
-                    if busy
-                    else ""
-                )
-            if why:
-                self._report(
-                    [
-                        Issue(
-                            Level.ERROR,
-                            "stop",
-                            f"not flushed: {why}; {max(0, self._queue.qsize() - 1)} inputs "
-                            "still queued and the open scenes are lost",
-                        )
-                    ]
-                )
-                return False
-        return req.ok
+        ok, why = self.worker.flush(self.stop_timeout_s if timeout_s is None else timeout_s, abort)
+        if why:
+            self._report([Issue(Level.ERROR, "stop", why)])
+        return ok
 
     def _publish(self, out: Outputs) -> None:
         if self._closed:
@@ -1147,9 +621,9 @@ class ParprojNode(Node):
                 )
             )
         except Exception as err:
-            _stderr(f"parproj_node: reporting failed ({type(err).__name__}: {err}):")
+            to_stderr(f"parproj_node: reporting failed ({type(err).__name__}: {err}):")
             for iss in issues:
-                _stderr(f"parproj_node: [{iss.level}] {iss.where}: {iss.message}")
+                to_stderr(f"parproj_node: [{iss.level}] {iss.where}: {iss.message}")
 
     def summary_status(self) -> tuple[int, str]:
         """Level and message of the 1 Hz summary.
@@ -1182,7 +656,7 @@ class ParprojNode(Node):
         if self._closed:
             return
         level, message = self.summary_status()
-        busy = self._busy
+        busy = self.worker.busy
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status.append(
@@ -1195,8 +669,8 @@ class ParprojNode(Node):
                 + [
                     KeyValue(key=k, value=str(v))
                     for k, v in (
-                        ("queue", self._queue.qsize()),
-                        ("queue_max", max(self._queue_peak, self._queue.qsize())),
+                        ("queue", self.worker.qsize()),
+                        ("queue_max", self.worker.take_peak()),
                         ("nav_samples", len(self.pipeline.nav)),
                         ("gcp_points", len(self.pipeline.gcp)),
                         ("pairs_in_flight", self.admission.in_flight),
@@ -1206,14 +680,13 @@ class ParprojNode(Node):
                         ("held_mb", f"{held_bytes() / 2**20:.0f}"),
                         ("rss_mb", f"{rss_bytes() / 2**20:.0f}"),
                         ("memory_budget_mb", f"{self.admission.budget / 2**20:.0f}"),
-                        ("worker", "dead" if not self._worker.is_alive() else "alive"),
+                        ("worker", "alive" if self.worker.alive else "dead"),
                         ("busy_s", f"{time.monotonic() - busy[1]:.1f}" if busy else "0"),
                         ("busy_with", busy[0] if busy else ""),
                     )
                 ],
             )
         )
-        self._queue_peak = 0
         self.pub_diag.publish(arr)
 
     def wait_delivered(self, timeout_s: float) -> bool:
@@ -1242,120 +715,11 @@ class ParprojNode(Node):
 
         Nothing is published after it.
         """
-        self._queue.put(None)
-        if self._worker.is_alive():
-            self._worker.join(timeout=timeout_s)
+        self.worker.stop(timeout_s)
         self._closed = True
-        if self.renderer is not None and not self._worker.is_alive():
+        if self.renderer is not None and not self.worker.alive:
             self.renderer.close()
             self.renderer = None
-
-
-@dataclass
-class _FlushRequest:
-    """The flush at stop, queued to the worker: set ``done`` when handled, ``ok`` if it worked."""
-
-    done: threading.Event = field(default_factory=threading.Event)
-    ok: bool = False
-
-
-def _describe(kind: InputKind, payload: Any) -> str:
-    """The input a worker item stands for, in words (for errors and the watchdog)."""
-    if kind == InputKind.STRIP:
-        return f"a strip of {payload[0]}/{payload[2]}"
-    if kind == InputKind.NAV:
-        return "a navigation sample"
-    if kind == InputKind.GCP:
-        return f"a GCP set ({len(payload)} points)"
-    if kind == InputKind.PAIRS:
-        return "a pair selection"
-    if kind == InputKind.CLOSE:
-        return "the scene timeout"
-    if kind == InputKind.CLOSE_VIEW:
-        return f"the close of {payload}'s scene (its next scene shed)"
-    return "the flush at stop"
-
-
-def _stderr(text: str) -> None:
-    """Print to stderr when logging itself failed; never raises."""
-    try:
-        print(text, file=sys.stderr, flush=True)
-    except Exception:
-        pass
-
-
-def _one_line(text: str) -> str:
-    """``text`` on one line (rcl messages end with ``, at /project/src/...`` locations)."""
-    text = re.sub(r",? at /\S+:\d+", "", text)
-    return " ".join(text.split())
-
-
-def _params_files(argv: Sequence[str]) -> list[str]:
-    """The ``--params-file`` arguments in ``argv``."""
-    return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "--params-file"]
-
-
-#: Largest parameters file the node reads, bytes (a real one is a few kB).
-MAX_PARAMS_FILE_BYTES = 16 * 1024 * 1024
-
-
-def _check_params_files(argv: Sequence[str]) -> None:
-    """Each ``--params-file`` a regular file of at most :data:`MAX_PARAMS_FILE_BYTES`.
-
-    Checked before rcl opens them: rcl would wait forever on a FIFO and read any size.
-
-    Raises:
-        StartupError: a parameters file that is missing, not a regular file, or too large.
-    """
-    import stat
-
-    for f in _params_files(argv):
-        try:
-            st = os.stat(f)
-        except OSError as err:
-            raise StartupError(f"parameters file {f}: {err.strerror or err}") from None
-        if not stat.S_ISREG(st.st_mode):
-            raise StartupError(
-                f"parameters file {f}: not a regular file (a folder, FIFO, socket or device): "
-                "not read"
-            )
-        if st.st_size > MAX_PARAMS_FILE_BYTES:
-            raise StartupError(
-                f"parameters file {f}: {st.st_size} bytes, more than the "
-                f"{MAX_PARAMS_FILE_BYTES} bytes a parameters file may have"
-            )
-
-
-def _init_rclpy(argv: list[str]) -> None:
-    """``rclpy.init`` with rcl's own console output held back, shown again if init works.
-
-    On a bad parameters file rcl prints "Failed to parse global arguments" before it raises;
-    the node's one-line error says it all.
-
-    Raises:
-        StartupError: the ROS arguments or a parameters file cannot be parsed (or are not a
-            regular file of a sensible size: :func:`_check_params_files`).
-    """
-    import tempfile
-
-    _check_params_files(argv)
-    with tempfile.TemporaryFile() as held:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        os.dup2(held.fileno(), 2)
-        try:
-            rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
-        except Exception as err:
-            files = _params_files(argv)
-            where = f"parameters file {', '.join(files)}" if files else "ROS arguments"
-            raise StartupError(f"cannot parse the {where}: {_one_line(str(err))}") from err
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-        held.seek(0)
-        text = held.read().decode(errors="replace")
-    if text:
-        _stderr(text.rstrip("\n"))
 
 
 def main(args: list[str] | None = None) -> int:
@@ -1370,14 +734,14 @@ def main(args: list[str] | None = None) -> int:
 
     argv = list(sys.argv if args is None else args)
     try:
-        _init_rclpy(argv)
+        init_rclpy(argv)
         node = ParprojNode()
     except (StartupError, ParameterException, NameValidationException) as err:
-        _stderr(f"parproj_node: cannot start: {_one_line(str(err))}")
+        to_stderr(f"parproj_node: cannot start: {one_line(str(err))}")
         rclpy.try_shutdown()
         return EXIT_BAD_START
     except KeyboardInterrupt:
-        _stderr("parproj_node: interrupted while starting")
+        to_stderr("parproj_node: interrupted while starting")
         rclpy.try_shutdown()
         return 130
     signals: list[int] = []

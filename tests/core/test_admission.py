@@ -1,4 +1,4 @@
-"""PairAdmission (ros/node.py): the sum it admits by, read with memory readings set by the test.
+"""PairAdmission (core/admission.py): the sum it admits by, read with memory readings set here.
 
 The live behaviour under overload is tests/ros/test_overload_live.py; here each term of the
 rule (README, "Overload: memory_budget_mb") is checked on its own, in bytes.
@@ -9,8 +9,6 @@ from __future__ import annotations
 from typing import Any
 
 import pytest
-
-pytestmark = pytest.mark.ros  # parproj_ros.ros.node imports rclpy
 
 MB = 2**20
 ROW = 2 * 1024  # bytes per line: 1024 detectors, uint16
@@ -31,7 +29,7 @@ class Memory:
 
 @pytest.fixture
 def mem(monkeypatch: pytest.MonkeyPatch) -> Memory:
-    from parproj_ros.ros import node
+    from parproj_ros.core import admission as node
 
     m = Memory()
     monkeypatch.setattr(node, "rss_bytes", lambda: m.rss)
@@ -42,7 +40,7 @@ def mem(monkeypatch: pytest.MonkeyPatch) -> Memory:
 
 def make(mem: Memory, usable_mb: float) -> Any:
     """An admission whose budget less the headroom is ``usable_mb``."""
-    from parproj_ros.ros.node import HEADROOM, PairAdmission
+    from parproj_ros.core.admission import HEADROOM, PairAdmission
 
     adm = PairAdmission(["left", "right"], usable_mb / (1 - HEADROOM) + 1e-6, LINES, mem.raw_held)
     assert adm.usable == int(usable_mb * MB)
@@ -100,7 +98,7 @@ def test_working_set_is_the_peak_seen_between_decisions(mem: Memory) -> None:
     first_strip(adm, 1)
     assert adm.working_set == 60 * MB
     # Forgotten after WORKING_SET_SAMPLES later samples without it (the load dropped).
-    from parproj_ros.ros.node import WORKING_SET_SAMPLES
+    from parproj_ros.core.admission import WORKING_SET_SAMPLES
 
     for k in range(2, 2 + WORKING_SET_SAMPLES):
         first_strip(adm, k)
@@ -158,13 +156,13 @@ def test_working_set_floor_by_what_the_pairs_are() -> None:
     default budget (6144 MB) still holds pairs in flight (review: 8 pairs shed every pair)."""
     from dataclasses import replace
 
-    from parproj_ros.core.config import PipelineConfig
-    from parproj_ros.ros.node import (
+    from parproj_ros.core.admission import (
         WHOLE_IMAGE_WORKING_SET_MB,
         WHOLE_IMAGE_WORKING_SET_PAIRS,
         WORKING_SET_PAIRS,
         working_set_floor,
     )
+    from parproj_ros.core.config import PipelineConfig
     from parproj_ros.sim.synthetic import make_platform
 
     cfg = PipelineConfig(views=make_platform(2048, 2048).views, scene_lines=2048)
@@ -180,7 +178,7 @@ def test_working_set_floor_by_what_the_pairs_are() -> None:
 
 
 def test_floor_mb_counts_in_the_need(mem: Memory) -> None:
-    from parproj_ros.ros.node import HEADROOM, PairAdmission
+    from parproj_ros.core.admission import HEADROOM, PairAdmission
 
     adm = PairAdmission(
         ["left", "right"], (100 + 2 * 4 + 10 + 1 * 4) / (1 - HEADROOM) + 0.01, LINES, mem.raw_held,

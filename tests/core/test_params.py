@@ -97,13 +97,15 @@ def test_readme_says_how_to_regenerate(tmp_path: Path) -> None:
 # ---- the table and PipelineConfig ---------------------------------------------------------------
 
 
-def test_every_config_field_has_one_row_with_its_default() -> None:
-    rows = {p.field: p for p in PARAMS if p.field is not None}
-    assert len(rows) == len([p for p in PARAMS if p.field is not None])
-    assert set(rows) == {f.name for f in fields(PipelineConfig)}
-    for f in fields(PipelineConfig):
-        if f.name != "views":
-            assert f.default == rows[f.name].default, f.name
+def test_every_setting_has_one_row_with_its_default() -> None:
+    """Each field of each settings group is the row that fills it, with its default."""
+    rows = {p.target: p for p in PARAMS if p.target is not None}
+    assert len(rows) == len([p for p in PARAMS if p.target is not None])
+    have = {(c, f.name): f for c, cls in config.GROUPS.items() for f in fields(cls)}
+    assert set(rows) == set(have)
+    for key, f in have.items():
+        assert f.default == rows[key].default, key
+    assert {f.name for f in fields(PipelineConfig)} == {"views", *config.GROUPS}
 
 
 def test_table_rows_are_consistent() -> None:
@@ -135,17 +137,22 @@ def _other_value(p: params.Param) -> Any:
 def test_config_from_values_fills_each_field_from_its_parameter() -> None:
     default = config_from_values({})
     assert [v.name for v in default.views] == ["left", "right"]
-    for p in PARAMS:
-        if p.field not in (None, "views"):
-            assert getattr(default, str(p.field)) == p.default, p.name
-    rows = [p for p in PARAMS if p.field not in (None, "views")]
+    rows = [p for p in PARAMS if p.target is not None]
+    for p in rows:
+        assert _setting(default, p) == p.default, p.name
     values = {p.name: _other_value(p) for p in rows}
     cfg = config_from_values(values)
     for p in rows:
-        assert getattr(cfg, str(p.field)) == values[p.name], p.name
-        assert getattr(cfg, str(p.field)) != p.default, p.name
+        assert _setting(cfg, p) == values[p.name], p.name
+        assert _setting(cfg, p) != p.default, p.name
     # Integers given for doubles (as ROS gives [1, 2, 3]) come out as floats.
-    assert isinstance(config_from_values({"z_avg": 3}).z_avg, float)
+    assert isinstance(config_from_values({"z_avg": 3}).orientation.z_avg, float)
+
+
+def _setting(cfg: PipelineConfig, p: params.Param) -> Any:
+    """The value ``cfg`` holds for the row ``p`` (its group's setting)."""
+    assert p.target is not None
+    return getattr(getattr(cfg, p.target[0]), p.target[1])
 
 
 def test_config_from_values_builds_the_views() -> None:
@@ -207,27 +214,27 @@ def test_node_parameters_of_a_bag_are_table_names() -> None:
     assert set(params) == {"views"} | {f"pan.{p.name}" for p in VIEW_PARAMS}
 
 
-def test_pipeline_config_docstring_lists_the_table() -> None:
-    doc = PipelineConfig.__doc__ or ""
+def test_settings_docstrings_list_the_table() -> None:
     for p in PARAMS:
-        if p.field is not None:
-            assert f"        {p.field}: " in doc, p.field
+        if p.target is not None:
+            doc = config.GROUPS[p.target[0]].__doc__ or ""
+            assert f"        {p.target[1]}: " in doc and f"``{p.name}``" in doc, p.name
 
 
 @pytest.mark.ros
 def test_node_declares_the_table() -> None:
-    from parproj_ros.ros import node
+    from parproj_ros.ros import node, startup
 
     assert node.PARAMS is config.PARAMS and node.VIEW_PARAMS is config.VIEW_PARAMS
-    d = node._descriptor(next(p for p in PARAMS if p.name == "z_avg"))
+    d = startup.descriptor(next(p for p in PARAMS if p.name == "z_avg"))
     assert d.description.endswith("[m]") and d.read_only
     assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (
         -1000.0,
         9000.0,
     )
-    d = node._descriptor(next(p for p in PARAMS if p.name == "scene_lines"))
+    d = startup.descriptor(next(p for p in PARAMS if p.name == "scene_lines"))
     assert (d.integer_range[0].from_value, d.integer_range[0].to_value) == (0, 10_000_000)
-    d = node._descriptor(next(p for p in PARAMS if p.name == "gcp_roll"))
+    d = startup.descriptor(next(p for p in PARAMS if p.name == "gcp_roll"))
     assert "navigation" in d.additional_constraints
 
 

@@ -75,7 +75,7 @@ from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import NodeProcess, node_params_yaml, ros_environment
-from parproj_ros.ros.node import StartupError, check_mounting, check_views
+from parproj_ros.ros.startup import StartupError, check_mounting, check_views
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
@@ -89,7 +89,7 @@ STOP_BOUND_S = 10.0  # a clean SIGINT, queue empty: the node ends well within th
 #: thread (its queue hands it the end marker), as if it had died.
 LAUNCHER = """
 import sys, time
-from parproj_ros.core import pipeline
+from parproj_ros.core import pipeline, session
 from parproj_ros.ros import node
 
 _add_gcp = pipeline.Pipeline.add_gcp
@@ -105,10 +105,10 @@ def add_gcp(self, points):
 
 
 pipeline.Pipeline.add_gcp = add_gcp
-_work = node.ParprojNode._work
+_run = session.Worker._run
 
 
-def work(self):
+def run(self):
     get = self._queue.get
 
     def get_or_die(*args, **kwargs):
@@ -118,10 +118,10 @@ def work(self):
         return item
 
     self._queue.get = get_or_die
-    _work(self)
+    _run(self)
 
 
-node.ParprojNode._work = work
+session.Worker._run = run
 sys.exit(node.main())
 """
 
@@ -752,7 +752,7 @@ def test_a_block_that_cannot_be_published(node_in_process: Any) -> None:
     node._publish_block(replace(blk, index=2, col0=2))
     assert node.counts["internal_errors"] == 2, node.counts
     assert len(sent) == 2 and isinstance(sent[1], bytes | bytearray | memoryview), sent
-    assert node._worker.is_alive()
+    assert node.worker.alive
 
 
 def test_worker_and_callbacks_survive_exceptions(node_in_process: Any) -> None:
@@ -769,12 +769,12 @@ def test_worker_and_callbacks_survive_exceptions(node_in_process: Any) -> None:
     node._enqueue(("gcp", []))
     node._on_gcp(object())  # no .points: AttributeError in the callback
     node._on_strip("left", object())
-    assert wait(lambda: node._queue.unfinished_tasks == 0, 10)
+    assert wait(lambda: node.worker._queue.unfinished_tasks == 0, 10)
     assert calls == ["gcp"] and node.counts["internal_errors"] == 3, node.counts
-    assert node._worker.is_alive() and node.worker_problem() is None
+    assert node.worker.alive and node.worker_problem() is None
     level_, message = node.summary_status()
     assert level_ == ERROR and "3 errors so far" in message, message
     assert node.flush(timeout_s=10.0)  # the worker still works
     node.pipeline.flush = lambda: 1 / 0
     assert not node.flush(timeout_s=10.0)  # raised inside: not flushed, reported
-    assert node.counts["internal_errors"] == 4 and node._worker.is_alive()
+    assert node.counts["internal_errors"] == 4 and node.worker.alive

@@ -1,0 +1,326 @@
+"""Admission of whole pairs under a memory budget: the node's overload policy, ROS-free.
+
+The node asks :class:`PairAdmission` at the first strip of each scene whether its pair may be
+taken (its subscription callbacks run it, so it is thread-safe); a pair refused is shed whole,
+before conversion or queueing (docs/node.md, "Overload"). The policy reads the process memory
+(:mod:`parproj_ros.core.memory`) and the raw data the node holds; it knows nothing of rclpy.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from .memory import held_bytes, malloc_trim, raw_pair_bytes, rss_bytes
+from .results import Issue, Level
+
+
+def auto_prefault_mb(config: Any) -> float:
+    """``prefault_mb`` -1: two raw pairs of the configured scenes, MB (0 without scene_lines).
+
+    scene_lines x detectors x 2 bytes (uint16; an upper bound for 8-bit strips) summed over
+    the views, twice: 1476 MB for two IKONOS-size views (14000 x 13816), the reserve with
+    which the node keeps up at the full rate (bench/BENCHMARKS.md).
+    """
+    return float(2.0 * raw_pair_bytes(config) / 2**20)
+
+
+#: Raw pairs' worth of memory the node is first assumed to need besides the pairs in flight
+#: (the normalized images of the pair being finished, the messages being serialized); the
+#: admission then learns the working set from the resident memory (the benchmark, streaming:
+#: peak RSS 3.6 raw pairs above the start-up memory with 2-3 pairs in flight; whole images at
+#: 2048 x 2048: about 13).
+WORKING_SET_PAIRS = 2
+#: The same when pairs are normalized as whole images (not streamed: ``streaming`` false, or
+#: ``scene_lines`` 0, or one view), as raw pairs plus a fixed amount: both normalized images,
+#: their messages and what DDS copies of them. At 2048 x 2048 (16 MB pairs) the memory held
+#: beyond start-up and raw data was 52-89 MB and the resident memory 100-145 MB
+#: (tests/ros/test_overload_live.py, 2026-11-24); 64 MB + 4 pairs (128 MB there) kept the
+#: resident memory under the budget in that test, and at IKONOS size (738 MB pairs) it is
+#: 3 GB, so that the default budget still holds 3 pairs.
+WHOLE_IMAGE_WORKING_SET_PAIRS = 4
+WHOLE_IMAGE_WORKING_SET_MB = 64.0
+#: Least time between two returns of the free heap to the system by :meth:`PairAdmission.sample`
+#: (each costs milliseconds, and the pages given back cost 2.2 ms per MB to touch again), s.
+TRIM_INTERVAL_S = 1.0
+#: Resident memory samples (two per pair: at its decision and at its publication) over which
+#: the working set is the largest.
+WORKING_SET_SAMPLES = 4
+#: Share of ``memory_budget_mb`` the admission leaves free: what it cannot foresee, the strips
+#: DDS holds before the executor takes them and heap fragmentation (the overload test went
+#: 1-4 % over its budget without it, 2026-11-24).
+HEADROOM = 0.05
+
+
+def working_set_floor(config: Any) -> tuple[float, float]:
+    """(raw pairs, MB): the least working set the admission assumes for this configuration.
+
+    Streamed pairs (``streaming``, a ``scene_lines``, two views: what :class:`Streamer` needs)
+    hold column blocks; the others are normalized as whole images.
+    """
+    if config.streaming and config.scene_lines > 0 and not config.single_camera:
+        return float(WORKING_SET_PAIRS), 0.0
+    return float(WHOLE_IMAGE_WORKING_SET_PAIRS), WHOLE_IMAGE_WORKING_SET_MB
+
+
+@dataclass
+class _ViewStream:
+    """Where a view's strip stream is: its current scene (frame_id), lines in it, ordinal."""
+
+    frame_id: str | None = None
+    lines: int = 0
+    ordinal: int = -1
+    max_lines: int = 0  # longest scene seen, lines (the size of a pair when scene_lines = 0)
+    row_bytes: int = 0
+
+
+class PairAdmission:
+    """Admission of whole pairs under ``memory_budget_mb`` (README, "Overload").
+
+    The decision is taken for a pair at the first strip of either of its scenes (scene k of each
+    view; scenes 2k and 2k+1 in single-camera mode) and holds for every strip of both: a pair is
+    processed whole or not at all, and shedding both scenes of it keeps the pipeline's pairing
+    by scene order intact. A scene starts at a new frame_id, or after ``scene_lines`` lines.
+
+    The memory the node holds (resident, less the free heap glibc keeps for reuse:
+    :func:`held_bytes`) is read in two parts: the raw scene data (``raw_held``: the
+    assemblers' line buffers, kept or in use, and the strips queued for the worker), and the
+    rest. The start-up memory is the rest at the first strip; the working set (normalized
+    images, messages being sent, DDS buffers, a strip backlog in DDS) is the largest excess of
+    the rest over the start-up memory in the last :data:`WORKING_SET_SAMPLES` samples, taken at
+    each decision and each pair published, each holding the peak the worker read (:meth:`sample`,
+    after every input) since the one before; a burst's transient is forgotten once the load
+    drops. It is at least ``floor_mb`` + ``floor_pairs`` raw pairs (:data:`WORKING_SET_PAIRS`;
+    :data:`WHOLE_IMAGE_WORKING_SET_MB` + :data:`WHOLE_IMAGE_WORKING_SET_PAIRS` when pairs are
+    normalized as whole images). A pair
+    is admitted when
+
+        start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working set
+
+    is within the budget less :data:`HEADROOM` (when the resident memory is over the budget,
+    the free heap is first given back). Otherwise every strip of the pair is shed (dropped in
+    the subscription callback, before conversion or queueing) and one WARN says so. A pair is
+    in flight from its admission until its StereoPair is published (with every earlier one),
+    or the flush. With nothing in flight a pair is always admitted (the node can hold no
+    less); when the budget cannot hold two pairs in flight (consecutive pairs overlap in time:
+    the fore view's next scene begins before the aft view's scene ends), the WARN says so and
+    names the budget that would.
+
+    Thread-safe: callbacks call :meth:`admit`, the worker :meth:`published`.
+    """
+
+    def __init__(
+        self,
+        views: Sequence[str],
+        budget_mb: float,
+        scene_lines: int,
+        raw_held: Callable[[], int] = lambda: 0,
+        floor_pairs: float = WORKING_SET_PAIRS,
+        floor_mb: float = 0.0,
+    ) -> None:
+        self.views = list(views)
+        #: The working set is at least ``floor_mb`` MB + this many raw pairs.
+        self.floor_pairs = float(floor_pairs)
+        self.floor = int(floor_mb * 2**20)
+        self._trimmed = 0.0  # monotonic time of sample()'s last malloc_trim
+        #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
+        self.raw_held = raw_held
+        self.single = len(self.views) == 1
+        self.budget = int(budget_mb * 2**20)
+        self.scene_lines = int(scene_lines)
+        self.base = 0  # memory held at the first strip less its raw data, bytes
+        self.working_set = 0  # largest excess of the non-raw memory over base, recent, bytes
+        self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
+        self._peak_rest = 0  # the largest non-raw memory read by sample() since the last sample
+        self._streams = {v: _ViewStream() for v in self.views}
+        self._decided: dict[int, bool] = {}
+        self._in_flight: set[int] = set()
+        self._scene_group: dict[tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+        self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
+
+    def pair_bytes(self) -> int:
+        """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
+        lines = self.scene_lines or max(s.max_lines for s in self._streams.values())
+        # A view with no strip yet: taken as wide as the widest seen (its scene is coming).
+        widest = max(s.row_bytes for s in self._streams.values())
+        per_view = [lines * (s.row_bytes or widest) for s in self._streams.values()]
+        return 2 * per_view[0] if self.single else sum(per_view)
+
+    def admit(
+        self, view: str, frame_id: str, rows: int, nbytes: int
+    ) -> tuple[bool, list[Issue], bool]:
+        """Whether to take this strip; the WARN when it sheds a pair; whether to close the view.
+
+        The last: this strip begins a shed scene right after an admitted one, which the pipeline
+        would otherwise close only at the view's next admitted strip.
+        """
+        issues: list[Issue] = []
+        close = False
+        with self._lock:
+            st = self._streams.get(view)
+            if st is None:  # not a configured view: the pipeline reports it
+                return True, issues, close
+            if not self.base:
+                self.base = max(1, self._memory()[2])
+            if rows > 0:
+                st.row_bytes = max(st.row_bytes, nbytes // rows)
+            new_scene = st.frame_id != frame_id or (
+                self.scene_lines > 0 and st.lines >= self.scene_lines
+            )
+            previous = self._group_of(st.ordinal) if st.ordinal >= 0 else None
+            if new_scene:
+                st.frame_id, st.lines, st.ordinal = frame_id, 0, st.ordinal + 1
+            st.lines += rows
+            st.max_lines = max(st.max_lines, st.lines)
+            group = self._group_of(st.ordinal)
+            if new_scene:
+                self._scene_group[(view, frame_id)] = group
+            if group not in self._decided:
+                ok, why = self._decide()
+                self._decided[group] = ok
+                if ok:
+                    self._in_flight.add(group)
+                else:
+                    self.counts["pairs_shed"] += 1
+                    issues.append(
+                        Issue(
+                            Level.WARN,
+                            f"{view}/{frame_id}",
+                            f"overload: pair {group} (this scene and the other scene of its "
+                            f"pair) shed whole: {why}; {self.counts['pairs_shed']} pairs shed "
+                            "so far",
+                        )
+                    )
+                self._prune()
+            ok = self._decided[group]
+            if not ok:
+                self.counts["strips_shed"] += 1
+                if new_scene:
+                    self.counts["scenes_shed"] += 1
+                    close = previous is not None and self._decided.get(previous, False)
+            return ok, issues, close
+
+    def _memory(self) -> tuple[int, int, int]:
+        """(resident memory, raw data held, the rest of what is held), bytes.
+
+        Held: resident less the free heap glibc keeps for reuse (:func:`held_bytes`), which the
+        next allocations take before the resident memory grows again.
+        """
+        rss = rss_bytes()
+        held = held_bytes(rss)
+        raw = min(held, max(0, int(self.raw_held())))
+        return rss, raw, held - raw
+
+    def _group_of(self, ordinal: int) -> int:
+        return ordinal // 2 if self.single else ordinal
+
+    def _learn(self, rest: int) -> None:
+        """Update the working set from a sample of the non-raw memory (lock held).
+
+        The sample is the largest of ``rest`` and what :meth:`sample` saw since the last one.
+        """
+        if self.base:
+            self._samples.append(max(0, max(rest, self._peak_rest) - self.base))
+            self.working_set = max(self._samples)
+        self._peak_rest = 0
+
+    def sample(self) -> None:
+        """Read the memory now (the worker, after each input): keeps the peak between samples.
+
+        The reading is of memory still in use after the input (the free heap left out), so a
+        transient the input freed is not seen: the floor of the working set and
+        :data:`HEADROOM` are for those. When the resident memory is over the budget less the
+        headroom, the free heap is given back (``malloc_trim``, at most every
+        :data:`TRIM_INTERVAL_S`): a fragmented heap otherwise grew the resident memory pair by
+        pair after a burst.
+        """
+        rss, _, rest = self._memory()
+        now = time.monotonic()
+        if rss > self.usable and now - self._trimmed >= TRIM_INTERVAL_S:
+            self._trimmed = now  # the free heap kept beyond what the budget leaves: given back
+            malloc_trim()
+        with self._lock:
+            self._peak_rest = max(self._peak_rest, rest)
+
+    @property
+    def usable(self) -> int:
+        """The budget less :data:`HEADROOM`, bytes: what admitted pairs may need."""
+        return int(self.budget * (1 - HEADROOM))
+
+    def _work(self, pair: int) -> int:
+        """The working set counted for a pair of ``pair`` bytes: learnt, or the floor, bytes."""
+        return max(self.working_set, self.floor + int(self.floor_pairs * pair))
+
+    def need(self, in_flight: int, raw: int = 0) -> int:
+        """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
+        pair = self.pair_bytes()
+        return self.base + max(raw, (in_flight + 1) * pair) + self._work(pair)
+
+    def _decide(self) -> tuple[bool, str]:
+        if rss_bytes() > self.budget:
+            malloc_trim()
+        _rss, raw, rest = self._memory()
+        self._learn(rest)
+        if not self._in_flight:
+            return True, ""
+        n = len(self._in_flight)
+        pair = self.pair_bytes()
+        need = self.need(n, raw)
+        mb = 2**20
+        usable = self.usable
+        # Consecutive pairs overlap in time: a budget below this sheds at any rate.
+        least = self.need(1)
+        short = (
+            f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
+            f"any rate: memory_budget_mb >= {math.ceil(least / (1 - HEADROOM) / mb)} would)"
+            if least > usable
+            else ""
+        )
+        if need > usable:
+            work = self._work(pair)
+            return False, (
+                f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
+                f"(start-up {self.base / mb:.0f} MB + raw data "
+                f"{max(raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
+                f"held + working set {work / mb:.0f} MB), over {usable / mb:.0f} MB "
+                f"(memory_budget_mb {self.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
+                f"{short}"
+            )
+        return True, ""
+
+    def _prune(self) -> None:
+        if len(self._decided) > 64:
+            for g in sorted(self._decided)[: len(self._decided) - 64]:
+                if g not in self._in_flight:
+                    del self._decided[g]
+        if len(self._scene_group) > 256:
+            for key in list(self._scene_group)[: len(self._scene_group) - 256]:
+                del self._scene_group[key]
+
+    def published(self, view: str, scene_id: str) -> None:
+        """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
+        rest = self._memory()[2]  # the pair's working set is still held
+        with self._lock:
+            self._learn(rest)
+            group = self._scene_group.get((view, scene_id))
+            if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
+                group = min(self._in_flight)  # come out in order, so it is the oldest one
+            if group is not None:
+                self._in_flight = {g for g in self._in_flight if g > group}
+
+    def release_all(self) -> None:
+        """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
+        with self._lock:
+            self._in_flight.clear()
+        malloc_trim()
+
+    @property
+    def in_flight(self) -> int:
+        """Pairs admitted and not yet published."""
+        return len(self._in_flight)
