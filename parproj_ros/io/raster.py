@@ -40,9 +40,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..imaging.encodings import DTYPE_ENCODINGS
-from ..rpc import RPCError, RPCFormatError, RPCModel
-from ..rpc.formats import _float, _model
-from ..rpc.model import _COEFF_NAMES, _SCALARS
+from ..rpc import RPCError, RPCFormatError, RPCFormatSpec, RPCModel
+from ..rpc import formats as rpc_formats
+from ..rpc.formats import rpc_from_metadata
 
 FloatArray = NDArray[np.float64]
 #: Pixel types kept as they are (those with a strip encoding: mono8, mono16, 32FC1).
@@ -221,42 +221,6 @@ def raster_info(path: str | Path) -> RasterInfo:
         )
 
 
-def rpc_from_metadata(tags: dict[str, str], source: str | Path) -> RPCModel:
-    """An RPC from GDAL's ``RPC`` metadata strings (RPC00B convention: no pixel shift).
-
-    Raises:
-        RPCFormatError: a key missing, a value that is not a number (named with the file and the
-            key), not 20 coefficients, non-finite or zero-scale values.
-
-    """
-    upper = {k.upper(): v for k, v in tags.items()}
-    scalars = {
-        n: _float(upper[n.upper()], n.upper(), source) for n in _SCALARS if n.upper() in upper
-    }
-    coeffs: dict[str, FloatArray] = {}
-    for name in _COEFF_NAMES:
-        text = upper.get(name.upper())
-        if text is None:
-            continue
-        if "," in text:
-            raise RPCFormatError(
-                f"{source}: {name.upper()}: not 20 numbers separated by spaces: {text[:60]!r} "
-                "(a decimal comma?)"
-            )
-        values = [_float(v, name.upper(), source) for v in text.split()]
-        if len(values) != 20:
-            raise RPCFormatError(
-                f"{source}: {name.upper()}: 20 coefficients needed, got {len(values)}"
-            )
-        coeffs[name] = np.array(values)
-    extra = {
-        n: _float(upper[k], k, source)
-        for k, n in (("ERR_BIAS", "err_bias"), ("ERR_RAND", "err_rand"))
-        if k in upper
-    }
-    return _model(scalars, coeffs, source, **extra)
-
-
 #: Drivers beside whose images GDAL reads RPC sidecars, and which ones (GDAL 3.10, checked by
 #: tests/apps/test_import_errors.py on every driver listed there): GeoTIFF and JPEG 2000 read
 #: ``.RPB`` and ``_RPC.TXT``, NITF ``_RPC.TXT`` only; PNG, JPEG, BMP, GIF, ENVI, HFA, ... none.
@@ -301,46 +265,56 @@ def describe_rpc_source(info: RasterInfo) -> str:
     return f"{name} (GDAL RPC metadata, {info.driver})"
 
 
+def _gdal_rpc(path: Path, spec: RPCFormatSpec) -> tuple[dict[str, str], str]:
+    """GDAL's RPC metadata of an RPC file of a format GDAL reads, and where GDAL found it.
+
+    A raster (``spec.gdal == "raster"``: the GeoTIFF tag, or a sidecar beside it) is opened as
+    it is; a sidecar format (``.RPB``, ``_RPC.TXT``) is read by GDAL only beside a raster, so it
+    is copied beside a 1 x 1 placeholder GeoTIFF.
+
+    Raises:
+        RPCFormatError: GDAL finds no RPC there.
+
+    """
+    if spec.gdal == "raster":
+        info = raster_info(path)
+        if not info.rpc_metadata:
+            raise RPCFormatError(f"{path}: a TIFF without RPC (no tag 50844, no sidecar)")
+        return info.rpc_metadata, describe_rpc_source(info)
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    with tempfile.TemporaryDirectory(prefix="parproj_rpc_") as tmp:
+        img = Path(tmp) / "x.tif"
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.open(
+                img, "w", driver="GTiff", width=1, height=1, count=1, dtype="uint8"
+            ) as dst:
+                dst.write(np.zeros((1, 1, 1), np.uint8))
+        shutil.copy(path, Path(tmp) / f"x{spec.gdal}")
+        tags = raster_info(img).rpc_metadata
+    if not tags:
+        raise RPCFormatError(f"{path}: GDAL reads no RPC from this {spec.name.upper()} file")
+    return tags, f"{path.name} (GDAL)"
+
+
 def read_rpc_file(path: str | Path) -> tuple[RPCModel, str]:
     """An RPC file given explicitly, and a description of it.
 
-    ``.RPB`` / ``_RPC.TXT`` and rasters through GDAL,
-    OSSIM ``.geom`` and DIMAP ``RPC_*.XML`` through parproj_ros/rpc/; and a description.
+    :func:`parproj_ros.rpc.formats.read_rpc_file` with GDAL reading the formats it reads
+    (``.RPB`` / ``_RPC.TXT`` and rasters); OSSIM ``.geom`` and DIMAP ``RPC_*.XML`` through
+    their parsers in parproj_ros/rpc/formats/.
 
     Raises:
+        SceneImportError: no such file.
         RPCFormatError: not an RPC (named), or a malformed one.
 
     """
-    from .. import rpc
-
     p = Path(path)
     if not p.is_file():
         raise SceneImportError(f"{p}: no such RPC file")
-    fmt = rpc.detect_rpc_format(p)
-    if fmt in ("rpb", "rpc_txt"):
-        # GDAL reads these only as sidecars of a raster: give it a 1 x 1 placeholder.
-        import rasterio
-        from rasterio.errors import NotGeoreferencedWarning
-
-        with tempfile.TemporaryDirectory(prefix="parproj_rpc_") as tmp:
-            img = Path(tmp) / "x.tif"
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", NotGeoreferencedWarning)
-                with rasterio.open(
-                    img, "w", driver="GTiff", width=1, height=1, count=1, dtype="uint8"
-                ) as dst:
-                    dst.write(np.zeros((1, 1, 1), np.uint8))
-            shutil.copy(p, Path(tmp) / ("x.RPB" if fmt == "rpb" else "x_RPC.TXT"))
-            tags = raster_info(img).rpc_metadata
-        if not tags:
-            raise RPCFormatError(f"{p}: GDAL reads no RPC from this {fmt.upper()} file")
-        return rpc_from_metadata(tags, p), f"{p.name} (GDAL)"
-    if fmt == "geotiff":
-        info = raster_info(p)
-        if not info.rpc_metadata:
-            raise RPCFormatError(f"{p}: a TIFF without RPC (no tag 50844, no sidecar)")
-        return rpc_from_metadata(info.rpc_metadata, p), describe_rpc_source(info)
-    return rpc.read_rpc(p), p.name
+    return rpc_formats.read_rpc_file(p, gdal=_gdal_rpc)
 
 
 def crop_origin(info: RasterInfo) -> tuple[float, float] | None:

@@ -80,6 +80,7 @@ from ..rpc import (
     RPCModel,
     read_rpc,
 )
+from ..rpc.formats import find_sidecar, sidecars_looked_for
 from . import raster
 from .dem import MIN_COVERAGE, DemError, DemHeights, Geoid, coverage_text, load_dem
 from .raster import SceneImportError
@@ -151,9 +152,11 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
     """The RPC of an image and where it came from.
 
     First GDAL's RPC metadata (tag 50844, ``.RPB``, ``_RPC.TXT``, NITF RPC00B, JPEG 2000 boxes,
-    DIMAP products, ``.aux.xml``); then sidecars GDAL does not read: same stem with ``.geom``
-    (OSSIM); then ``RPC_*.XML`` (DIMAP) in the folder: the only one there, or the one whose name
-    after ``RPC_`` starts the image's stem after ``IMG_`` (DIMAP product naming).
+    DIMAP products, ``.aux.xml``); then the sidecars of the RPC format table
+    (:func:`parproj_ros.rpc.formats.find_sidecar`): a ``.RPB`` / ``_RPC.TXT`` GDAL skipped is
+    an error saying why; same stem with ``.geom`` (OSSIM); ``RPC_*.XML`` (DIMAP) in the folder:
+    the only one there, or the one whose name after ``RPC_`` starts the image's stem after
+    ``IMG_`` (DIMAP product naming).
 
     Raises:
         SceneImportError: no RPC found.
@@ -165,36 +168,29 @@ def find_rpc(path: str | Path) -> tuple[RPCModel, str]:
     if info.rpc_metadata:
         source = raster.describe_rpc_source(info)
         return raster.rpc_from_metadata(info.rpc_metadata, f"{p} [{source}]"), source
-    folder, stem = p.parent, p.stem
-    for suffix in (".RPB", ".rpb", "_RPC.TXT", "_rpc.txt"):
-        c = folder / f"{stem}{suffix}"
-        if c.is_file():
-            # GDAL skips a sidecar it cannot parse: say what is wrong with it
-            read_rpc(c)  # raises RPCFormatError naming the file and the key
-            if not raster.sidecar_read(info.driver, suffix):
-                raise RPCFormatError(
-                    f"{c}: GDAL reads no {suffix.upper()} sidecar beside a {info.driver} image "
-                    f"(only beside {raster.sidecar_readers(suffix)} images); pass it "
-                    f"explicitly: --rpc {p.name} {c}"
-                )
-            raise RPCFormatError(
-                f"{c}: GDAL reads no RPC from this sidecar of {p.name}, though it parses as "
-                "one; check its syntax against GDAL's .RPB / _RPC.TXT"
-            )
-    for suffix in (".geom", ".GEOM"):
-        c = folder / f"{stem}{suffix}"
-        if c.is_file():
-            return read_rpc(c), c.name
-    xmls = sorted(q for q in folder.iterdir() if re.fullmatch(r"(?i)rpc_.*\.xml", q.name))
-    key = stem[4:] if stem.upper().startswith("IMG_") else None
-    matching = [q for q in xmls if key is not None and key.startswith(q.stem[4:])]
-    chosen = matching[0] if len(matching) == 1 else (xmls[0] if len(xmls) == 1 else None)
-    if chosen is not None:
-        return read_rpc(chosen), chosen.name
-    raise SceneImportError(
-        f"{p}: no RPC (GDAL finds none: no tag {RPC_TIFF_TAG}, no {stem}.RPB / {stem}_RPC.TXT, "
-        f"no NITF RPC00B; no {stem}.geom; {'several' if xmls else 'no'} RPC_*.XML in {folder}); "
-        "pass it with --rpc IMAGE FILE (or --rpc-left / --rpc-right)"
+    found = find_sidecar(p)
+    if found is None:
+        raise SceneImportError(
+            f"{p}: no RPC (GDAL finds none: no tag {RPC_TIFF_TAG}, "
+            f"{sidecars_looked_for(p, gdal=True)}, no NITF RPC00B; "
+            f"{sidecars_looked_for(p, gdal=False)}); "
+            "pass it with --rpc IMAGE FILE (or --rpc-left / --rpc-right)"
+        )
+    spec, c = found
+    if spec.gdal is None:
+        return read_rpc(c), c.name
+    # GDAL skips a sidecar it cannot parse: say what is wrong with it
+    read_rpc(c)  # raises RPCFormatError naming the file and the key
+    suffix = spec.gdal
+    if not raster.sidecar_read(info.driver, suffix):
+        raise RPCFormatError(
+            f"{c}: GDAL reads no {suffix} sidecar beside a {info.driver} image "
+            f"(only beside {raster.sidecar_readers(suffix)} images); pass it "
+            f"explicitly: --rpc {p.name} {c}"
+        )
+    raise RPCFormatError(
+        f"{c}: GDAL reads no RPC from this sidecar of {p.name}, though it parses as "
+        "one; check its syntax against GDAL's .RPB / _RPC.TXT"
     )
 
 

@@ -1,7 +1,8 @@
 """Rational polynomial (RPC) sensor models: formats, ground <-> image, virtual GCP (paper 2).
 
-Modules: :mod:`.model` (the model), :mod:`.formats` (files), :mod:`.virtual` (virtual GCP);
-ground frames in :mod:`parproj_ros.geometry.geodesy`, DEMs in :mod:`parproj_ros.io.dem`.
+Modules: :mod:`.model` (the model), :mod:`.formats` (files: one module per format, one table),
+:mod:`.virtual` (virtual GCP); ground frames in :mod:`parproj_ros.geometry.geodesy`, DEMs in
+:mod:`parproj_ros.io.dem`.
 
 An RPC (NITF RPC00B) maps ground (longitude, latitude in degrees on the WGS84 ellipsoid, height in
 metres above the WGS84 ellipsoid) to image (line, sample) as ratios of cubic polynomials of the
@@ -56,7 +57,9 @@ from __future__ import annotations
 
 from ..geometry.geodesy import LocalTangentPlane, ecef_from_geodetic, geodetic_from_ecef
 from .formats import (
+    FORMATS,
     RPCFormat,
+    RPCFormatSpec,
     detect_rpc_format,
     dimap_pixel_origin,
     read_dimap_rpc,
@@ -65,11 +68,13 @@ from .formats import (
     read_keyword_list,
     read_rpb,
     read_rpc,
+    read_rpc_file,
     read_rpc_txt,
     write_dimap_rpc,
     write_geom,
     write_geotiff_rpc,
     write_rpb,
+    write_rpc,
     write_rpc_txt,
 )
 from .model import (
@@ -89,6 +94,7 @@ from .virtual import VirtualGCP, estimate_scene, virtual_gcp
 
 __all__ = [
     "DOMAIN_LIMIT",
+    "FORMATS",
     "RPC00B_TERMS",
     "RPC_TIFF_TAG",
     "Domain",
@@ -100,6 +106,7 @@ __all__ = [
     "RPCError",
     "RPCFormat",
     "RPCFormatError",
+    "RPCFormatSpec",
     "RPCModel",
     "VirtualGCP",
     "detect_rpc_format",
@@ -113,11 +120,13 @@ __all__ = [
     "read_keyword_list",
     "read_rpb",
     "read_rpc",
+    "read_rpc_file",
     "read_rpc_txt",
     "virtual_gcp",
     "write_dimap_rpc",
     "write_geom",
     "write_geotiff_rpc",
     "write_rpb",
+    "write_rpc",
     "write_rpc_txt",
 ]
