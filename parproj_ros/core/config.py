@@ -12,11 +12,12 @@ Nothing here imports ROS.
 
 from __future__ import annotations
 
+import numbers
 import sys
 import textwrap
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Literal
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar, overload
 
 from .params import PARAMS, VIEW_PARAMS, Param, ParamType
 from .params import default as _default
@@ -70,67 +71,318 @@ class ViewConfig:
     dtype: str | None = None
 
 
-@dataclass(frozen=True)
-class PipelineConfig:
-    """Settings of the pipeline: one field per parameter of :data:`PARAMS` that fills it.
+# The closed sets of the table's string settings, as types (checked against the rows' choices).
+GcpRoll = Literal["estimate", "navigation", "none"]
+OutputExtent = Literal["overlap", "union"]
+TerrainChoice = Literal["tie_points", "prior"]
+HeightsFill = Literal["none", "nearest"]
+HeightsMatcher = Literal["sgbm_3way", "sgbm_8path"]
 
-    Names, defaults, units and ranges are the table's (the defaults below are read from it);
-    the attributes are listed from it after this paragraph.
+#: (settings group, setting) -> its row of :data:`PARAMS`.
+_ROWS: dict[tuple[str, str], Param] = {p.target: p for p in PARAMS if p.target is not None}
+
+
+def _check_value(p: Param, value: Any) -> None:
+    """Raises ValueError unless ``value`` has the type of ``p`` and is among its choices.
+
+    Ranges are checked where values come in (the node's descriptors, ``parproj process``'s
+    options): ``--no-gcp`` sets ``min_gcp`` past its range on purpose.
+    """
+    ok: bool
+    if p.type == "bool":
+        ok = isinstance(value, bool)
+    elif p.type == "integer":
+        ok = isinstance(value, numbers.Integral) and not isinstance(value, bool)
+    elif p.type == "double":
+        ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, str) and (not p.choices or value in p.choices)
+    if not ok:
+        want = f"one of {p.range_text}" if p.choices else f"a {p.type}"
+        raise ValueError(f"{p.fills} ({p.name}) = {value!r}: must be {want}")
+
+
+class _Settings:
+    """Base of the settings groups: each checks its own values against its rows.
+
+    A group is a frozen dataclass named for its concern (:data:`CONCERN`); each field is one
+    row of :data:`PARAMS` whose ``fills`` is ``PipelineConfig.<concern>.<field>``, with the
+    row's default. Types and choices are checked at construction (ValueError naming the
+    setting and the parameter).
     """
 
-    views: tuple[ViewConfig, ...]
-    scene_lines: int = _default("scene_lines")
+    CONCERN: ClassVar[str]
+
+    def __post_init__(self) -> None:
+        """Checks each value against its row (type, choices)."""
+        for f in fields(self):  # type: ignore[arg-type]
+            _check_value(_ROWS[(self.CONCERN, f.name)], getattr(self, f.name))
+
+
+@dataclass(frozen=True)
+class SceneSettings(_Settings):
+    """How strips make scenes (concern ``scenes``)."""
+
+    CONCERN: ClassVar[str] = "scenes"
+    lines: int = _default("scene_lines")
     max_gap_lines: int = _default("max_gap_lines")
+
+
+@dataclass(frozen=True)
+class NavigationSettings(_Settings):
+    """The navigation feed (concern ``navigation``)."""
+
+    CONCERN: ClassVar[str] = "navigation"
+    jump_s: float = _default("nav_jump_s")
+    position_tolerance_m: float = _default("nav_position_tolerance_m")
+    history_s: float = _default("nav_history_s")
+    start_margin_s: float = _default("start_margin_s")
+
+
+@dataclass(frozen=True)
+class OrientationSettings(_Settings):
+    """Each scene's parallel model: heights, crab tolerance, GCP use (concern ``orientation``)."""
+
+    CONCERN: ClassVar[str] = "orientation"
     z_avg: float = _default("z_avg")
     height_range: float = _default("height_range")
     crab_tolerance_px: float = _default("crab_tolerance_px")
-    gcp_roll: Literal["estimate", "navigation", "none"] = _default("gcp_roll")
+    gcp_roll: GcpRoll = field(default=_default("gcp_roll"))
     min_gcp: int = _default("min_gcp")
+
+    @property
+    def prior_heights(self) -> tuple[float, float]:
+        """The terrain prior without GCP: ``z_avg`` -+ ``height_range`` [m]."""
+        return (self.z_avg - self.height_range, self.z_avg + self.height_range)
+
+
+@dataclass(frozen=True)
+class SegmentSettings(_Settings):
+    """Long GCP/RPC scenes cut into segment pairs (concern ``segments``)."""
+
+    CONCERN: ClassVar[str] = "segments"
+    max_error_px: float = _default("segment_max_error_px")
+    overlap: float = _default("segment_overlap")
+
+
+@dataclass(frozen=True)
+class OutputSettings(_Settings):
+    """The normalized pair's images (concern ``output``)."""
+
+    CONCERN: ClassVar[str] = "output"
     nodata: float = _default("nodata")
-    interpolation: Literal["linear", "cubic"] = _default("interpolation")
-    output_pixel: float = _default("output_pixel")
-    output_extent: Literal["overlap", "union"] = _default("output_extent")
-    max_output_pixels: int = _default("max_output_pixels")
-    streaming: bool = _default("streaming")
-    terrain: Literal["tie_points", "prior"] = _default("terrain")
-    tie_points: bool = _default("tie_points")
-    tie_threshold_px: float = _default("tie_threshold_px")
-    heights: bool = _default("heights")
-    heights_margin_px: float = _default("heights_margin_px")
-    heights_cell_m: float = _default("heights_cell_m")
-    heights_fill: Literal["none", "nearest"] = _default("heights_fill")
-    heights_max_fill_cells: float = _default("heights_max_fill_cells")
-    heights_tile_px: int = _default("heights_tile_px")
-    heights_fuse_mb: float = _default("heights_fuse_mb")
-    heights_matcher: Literal["sgbm_3way", "sgbm_8path"] = _default("heights_matcher")
-    nav_jump_s: float = _default("nav_jump_s")
-    nav_position_tolerance_m: float = _default("nav_position_tolerance_m")
-    segment_max_error_px: float = _default("segment_max_error_px")
-    segment_overlap: float = _default("segment_overlap")
-    start_margin_s: float = _default("start_margin_s")
-    nav_history_s: float = _default("nav_history_s")
+    interpolation: str = _default("interpolation")
+    pixel_m: float = _default("output_pixel")
+    max_pixels: int = _default("max_output_pixels")
+    extent: OutputExtent = field(default=_default("output_extent"))
+
+
+@dataclass(frozen=True)
+class TiePointSettings(_Settings):
+    """Tie points between the normalized images, and the terrain from them (concern ``ties``)."""
+
+    CONCERN: ClassVar[str] = "ties"
+    terrain: TerrainChoice = field(default=_default("terrain"))
+    enabled: bool = _default("tie_points")
+    threshold_px: float = _default("tie_threshold_px")
+
+
+@dataclass(frozen=True)
+class DenseSettings(_Settings):
+    """Dense matching: disparity, heights, DSM and its fusion (concern ``dense``)."""
+
+    CONCERN: ClassVar[str] = "dense"
+    enabled: bool = _default("heights")
+    margin_px: float = _default("heights_margin_px")
+    cell_m: float = _default("heights_cell_m")
+    fill: HeightsFill = field(default=_default("heights_fill"))
+    max_fill_cells: float = _default("heights_max_fill_cells")
+    matcher: HeightsMatcher = field(default=_default("heights_matcher"))
+    fuse_mb: float = _default("heights_fuse_mb")
+    tile_px: int = _default("heights_tile_px")
+
+
+@dataclass(frozen=True)
+class StreamSettings(_Settings):
+    """Normalized column blocks while the scenes arrive (concern ``stream``)."""
+
+    CONCERN: ClassVar[str] = "stream"
+    enabled: bool = _default("streaming")
+
+
+#: The settings groups of :class:`PipelineConfig`, by concern (its attribute names).
+GROUPS: dict[str, type[_Settings]] = {
+    cls.CONCERN: cls
+    for cls in (
+        SceneSettings,
+        NavigationSettings,
+        OrientationSettings,
+        SegmentSettings,
+        OutputSettings,
+        TiePointSettings,
+        DenseSettings,
+        StreamSettings,
+    )
+}
+
+#: The flat keywords :class:`PipelineConfig` accepts (the parameter names) -> (group, setting).
+FLAT_NAMES: dict[str, tuple[str, str]] = {p.name: p.target for p in PARAMS if p.target is not None}
+
+_T = TypeVar("_T")
+
+
+class _Flat(Generic[_T]):
+    """A read-only flat name of :class:`PipelineConfig` during the migration.
+
+    ``config.heights_cell_m`` reads ``config.dense.cell_m``: the setting its row fills.
+    """
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.group, self.setting = FLAT_NAMES[name]
+
+    @overload
+    def __get__(self, obj: None, owner: type) -> _Flat[_T]: ...
+
+    @overload
+    def __get__(self, obj: object, owner: type) -> _T: ...
+
+    def __get__(self, obj: object, owner: type) -> _T | _Flat[_T]:
+        if obj is None:
+            return self
+        value: _T = getattr(getattr(obj, self.group), self.setting)
+        return value
+
+
+@dataclass(frozen=True, init=False)
+class PipelineConfig:
+    """Settings of the pipeline: the views and one settings group per concern.
+
+    Each group is a frozen dataclass of the rows of :data:`PARAMS` with that concern
+    (``config.dense.cell_m`` is ``heights_cell_m``, ``config.output.pixel_m`` is
+    ``output_pixel``); names, defaults, units and ranges are the table's. A function that needs
+    one concern takes that group, not the whole config.
+
+    Construction: ``PipelineConfig(views, dense=DenseSettings(enabled=True))``, or with the
+    flat parameter names as keywords (``PipelineConfig(views, heights=True, scene_lines=0)``,
+    ``dataclasses.replace(config, heights=True)``): each sets its group's setting, over the
+    group given or its defaults. The flat names also read (``config.heights_cell_m``), during
+    the migration to the groups.
+
+    Attributes:
+        views: the cameras, in ``views`` order.
+        scenes: how strips make scenes (:class:`SceneSettings`).
+        navigation: the navigation feed (:class:`NavigationSettings`).
+        orientation: each scene's parallel model (:class:`OrientationSettings`).
+        segments: long scenes cut into segment pairs (:class:`SegmentSettings`).
+        output: the normalized images (:class:`OutputSettings`).
+        ties: tie points and the terrain from them (:class:`TiePointSettings`).
+        dense: dense matching, heights, DSM (:class:`DenseSettings`).
+        stream: column blocks while the scenes arrive (:class:`StreamSettings`).
+    """
+
+    views: tuple[ViewConfig, ...]
+    scenes: SceneSettings
+    navigation: NavigationSettings
+    orientation: OrientationSettings
+    segments: SegmentSettings
+    output: OutputSettings
+    ties: TiePointSettings
+    dense: DenseSettings
+    stream: StreamSettings
+
+    def __init__(
+        self,
+        views: Sequence[ViewConfig],
+        *,
+        scenes: SceneSettings | None = None,
+        navigation: NavigationSettings | None = None,
+        orientation: OrientationSettings | None = None,
+        segments: SegmentSettings | None = None,
+        output: OutputSettings | None = None,
+        ties: TiePointSettings | None = None,
+        dense: DenseSettings | None = None,
+        stream: StreamSettings | None = None,
+        **flat: Any,
+    ) -> None:
+        """The views, each group given (else its defaults), then the flat names in ``flat``.
+
+        Raises:
+            TypeError: a keyword that is no flat parameter name.
+            ValueError: a value of the wrong type or not among its choices.
+        """
+        unknown = sorted(set(flat) - set(FLAT_NAMES))
+        if unknown:
+            raise TypeError(f"PipelineConfig() got unexpected keyword arguments {unknown}")
+        given: dict[str, Any] = {
+            "scenes": scenes,
+            "navigation": navigation,
+            "orientation": orientation,
+            "segments": segments,
+            "output": output,
+            "ties": ties,
+            "dense": dense,
+            "stream": stream,
+        }
+        object.__setattr__(self, "views", tuple(views))
+        for concern, cls in GROUPS.items():
+            group: Any = given[concern] or cls()
+            changes = {FLAT_NAMES[k][1]: v for k, v in flat.items() if FLAT_NAMES[k][0] == concern}
+            object.__setattr__(self, concern, replace(group, **changes) if changes else group)
 
     @property
     def single_camera(self) -> bool:
         """Whether consecutive scenes of the one view form the pairs."""
         return len(self.views) == 1
 
+    # The flat names, read-only, during the migration to the groups (see FLAT_NAMES).
+    scene_lines = _Flat[int]()
+    max_gap_lines = _Flat[int]()
+    z_avg = _Flat[float]()
+    height_range = _Flat[float]()
+    crab_tolerance_px = _Flat[float]()
+    gcp_roll = _Flat[GcpRoll]()
+    min_gcp = _Flat[int]()
+    nodata = _Flat[float]()
+    interpolation = _Flat[str]()
+    output_pixel = _Flat[float]()
+    output_extent = _Flat[OutputExtent]()
+    max_output_pixels = _Flat[int]()
+    streaming = _Flat[bool]()
+    terrain = _Flat[TerrainChoice]()
+    tie_points = _Flat[bool]()
+    tie_threshold_px = _Flat[float]()
+    heights = _Flat[bool]()
+    heights_margin_px = _Flat[float]()
+    heights_cell_m = _Flat[float]()
+    heights_fill = _Flat[HeightsFill]()
+    heights_max_fill_cells = _Flat[float]()
+    heights_tile_px = _Flat[int]()
+    heights_fuse_mb = _Flat[float]()
+    heights_matcher = _Flat[HeightsMatcher]()
+    nav_jump_s = _Flat[float]()
+    nav_position_tolerance_m = _Flat[float]()
+    segment_max_error_px = _Flat[float]()
+    segment_overlap = _Flat[float]()
+    start_margin_s = _Flat[float]()
+    nav_history_s = _Flat[float]()
 
-def _attributes_doc() -> str:
-    """The ``Attributes:`` section of PipelineConfig's docstring, from the table."""
+
+def _attributes_doc(concern: str) -> str:
+    """The ``Attributes:`` section of a group's docstring, from the table."""
     lines = ["", "    Attributes:"]
     for p in PARAMS:
-        if p.field is None:
+        if p.target is None or p.target[0] != concern:
             continue
         unit = f" [{p.unit}]" if p.unit else ""
-        text = f"{p.field}: {p.description}{unit}."
+        text = f"{p.target[1]}: {p.description}{unit} (parameter ``{p.name}``)."
         lines += textwrap.wrap(
             text, 95, initial_indent=" " * 8, subsequent_indent=" " * 12, break_on_hyphens=False
         )
     return "\n".join(lines) + "\n"
 
 
-PipelineConfig.__doc__ = (PipelineConfig.__doc__ or "") + _attributes_doc()
+for _cls in GROUPS.values():
+    _cls.__doc__ = (_cls.__doc__ or "") + "\n" + _attributes_doc(_cls.CONCERN)
 
 
 def view_config(name: str, values: Mapping[str, Any]) -> ViewConfig:
@@ -225,20 +477,24 @@ def config_from_values(values: Mapping[str, Any]) -> PipelineConfig:
         )
         for name in values.get("views", _default("views"))
     )
-    settings = {
-        p.field: _typed(p, values.get(p.name, p.default))
-        for p in PARAMS
-        if p.field is not None and p.field != "views"
-    }
-    return PipelineConfig(views=views, **settings)
+    settings: dict[str, dict[str, Any]] = {concern: {} for concern in GROUPS}
+    for p in PARAMS:
+        if p.target is not None:
+            settings[p.target[0]][p.target[1]] = _typed(p, values.get(p.name, p.default))
+    groups: dict[str, Any] = {c: cls(**settings[c]) for c, cls in GROUPS.items()}
+    return PipelineConfig(views, **groups)
 
 
 def _check_table() -> None:
-    """The table and PipelineConfig agree (a field per row that fills one); raises if not."""
-    filled = {p.field for p in PARAMS if p.field is not None}
-    have = {f.name for f in fields(PipelineConfig)}
-    if filled != have:
-        raise AssertionError(f"config: PipelineConfig fields {have ^ filled} not in step")
+    """The table and the groups agree: a field per row that fills one, of its type; or raises."""
+    have = {(concern, f.name) for concern, cls in GROUPS.items() for f in fields(cls)}  # type: ignore[arg-type]
+    if have != set(_ROWS):
+        raise AssertionError(f"config: settings {sorted(have ^ set(_ROWS))} not in step")
+    flat = {n for n, v in vars(PipelineConfig).items() if isinstance(v, _Flat)}
+    if flat != set(FLAT_NAMES):
+        raise AssertionError(f"config: flat names {sorted(flat ^ set(FLAT_NAMES))} not in step")
+    for cls in GROUPS.values():
+        cls()  # every default passes its group's checks
 
 
 _check_table()

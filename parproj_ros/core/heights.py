@@ -192,17 +192,22 @@ def measure_heights(
 
 
 def options_of(config: PipelineConfig) -> HeightsOptions:
-    """The heights options of a pipeline's settings (the ``heights_*`` parameters)."""
+    """The heights options of a pipeline's settings.
+
+    Its dense settings (the ``heights_*`` parameters), the no-data value, the terrain choice
+    and the prior heights.
+    """
+    dense = config.dense
     return HeightsOptions(
-        margin_px=config.heights_margin_px,
-        cell_m=config.heights_cell_m,
-        fill=config.heights_fill,
-        max_fill_cells=config.heights_max_fill_cells,
-        tile_px=config.heights_tile_px,
-        matcher=config.heights_matcher,
-        nodata=float(config.nodata),
-        measure_terrain=config.terrain == "tie_points",
-        prior_m=(config.z_avg - config.height_range, config.z_avg + config.height_range),
+        margin_px=dense.margin_px,
+        cell_m=dense.cell_m,
+        fill=dense.fill,
+        max_fill_cells=dense.max_fill_cells,
+        tile_px=dense.tile_px,
+        matcher=dense.matcher,
+        nodata=float(config.output.nodata),
+        measure_terrain=config.ties.terrain == "tie_points",
+        prior_m=config.orientation.prior_heights,
     )
 
 

@@ -13,7 +13,10 @@ BufferPool`. Without glibc (another C library) every function is a no-op.
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from .config import PipelineConfig
 
 #: glibc ``mallopt`` parameters (malloc.h) and what the node sets them to: allocations up to
 #: 32 MiB (strips, column blocks, messages) come from the heap instead of mappings of their
@@ -25,15 +28,16 @@ MMAP_THRESHOLD_BYTES = 32 * 2**20
 TRIM_THRESHOLD_BYTES = 256 * 2**20
 
 
-def raw_pair_bytes(config: Any) -> int:
+def raw_pair_bytes(config: PipelineConfig) -> int:
     """One raw input pair of the configured scenes, bytes (0 without ``scene_lines``).
 
     ``scene_lines`` x detectors x 2 bytes (uint16; an upper bound for 8-bit strips) summed
     over ``config.views``: 738 MB for two IKONOS-size views (14000 x 13816).
     """
-    if config.scene_lines <= 0:
+    lines = config.scenes.lines
+    if lines <= 0:
         return 0
-    return int(sum(config.scene_lines * vc.camera.detectors * 2 for vc in config.views))
+    return int(sum(lines * vc.camera.detectors * 2 for vc in config.views))
 
 
 def _libc() -> Any:

@@ -14,7 +14,6 @@ from __future__ import annotations
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -22,8 +21,15 @@ from ..geometry import DegenerateGeometryError, GeometryError, Normalization
 from ..geometry import normalize_pair as normalize_affine_pair
 from ..geometry.navigation import virtual_points
 from ..geometry.segmentation import SideCamera, segment_pair
-from ..imaging.resample import OutputGrid, SceneGeometry, footprint, native_pixel, resample
-from .config import PipelineConfig
+from ..imaging.resample import (
+    OutputGrid,
+    SceneGeometry,
+    footprint,
+    kernel_flag,
+    native_pixel,
+    resample,
+)
+from .config import OrientationSettings, OutputSettings, PipelineConfig
 from .gcp_store import GcpStore
 from .orientation import scene_from_gcp
 from .results import Issue, Level, Method, Outputs, PairGeometry, SceneResult, YParallaxSource
@@ -45,9 +51,19 @@ class NormalizedPair:
     terrain: Terrain
 
 
-def interpolation_flag(config: PipelineConfig) -> int:
-    """OpenCV interpolation flag of the configured interpolation."""
-    return cv2.INTER_CUBIC if config.interpolation == "cubic" else cv2.INTER_LINEAR
+def _output(settings: OutputSettings | PipelineConfig) -> OutputSettings:
+    """The output settings (a whole config is accepted while its callers migrate)."""
+    return settings.output if isinstance(settings, PipelineConfig) else settings
+
+
+def _orientation(settings: OrientationSettings | PipelineConfig) -> OrientationSettings:
+    """The orientation settings (a whole config is accepted while its callers migrate)."""
+    return settings.orientation if isinstance(settings, PipelineConfig) else settings
+
+
+def interpolation_flag(output: OutputSettings | PipelineConfig) -> int:
+    """OpenCV interpolation flag of the configured interpolation (imaging/kernels.py's row)."""
+    return kernel_flag(_output(output).interpolation)
 
 
 @dataclass(frozen=True)
@@ -108,7 +124,7 @@ def pair_frame(
     gr = right.geometry(norm.right)
     fl = footprint(gl, lines[0], left.scene.detectors)
     fr = footprint(gr, lines[1], right.scene.detectors)
-    pix = config.output_pixel or min(native_pixel(gl), native_pixel(gr))
+    pix = config.output.pixel_m or min(native_pixel(gl), native_pixel(gr))
     y0 = max(fl[:, 1].min(), fr[:, 1].min())
     y1 = min(fl[:, 1].max(), fr[:, 1].max())
     if y1 <= y0:
@@ -117,13 +133,14 @@ def pair_frame(
             f"pair {pair_id}",
             "the scenes do not overlap across the epipolar lines: pair skipped",
         )
-    return PairFrame(pair_id, norm, gl, gr, fl, fr, pix, (float(y0), float(y1)), config.z_avg)
+    z_avg = config.orientation.z_avg
+    return PairFrame(pair_id, norm, gl, gr, fl, fr, pix, (float(y0), float(y1)), z_avg)
 
 
 def pair_grids(
-    frame: PairFrame, config: PipelineConfig, heights: tuple[float, float]
+    frame: PairFrame, output: OutputSettings, heights: tuple[float, float]
 ) -> PairGeometry | Issue:
-    """The output grids of a pair: its rows, and its columns by ``config.output_extent``.
+    """The output grids of a pair: its rows, and its columns by ``output.extent``.
 
     ``heights`` (m): the pair's terrain, at which ``overlap`` keeps the columns both scenes
     see. An ERROR issue when no column is left or the images would exceed
@@ -131,7 +148,7 @@ def pair_grids(
     """
     norm, shift, pix = frame.normalization, frame.shift, frame.pixel
     xo_l, x1 = frame.union_columns()
-    if config.output_extent == "overlap":
+    if output.extent == "overlap":
         span = overlap_columns(
             norm, frame.left_footprint, frame.right_footprint, shift, heights, frame.z_ref
         )
@@ -147,12 +164,12 @@ def pair_grids(
     y0, y1 = frame.rows
     width = int(np.floor((x1 - xo_l) / pix)) + 1
     height = int(np.floor((y1 - y0) / pix)) + 1
-    if width * height > config.max_output_pixels:
+    if width * height > output.max_pixels:
         return Issue(
             Level.ERROR,
             f"pair {frame.pair_id}",
             f"normalized images would be {width} x {height} px (> max_output_pixels "
-            f"{config.max_output_pixels}): pair skipped",
+            f"{output.max_pixels}): pair skipped",
         )
     grid_l = OutputGrid(pix, xo_l, y0, width, height)
     grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)
@@ -174,31 +191,37 @@ def pair_geometry(
     frame = pair_frame(left, right, lines, config)
     if isinstance(frame, Issue):
         return frame
-    return pair_grids(frame, config, pair_terrain(left, right, config, gcps).range_m)
+    terrain = pair_terrain(left, right, config.orientation, gcps)
+    return pair_grids(frame, config.output, terrain.range_m)
 
 
 def pair_terrain(
-    left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
+    left: SceneResult,
+    right: SceneResult,
+    orientation: OrientationSettings | PipelineConfig,
+    gcps: GcpStore,
 ) -> Terrain:
     """The heights the pipeline assumes for a pair: its GCP and check points, else the prior.
 
     With at least ``min_gcp`` points observed in either scene, their height span widened
     by 10 % of it (at least 1 m) on each side; otherwise ``z_avg`` +- ``height_range``.
     """
+    settings = _orientation(orientation)
     z = gcps.heights((left.scene.scene_id, right.scene.scene_id))
-    if z.size >= config.min_gcp:
+    if z.size >= settings.min_gcp:
         pad = max(0.1 * float(np.ptp(z)), 1.0)
         return Terrain(float(z.min()) - pad, float(z.max()) + pad, TerrainSource.GCP)
-    return Terrain(
-        config.z_avg - config.height_range, config.z_avg + config.height_range, TerrainSource.PRIOR
-    )
+    return Terrain(*settings.prior_heights, TerrainSource.PRIOR)
 
 
 def pair_heights(
-    left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
+    left: SceneResult,
+    right: SceneResult,
+    orientation: OrientationSettings | PipelineConfig,
+    gcps: GcpStore,
 ) -> tuple[float, float]:
     """(lowest, highest) height (m) of :func:`pair_terrain`."""
-    return pair_terrain(left, right, config, gcps).range_m
+    return pair_terrain(left, right, orientation, gcps).range_m
 
 
 def zero_disparity_height(z_avg: float, terrain: Terrain) -> float:
@@ -219,7 +242,7 @@ PREPASS_PX = 1024
 
 
 def terrain_prepass(
-    frame: PairFrame, left: SceneResult, right: SceneResult, config: PipelineConfig, prior: Terrain
+    frame: PairFrame, left: SceneResult, right: SceneResult, output: OutputSettings, prior: Terrain
 ) -> Terrain:
     """The pair's terrain measured on a reduced normalized pair covering both footprints whole.
 
@@ -238,10 +261,10 @@ def terrain_prepass(
     w, h = int(np.floor((x1 - x0) / pix)) + 1, int(np.floor((y1 - y0) / pix)) + 1
     grid_l = OutputGrid(pix, x0, y0, w, h)
     grid_r = OutputGrid(pix, x0 - frame.shift, y0, w, h)
-    img_l = resample_scene(left, frame.left_geom, grid_l, config)
-    img_r = resample_scene(right, frame.right_geom, grid_r, config)
+    img_l = resample_scene(left, frame.left_geom, grid_l, output)
+    img_r = resample_scene(right, frame.right_geom, grid_r, output)
     return measure_terrain(
-        img_l, img_r, grid_l, grid_r, frame.normalization, prior, nodata=config.nodata
+        img_l, img_r, grid_l, grid_r, frame.normalization, prior, nodata=output.nodata
     )
 
 
@@ -273,15 +296,19 @@ def overlap_columns(
 
 
 def resample_scene(
-    res: SceneResult, geom: SceneGeometry, grid: OutputGrid, config: PipelineConfig
+    res: SceneResult,
+    geom: SceneGeometry,
+    grid: OutputGrid,
+    output: OutputSettings | PipelineConfig,
 ) -> NDArray[np.generic]:
     """A whole scene resampled onto its normalized grid (``nodata`` outside it)."""
+    settings = _output(output)
     return resample(
         res.scene.image,
         geom,
         grid,
-        nodata=config.nodata,
-        interpolation=interpolation_flag(config),
+        nodata=settings.nodata,
+        interpolation=interpolation_flag(settings),
     )
 
 
@@ -297,15 +324,15 @@ def normalize_pair(
     frame = pair_frame(left, right, (left.scene.lines, right.scene.lines), config)
     if isinstance(frame, Issue):
         return frame
-    terrain = pair_terrain(left, right, config, gcps)
-    if config.terrain == "tie_points":
-        terrain = terrain_prepass(frame, left, right, config, terrain)
-        frame = replace(frame, z_ref=zero_disparity_height(config.z_avg, terrain))
-    geo = pair_grids(frame, config, terrain.range_m)
+    terrain = pair_terrain(left, right, config.orientation, gcps)
+    if config.ties.terrain == "tie_points":
+        terrain = terrain_prepass(frame, left, right, config.output, terrain)
+        frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
+    geo = pair_grids(frame, config.output, terrain.range_m)
     if isinstance(geo, Issue):
         return geo
-    img_l = resample_scene(left, geo.left_geom, geo.left_grid, config)
-    img_r = resample_scene(right, geo.right_geom, geo.right_grid, config)
+    img_l = resample_scene(left, geo.left_geom, geo.left_grid, config.output)
+    img_r = resample_scene(right, geo.right_geom, geo.right_grid, config.output)
     return NormalizedPair(geo, img_l, img_r, terrain)
 
 
@@ -315,7 +342,7 @@ def y_parallax(
     gl: SceneGeometry,
     gr: SceneGeometry,
     gcps: GcpStore,
-    config: PipelineConfig,
+    orientation: OrientationSettings | PipelineConfig,
 ) -> tuple[FloatArray, YParallaxSource]:
     """Geometric y-parallax (px): GCP/check points, else virtual points of the models.
 
@@ -328,8 +355,7 @@ def y_parallax(
         nr = gr.image_to_normalized(np.array(ls_r)[:, 0], np.array(ls_r)[:, 1])
         return (nl[:, 1] - nr[:, 1]) / pixel, YParallaxSource.GCP
     if left.model is not None and right.model is not None:
-        z = config.z_avg
-        h = config.height_range
+        z, h = _orientation(orientation).z_avg, _orientation(orientation).height_range
         obj = virtual_points(left.model, (0.0, left.scene.lines - 1.0), [z - h, z, z + h], grid=11)
         lr = right.model.project(obj)
         inside = (
@@ -362,7 +388,7 @@ def cut_into_segments(
     help. The whole scenes' GCP observations are then forgotten (except in scenes in ``keep``).
     """
     out = Outputs()
-    bound = config.segment_max_error_px
+    bound = config.segments.max_error_px
     whole = max(left.residual_max_px, right.residual_max_px)
     if (
         bound <= 0
@@ -397,8 +423,8 @@ def cut_into_segments(
             lines=(left.scene.lines, right.scene.lines),
             cameras=(side(left), side(right)),
             bound_px=bound,
-            overlap=config.segment_overlap,
-            min_points=max(2 * config.min_gcp, 10),
+            overlap=config.segments.overlap,
+            min_points=max(2 * config.orientation.min_gcp, 10),
         )
     except GeometryError as err:
         seg = None
@@ -421,7 +447,7 @@ def cut_into_segments(
             pair_id,
             f"model error {seg.whole_error_px[0]:.3f} / {seg.whole_error_px[1]:.3f} px "
             f"(left / right) > bound {bound:g} px: cut into {seg.count} segment pairs "
-            f"with {config.segment_overlap:.0%} overlap; largest segment error "
+            f"with {config.segments.overlap:.0%} overlap; largest segment error "
             f"{seg.max_error_px:.3f} px, "
             + ("bound met" if seg.reached else f"bound NOT met ({seg.note})"),
         )
@@ -447,7 +473,7 @@ def cut_into_segments(
                     whole_res.camera,
                     None,
                     gcps.for_scene(sub),
-                    roll=config.gcp_roll,
+                    roll=config.orientation.gcp_roll,
                     reference=whole_res.params,
                 )
             except GeometryError as err:  # the segmentation fitted it: not expected

@@ -83,7 +83,7 @@ def orient_scene(
     try:
         fit = nav.fit(scene.first_line_ns, scene.last_line_ns, view.mounting)
         model = PushbroomModel(cam, fit.motion)
-        if fit.position_rms_m > config.nav_position_tolerance_m:
+        if fit.position_rms_m > config.navigation.position_tolerance_m:
             issues.append(
                 Issue(
                     Level.WARN,
@@ -92,7 +92,7 @@ def orient_scene(
                         f"navigation positions scatter by {fit.position_rms_m:.3f} m rms "
                         "about the "
                         "constant-velocity line "
-                        f"(> {config.nav_position_tolerance_m} m): an "
+                        f"(> {config.navigation.position_tolerance_m} m): an "
                         "outlier or a manoeuvre; the parameters carry that error"
                     ),
                 )
@@ -111,24 +111,25 @@ def orient_scene(
         nav_result = parameters_from_navigation(
             model,
             line_mid=(scene.lines - 1) / 2.0,
-            z_avg=config.z_avg,
+            z_avg=config.orientation.z_avg,
             scene_lines=scene.lines,
-            height_range=config.height_range,
-            crab_tolerance_px=config.crab_tolerance_px,
+            height_range=config.orientation.height_range,
+            crab_tolerance_px=config.orientation.crab_tolerance_px,
         )
     except (NavigationError, GeometryError) as err:
         issues.append(Issue(Level.WARN, where, f"no navigation-derived parameters: {err}"))
     issues += gcps.bad_observation_issues(scene)
     gxyz, gls, cxyz, cls = gcps.for_scene(scene)
     result: SceneResult | None = None
-    if len(gxyz) >= config.min_gcp:
+    min_gcp = config.orientation.min_gcp
+    if len(gxyz) >= min_gcp:
         try:
             result = scene_from_gcp(
                 scene,
                 cam,
                 nav_result,
                 (gxyz, gls, cxyz, cls),
-                roll=config.gcp_roll,
+                roll=config.orientation.gcp_roll,
                 model=None if nav_result is None else model,
             )
         except GeometryError as err:
@@ -145,7 +146,7 @@ def orient_scene(
             Issue(
                 Level.WARN,
                 where,
-                (f"only {len(gxyz)} GCP observed (need {config.min_gcp}): GCP not used"),
+                (f"only {len(gxyz)} GCP observed (need {min_gcp}): GCP not used"),
             )
         )
     if result is None and nav_result is not None and model is not None:

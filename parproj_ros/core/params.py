@@ -19,6 +19,24 @@ import re
 from dataclasses import dataclass
 from typing import Any, Literal
 
+from ..imaging import kernels
+
+#: What part of the work a parameter sets (:attr:`Param.concern`) -> in a few words. The
+#: pipeline's rows fill the settings group of the same name (``PipelineConfig.<concern>``); the
+#: ``views`` and ``runtime`` rows fill the views and parproj_node itself.
+CONCERNS: dict[str, str] = {
+    "views": "the cameras: view names and each view's interior orientation and mounting",
+    "scenes": "how strips make scenes: scene length, gaps",
+    "navigation": "the navigation feed: jumps, history kept, consistency, start margin",
+    "orientation": "each scene's parallel model: average height, height range, GCP use",
+    "segments": "long GCP/RPC scenes cut into segment pairs",
+    "output": "the normalized pair: pixel, extent, resampling, no-data; what is published",
+    "ties": "tie points between the normalized images and the terrain measured from them",
+    "dense": "dense matching: disparity, heights, DSM, fusion",
+    "stream": "normalized column blocks published while the scenes arrive",
+    "runtime": "parproj_node's process: memory, workers, timers, shutdown",
+}
+
 #: ROS parameter types (rcl_interfaces/ParameterType names, lower case).
 ParamType = Literal["bool", "integer", "double", "string", "string_array", "double_array"]
 
@@ -48,13 +66,17 @@ class Param:
         read_only: set at start only (every parameter of parproj_node is).
         strict: no safe default: an invalid value ends the node (exit 2) instead of being
             replaced by the default.
-        fills: what the value sets: ``PipelineConfig.<field>``, ``ViewConfig.<what>`` (per
-            view), or ``node`` (parproj_node itself: its frame, timers, GCP file).
+        fills: what the value sets: ``PipelineConfig.<concern>.<setting>`` (a setting of one
+            of the pipeline's settings groups, e.g. ``PipelineConfig.dense.cell_m``),
+            ``PipelineConfig.views``, ``ViewConfig.<what>`` (per view), or ``node``
+            (parproj_node itself: its frame, timers, GCP file).
         offline: ``parproj process`` has an option for it (``--`` + the name with dashes).
         aliases: further option names of ``parproj process`` kept working.
         low_open: ``parproj process`` refuses ``low`` itself (ROS ranges are closed: the node
             accepts it).
         shown: the default as the README writes it ("" = formatted from ``default``).
+        concern: what part of the work it sets, one of :data:`CONCERNS`; a row filling the
+            pipeline fills the settings group of that name.
     """
 
     name: str
@@ -72,12 +94,24 @@ class Param:
     aliases: tuple[str, ...] = ()
     low_open: bool = False
     shown: str = ""
+    concern: str = ""
 
     @property
     def field(self) -> str | None:
-        """The :class:`PipelineConfig` field the value fills, or None."""
-        prefix = "PipelineConfig."
-        return self.fills[len(prefix) :] if self.fills.startswith(prefix) else None
+        """The flat keyword of :class:`PipelineConfig` the value fills, or None.
+
+        The parameter name (or ``views``); None for rows that fill no pipeline setting.
+        """
+        return self.name if self.fills.startswith("PipelineConfig.") else None
+
+    @property
+    def target(self) -> tuple[str, str] | None:
+        """(settings group, setting) the value fills, or None.
+
+        E.g. ``("dense", "cell_m")``; None for node rows, ``views`` and per-view rows.
+        """
+        parts = self.fills.split(".")
+        return (parts[1], parts[2]) if parts[0] == "PipelineConfig" and len(parts) == 3 else None
 
     @property
     def option(self) -> str:
@@ -108,9 +142,18 @@ class Param:
         return f"{self.description} [{self.unit}]" if self.unit else self.description
 
 
-def _p(name: str, type_: ParamType, default: Any, description: str, **kw: Any) -> Param:
-    """A pipeline parameter: fills the :class:`PipelineConfig` field of the same name."""
-    return Param(name, type_, default, description, fills=f"PipelineConfig.{name}", **kw)
+def _p(
+    concern: str,
+    setting: str,
+    name: str,
+    type_: ParamType,
+    default: Any,
+    description: str,
+    **kw: Any,
+) -> Param:
+    """A pipeline parameter: fills ``setting`` of the :class:`PipelineConfig` group ``concern``."""
+    fills = f"PipelineConfig.{concern}.{setting}"
+    return Param(name, type_, default, description, concern=concern, fills=fills, **kw)
 
 
 #: Node-wide parameters, in the order parproj_node declares them.
@@ -124,6 +167,7 @@ PARAMS: tuple[Param, ...] = (
         "invalid: the node does not start (exit 2)",
         strict=True,
         fills="PipelineConfig.views",
+        concern="views",
     ),
     Param(
         "frame_id",
@@ -132,8 +176,11 @@ PARAMS: tuple[Param, ...] = (
         "object frame (local Cartesian, Z up, metres) of the outputs; '' = the frame of the "
         "inputs (header.frame_id of the first GCP or navigation message), 'map' until one "
         "names it; an input in another frame is a WARN naming both",
+        concern="output",
     ),
     _p(
+        "scenes",
+        "lines",
         "scene_lines",
         "integer",
         0,
@@ -144,6 +191,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "scenes",
+        "max_gap_lines",
         "max_gap_lines",
         "integer",
         64,
@@ -155,6 +204,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "orientation",
+        "z_avg",
         "z_avg",
         "double",
         0.0,
@@ -165,6 +216,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "orientation",
+        "height_range",
         "height_range",
         "double",
         500.0,
@@ -177,6 +230,8 @@ PARAMS: tuple[Param, ...] = (
         low_open=True,
     ),
     _p(
+        "orientation",
+        "crab_tolerance_px",
         "crab_tolerance_px",
         "double",
         0.05,
@@ -196,8 +251,11 @@ PARAMS: tuple[Param, ...] = (
         unit="s",
         low=0.0,
         high=3600.0,
+        concern="scenes",
     ),
     _p(
+        "orientation",
+        "gcp_roll",
         "gcp_roll",
         "string",
         "estimate",
@@ -206,6 +264,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "orientation",
+        "min_gcp",
         "min_gcp",
         "integer",
         5,
@@ -221,8 +281,11 @@ PARAMS: tuple[Param, ...] = (
         "",
         "CSV/YAML file of GCP loaded at start (format in parproj_ros/io/gcp_file.py; UTF-8, a "
         "regular file of at most 16 MiB); '' = none",
+        concern="orientation",
     ),
     _p(
+        "output",
+        "nodata",
         "nodata",
         "double",
         0.0,
@@ -233,14 +296,18 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "output",
+        "interpolation",
         "interpolation",
         "string",
         "linear",
-        "resampling (OpenCV remap): 'linear' or 'cubic'",
-        choices=("linear", "cubic"),
+        f"resampling (OpenCV remap): {kernels.choices_text()}",
+        choices=tuple(kernels.KERNELS),
         offline=True,
     ),
     _p(
+        "output",
+        "pixel_m",
         "output_pixel",
         "double",
         0.0,
@@ -251,6 +318,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "output",
+        "max_pixels",
         "max_output_pixels",
         "integer",
         200_000_000,
@@ -262,6 +331,8 @@ PARAMS: tuple[Param, ...] = (
         shown="2e8",
     ),
     _p(
+        "output",
+        "extent",
         "output_extent",
         "string",
         "overlap",
@@ -271,6 +342,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "ties",
+        "terrain",
         "terrain",
         "string",
         "tie_points",
@@ -283,6 +356,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "ties",
+        "enabled",
         "tie_points",
         "bool",
         True,
@@ -291,6 +366,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "ties",
+        "threshold_px",
         "tie_threshold_px",
         "double",
         1.0,
@@ -301,6 +378,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "enabled",
         "heights",
         "bool",
         False,
@@ -309,6 +388,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "margin_px",
         "heights_margin_px",
         "double",
         8.0,
@@ -319,6 +400,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "cell_m",
         "heights_cell_m",
         "double",
         0.0,
@@ -329,6 +412,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "fill",
         "heights_fill",
         "string",
         "nearest",
@@ -338,6 +423,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "max_fill_cells",
         "heights_max_fill_cells",
         "double",
         1.0,
@@ -348,6 +435,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "matcher",
         "heights_matcher",
         "string",
         "sgbm_3way",
@@ -359,6 +448,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "fuse_mb",
         "heights_fuse_mb",
         "double",
         512.0,
@@ -371,6 +462,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "tile_px",
         "heights_tile_px",
         "integer",
         1024,
@@ -381,6 +474,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "segments",
+        "max_error_px",
         "segment_max_error_px",
         "double",
         1.0,
@@ -393,6 +488,8 @@ PARAMS: tuple[Param, ...] = (
         aliases=("--segment-max-error",),
     ),
     _p(
+        "segments",
+        "overlap",
         "segment_overlap",
         "double",
         0.1,
@@ -402,6 +499,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "stream",
+        "enabled",
         "streaming",
         "bool",
         True,
@@ -410,6 +509,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "navigation",
+        "jump_s",
         "nav_jump_s",
         "double",
         10.0,
@@ -421,6 +522,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "navigation",
+        "position_tolerance_m",
         "nav_position_tolerance_m",
         "double",
         5.0,
@@ -432,6 +535,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "navigation",
+        "history_s",
         "nav_history_s",
         "double",
         10.0,
@@ -443,6 +548,8 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "navigation",
+        "start_margin_s",
         "start_margin_s",
         "double",
         0.5,
@@ -463,6 +570,7 @@ PARAMS: tuple[Param, ...] = (
         unit="s",
         low=1.0,
         high=86400.0,
+        concern="runtime",
     ),
     Param(
         "error_hold_s",
@@ -472,6 +580,7 @@ PARAMS: tuple[Param, ...] = (
         unit="s",
         low=0.0,
         high=86400.0,
+        concern="runtime",
     ),
     Param(
         "memory_budget_mb",
@@ -489,6 +598,7 @@ PARAMS: tuple[Param, ...] = (
         unit="MB",
         low=64.0,
         high=1e6,
+        concern="runtime",
     ),
     Param(
         "render_process",
@@ -498,6 +608,7 @@ PARAMS: tuple[Param, ...] = (
         "shared memory, out of the node's GIL (which the executor holds while it takes each "
         "strip: at the IKONOS rate the worker otherwise waited for it between tiles); false: in "
         "the worker thread. Falls back to the worker, with a WARN, when the child cannot start",
+        concern="runtime",
     ),
     Param(
         "prefault_mb",
@@ -514,6 +625,7 @@ PARAMS: tuple[Param, ...] = (
         unit="MB",
         low=-1.0,
         high=1e6,
+        concern="runtime",
     ),
     Param(
         "stereo_pair_images",
@@ -522,6 +634,7 @@ PARAMS: tuple[Param, ...] = (
         "a whole-image pair's StereoPair carries both normalized images (as they also go out on "
         "left/right/image_normalized); false: it carries none (empty images, as a streamed "
         "pair's), so each image is serialized and sent once",
+        concern="output",
     ),
     Param(
         "anaglyph",
@@ -529,6 +642,7 @@ PARAMS: tuple[Param, ...] = (
         True,
         "publish the red/cyan anaglyph of each whole-image pair (a preview: a third copy of "
         "the pixels, and a fifth of the worker's time in a profile of the live node)",
+        concern="output",
     ),
     Param(
         "stop_timeout_s",
@@ -539,6 +653,7 @@ PARAMS: tuple[Param, ...] = (
         unit="s",
         low=0.0,
         high=3600.0,
+        concern="runtime",
     ),
 )
 
@@ -553,6 +668,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         low=1e-4,
         high=100.0,
         fills="ViewConfig.camera.principal_distance",
+        concern="views",
     ),
     Param(
         "pixel_size",
@@ -563,6 +679,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         low=1e-7,
         high=1e-3,
         fills="ViewConfig.camera.pixel_size",
+        concern="views",
     ),
     Param(
         "detectors",
@@ -572,6 +689,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         low=1,
         high=1_000_000,
         fills="ViewConfig.camera.detectors",
+        concern="views",
     ),
     Param(
         "principal_point",
@@ -582,6 +700,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         low=-1.0,
         high=1e6,
         fills="ViewConfig.camera.principal_point",
+        concern="views",
     ),
     Param(
         "line_period",
@@ -593,6 +712,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         high=10.0,
         fills="ViewConfig.camera.line_period",
         shown="1/6500",
+        concern="views",
     ),
     Param(
         "mounting_rpy_deg",
@@ -604,6 +724,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         unit="deg",
         strict=True,
         fills="ViewConfig.mounting",
+        concern="views",
     ),
     Param(
         "encoding",
@@ -613,6 +734,7 @@ VIEW_PARAMS: tuple[Param, ...] = (
         "whatever a scene's first strip has",
         choices=("", "mono8", "mono16", "32FC1"),
         fills="ViewConfig.dtype",
+        concern="views",
     ),
 )
 
@@ -665,6 +787,13 @@ def _check_rows() -> None:
                 raise AssertionError(f"params: {p.name}: default out of its range")
         if p.choices and p.default not in p.choices:
             raise AssertionError(f"params: {p.name}: default not among the choices")
+        if p.concern not in CONCERNS:
+            raise AssertionError(f"params: {p.name}: concern {p.concern!r} not in CONCERNS")
+        if p.target is not None and p.target[0] != p.concern:
+            raise AssertionError(f"params: {p.name}: fills {p.fills}, not its concern")
+    targets = [p.target for p in PARAMS if p.target is not None]
+    if len(set(targets)) != len(targets):
+        raise AssertionError("params: two rows fill the same pipeline setting")
 
 
 _check_rows()

@@ -23,7 +23,7 @@ from hypothesis import strategies as st
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Image
 
-from parproj_ros.core.pipeline import Outputs, Pipeline, PipelineConfig
+from parproj_ros.core.pipeline import Outputs, Pipeline
 from parproj_ros.core.trajectory import NavSample
 from parproj_ros.geometry import (
     AffineModel,
@@ -60,7 +60,7 @@ LP_NS = SCN.views[0].camera.line_period * 1e9
 T_LEFT = SCN.time_ns(SCN.scenes[0].start_s)  # first line of the left scene
 DETECTORS = SCN.views[0].camera.detectors
 # Fast settings: tie-point refinement (image matching on finished pairs) is out of the way.
-FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
+FAST = {"tie_points": False}
 
 
 def nav_truth(t0_s: float, t1_s: float, rate_hz: float = 10.0) -> list[NavSample]:

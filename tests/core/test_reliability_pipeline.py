@@ -50,7 +50,7 @@ from parproj_ros.sim.scenarios import SCENARIOS, Scenario, ground_points
 
 pytestmark = pytest.mark.ros  # message classes, diagnostics, bags
 
-FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
+FAST = {"tie_points": False}
 
 #: Words that say what was done with bad input.
 DROPPED = ("dropped", "rejected", "ignored", "skipped")

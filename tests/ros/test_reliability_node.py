@@ -37,7 +37,6 @@ from testkit.live import wait
 from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
-from parproj_ros.core.pipeline import PipelineConfig
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.inputs import node_parameters, views_from_bag
@@ -52,7 +51,7 @@ from parproj_ros.ros.live import (
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
 BAG = BAGS / "ikonos_agile"
-FAST = {"tie_points": False} if "tie_points" in PipelineConfig.__dataclass_fields__ else {}
+FAST = {"tie_points": False}
 INPUTS = ["/navigation", "/pan/image_strip"]
 WARN = DiagnosticStatus.WARN[0]
 ERROR = DiagnosticStatus.ERROR[0]

@@ -186,15 +186,15 @@ def bench_offline(
 ) -> dict[str, Any]:
     """Part 3: ``process_bag`` over a bag of ``offline_pairs`` pairs; then again, under cProfile.
 
-    ``node_params`` that are pipeline settings (PipelineConfig fields) apply here too.
+    ``node_params`` that are pipeline settings (PipelineConfig's flat names) apply here too.
 
     Returns the real-time factor (sensor time / wall time of ``process_bag``), per-pair latency
     from reading a pair's last strip to its outputs handed to the writing thread (s), and the
     profile breakdown.
     """
     from parproj_ros.apps.process import process_bag
+    from parproj_ros.core.config import FLAT_NAMES
     from parproj_ros.core.memory import raw_pair_bytes
-    from parproj_ros.core.pipeline import PipelineConfig
     from parproj_ros.core.results import Outputs
     from parproj_ros.ros.bag import BagReader
     from parproj_ros.ros.inputs import config_from_bag
@@ -222,11 +222,7 @@ def bench_offline(
         "scene_lines": cfg.lines,
         "z_avg": 0.0,
         "height_range": 500.0,
-        **{
-            k: v
-            for k, v in (node_params or {}).items()
-            if k in PipelineConfig.__dataclass_fields__
-        },
+        **{k: v for k, v in (node_params or {}).items() if k in FLAT_NAMES},
     }
     # The figure: a run without the profiler. It also pays for the memory the process touches
     # first (core/memory.py); the profiled second run reuses it, so it is often faster.
