@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from .. import __version__
+from ..core import contract
 from ..io.files import InputError, staged_output
 
 #: Files of an input bag that say it is one (what BagWriter writes).
@@ -295,7 +296,7 @@ def run_input(
                     bag, work / "output", overrides=dict(overrides or {}), progress=False
                 )
                 lines += [f"[{i.level}] {i.where}: {i.message}" for i in summary.issues]
-                truth = bag if "truth/points" in BagReader(bag).topics() else None
+                truth = bag if contract.TRUTH_POINTS in BagReader(bag).topics() else None
                 evaluation = evaluate_bag(work / "output", truth, matching=False)
                 (work / "evaluation.json").write_text(
                     json.dumps(evaluation, indent=1, default=float)

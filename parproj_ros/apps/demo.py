@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..core import contract
 from ..ros.bag import BagReader
 from ..ros.inputs import node_parameters, views_from_bag
 from ..ros.live import ros_environment, run_through_node
@@ -47,12 +48,12 @@ def run_demo(
         timeout_s=timeout_s,
         env=env,
         progress=progress,
-        also=("disparity", "height"),
+        also=(contract.DISPARITY, contract.HEIGHT),
     )
     print(f"demo: replayed {run.replay.get('sent', 0)} messages in "
           f"{run.replay.get('seconds', 0.0):.1f} s")  # fmt: skip
     print(f"demo: node exited with {run.code}; recorded {run.counts}")
-    if run.counts["stereo_pair"] == 0:
+    if run.counts[contract.STEREO_PAIR] == 0:
         print("demo: no stereo pair was published; node log follows\n" + run.log)
         return 1
     result = evaluate_bag(run.output, bag, plots=out)

@@ -21,6 +21,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ..core import contract
 from ..eval.heights import (
     Surface,
     disparities_by_stamp,
@@ -107,14 +108,14 @@ def export_dsms(
         InputError: ``dem`` or ``geoid`` given for a DSM whose frame is not a tangent plane.
     """
     reader = BagReader(out_bag)
-    if "dsm" not in reader.topics():
+    if contract.DSM not in reader.topics():
         raise NoHeightsError(
             f"{out_bag}: no DSM: the bag has no dsm topic (processed without heights); make "
             "one with: parproj process INPUT_BAG -o OUT --heights, then parproj dsm OUT"
         )
     disparities = disparities_by_stamp(reader)
     rows: list[dict[str, Any]] = []
-    for item in reader.messages(topics=["dsm"]):
+    for item in reader.messages(topics=[contract.DSM]):
         m = item.msg
         heights, grid, ortho = elevation_grid_from_msg(m)
         name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"

@@ -27,6 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from ..core import contract
 from ..imaging.fusion import TOLERANCE_M, FusedDsm, frame_box, fuse, reframe, sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..io.files import InputError
@@ -105,9 +106,9 @@ def read_dsms(bags: Sequence[Path]) -> list[PairDsm]:
         labels = [f"{b.parent.name}/{b.name}" for b in bags]
     for bag, label in zip(bags, labels, strict=True):
         reader = BagReader(bag)
-        if "dsm" not in reader.topics():
+        if contract.DSM not in reader.topics():
             raise BagError("no dsm topic: process the bag with --heights", bag)
-        for item in reader.messages(topics=["dsm"]):
+        for item in reader.messages(topics=[contract.DSM]):
             m = item.msg
             heights, grid, _ = elevation_grid_from_msg(m)
             name = str(m.pair_id) or f"dsm_{len(out)}"
@@ -299,8 +300,8 @@ def write_fused_bag(res: FuseResult, path: Path) -> None:
     )
     m.completeness = float(f.completeness)
     with BagWriter(path) as bw:
-        bw.add_topic("dsm", "parproj_msgs/msg/ElevationGrid", "reliable")
-        bw.write("dsm", m, res.stamp_ns)
+        bw.add_topics([contract.topic(contract.DSM)])
+        bw.write(contract.DSM, m, res.stamp_ns)
 
 
 def export_fused(

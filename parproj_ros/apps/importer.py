@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..io import raster
 from ..io.rpc_ties import import_ties
 from ..io.scene_import import (
@@ -438,10 +439,8 @@ def import_scenes(
     with BagWriter(
         Path(output), compression="zstd", overwrite=overwrite, custom_data=custom
     ) as bw:
-        bw.add_topic(f"{VIEW}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
-        bw.add_topic(f"{VIEW}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local")
-        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        strips = contract.strip_topic(VIEW)
+        bw.add_topics(contract.input_topics([VIEW], navigation=False))
         info = ScannerInfo()
         ns_to_stamp(t_info, info.header.stamp)
         info.header.frame_id = VIEW
@@ -452,15 +451,16 @@ def import_scenes(
         info.principal_point = (images[0].samples - 1) / 2.0
         info.line_period = float(line_period)
         info.mounting.x, info.mounting.y, info.mounting.z, info.mounting.w = 0.0, 0.0, 0.0, 1.0
-        bw.write(f"{VIEW}/scanner_info", info, t_info)
-        for topic, vp in (("gcp", gcp), ("truth/points", truth)):
+        bw.write(contract.scanner_info_topic(VIEW), info, t_info)
+        for topic, vp in ((contract.GCP, gcp), (contract.TRUTH_POINTS, truth)):
             msg = gcp_to_msg(
                 vp.ground_points(frame), GroundControlPoints(), frame_id=frame_id, stamp_ns=t_info
             )
             bw.write(topic, msg, t_info)
         if pairs is not None:
-            bw.add_topic("pairs", "parproj_msgs/msg/PairSelection", "transient_local")
-            bw.write("pairs", pairs_to_msg(chosen, PairSelection(), stamp_ns=t_info), t_info)
+            bw.add_topics([contract.topic(contract.PAIRS)])
+            selection = pairs_to_msg(chosen, PairSelection(), stamp_ns=t_info)
+            bw.write(contract.PAIRS, selection, t_info)
         for img, t0 in zip(images, starts, strict=True):
             # One camera has one detector count: a narrower crop is padded on the right with
             # no-data (0) columns, which changes no pixel's position.
@@ -472,7 +472,7 @@ def import_scenes(
                 masked += n_masked
                 stamp = t0 + round(r0 * period_ns)
                 msg = array_to_image(pixels, Image(), frame_id=img.scene_id, stamp_ns=stamp)
-                bw.write(f"{VIEW}/image_strip", msg, stamp)
+                bw.write(strips, msg, stamp)
             img.checks["nodata_pixels"] = masked
             if masked:
                 log(f"{img.path.name}: {masked} no-data pixels (GDAL mask) written as 0")

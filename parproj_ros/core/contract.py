@@ -476,12 +476,15 @@ def topic(name: str) -> Topic:
     raise KeyError(f"{name!r} is not a topic of the contract (parproj_ros/core/contract.py)")
 
 
-def input_topics(views: Iterable[str], *, truth: bool = True) -> list[Topic]:
+def input_topics(
+    views: Iterable[str], *, navigation: bool = True, truth: bool = True
+) -> list[Topic]:
     """An input bag's topics, in the order they are declared.
 
-    Navigation, each view's strips and camera, GCP, and the truth points (``truth``).
+    Navigation (``navigation``), each view's strips and camera, GCP, and the truth points
+    (``truth``).
     """
-    rows = [topic(NAVIGATION)]
+    rows = [topic(NAVIGATION)] if navigation else []
     for v in views:
         rows += [topic(strip_topic(v)), topic(scanner_info_topic(v))]
     rows.append(topic(GCP))

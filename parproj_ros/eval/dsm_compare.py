@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..imaging.fusion import sample_bilinear
 from ..imaging.heights import DsmGrid
 
@@ -174,15 +175,15 @@ def import_bag_frame(path: str | Path) -> str | None:
     from ..ros.bag import BagReader
 
     reader = BagReader(Path(path))
-    if "gcp" not in reader.topics():
+    if contract.GCP not in reader.topics():
         return None
-    for item in reader.messages(topics=["gcp"]):
+    for item in reader.messages(topics=[contract.GCP]):
         return str(item.msg.header.frame_id)
     return None
 
 
 def frame_dsms_from_bag(
-    path: str | Path, *, frame_id: str | None = None, topic: str = "dsm"
+    path: str | Path, *, frame_id: str | None = None, topic: str = contract.DSM
 ) -> list[FrameDsm]:
     """Every ElevationGrid of an output bag's ``dsm`` topic (``parproj process --heights``).
 

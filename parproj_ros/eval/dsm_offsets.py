@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..imaging.fusion import sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..ros.bag import BagError, BagReader
@@ -59,10 +60,10 @@ def read_dsms(bag: str | Path) -> dict[str, tuple[NDArray[Any], DsmGrid, str]]:
 
     """
     reader = BagReader(bag)
-    if "dsm" not in reader.topics():
+    if contract.DSM not in reader.topics():
         raise BagError("no dsm topic: process the bag with --heights", bag)
     out: dict[str, tuple[NDArray[Any], DsmGrid, str]] = {}
-    for item in reader.messages(topics=["dsm"]):
+    for item in reader.messages(topics=[contract.DSM]):
         heights, grid, _ = elevation_grid_from_msg(item.msg)
         out[item.msg.pair_id or f"dsm_{len(out)}"] = (heights, grid, item.msg.header.frame_id)
     return out

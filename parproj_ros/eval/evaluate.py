@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..core.results import GroundPoint
 from ..geometry import AffineModel, GeometryError, SceneObservation, space_intersection
 from ..geometry.ptp import ptp_forward
@@ -160,8 +161,8 @@ def check_truth_frame(out_bag: Path, truth_bag: Path) -> None:
     """
     from ..io.files import InputError
 
-    truth = first_frame_id(BagReader(truth_bag), "truth/points")
-    out = first_frame_id(BagReader(out_bag), "stereo_pair")
+    truth = first_frame_id(BagReader(truth_bag), contract.TRUTH_POINTS)
+    out = first_frame_id(BagReader(out_bag), contract.STEREO_PAIR)
     if truth is None or out is None or truth == out:
         return
     raise InputError(
@@ -191,17 +192,17 @@ def evaluate_bag(
     truth: list[GroundPoint] = (
         truth_from_bag(BagReader(truth_bag))
         if truth_bag
-        else (truth_from_bag(reader) if "truth/points" in reader.topics() else [])
+        else (truth_from_bag(reader) if contract.TRUTH_POINTS in reader.topics() else [])
     )
     result: dict[str, Any] = {"pairs": [], "truth_points": len(truth)}
     blocks: dict[tuple[str, str], list[Any]] = {}
     block_topics = [
-        t for t in ("left/normalized_block", "right/normalized_block") if t in reader.topics()
+        t for t in map(contract.normalized_block_topic, contract.SIDES) if t in reader.topics()
     ]
     if block_topics:
         for item in reader.messages(topics=block_topics):
             blocks.setdefault((item.msg.pair_id, item.msg.side), []).append(item.msg)
-    for k, item in enumerate(reader.messages(topics=["stereo_pair"])):
+    for k, item in enumerate(reader.messages(topics=[contract.STEREO_PAIR])):
         sp = item.msg
         try:
             check_pair_message(sp)
@@ -217,7 +218,7 @@ def evaluate_bag(
                 out_bag,
             ) from err
     result["pair_count"] = len(result["pairs"])
-    if "dsm" in reader.topics():
+    if contract.DSM in reader.topics():
         if surface is None and truth_bag is not None:
             surface = scenario_terrain(Path(truth_bag).name)
         result["heights"] = _evaluate_heights(reader, surface, plots)
@@ -231,7 +232,7 @@ def _evaluate_heights(
     # stamps tie a disparity image to its pair's DSM
     disparities = disparities_by_stamp(reader) if plots is not None else {}
     out = []
-    for item in reader.messages(topics=["dsm"]):
+    for item in reader.messages(topics=[contract.DSM]):
         m = item.msg
         heights, grid, ortho = elevation_grid_from_msg(m)
         row: dict[str, Any] = {

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..imaging.heights import DsmGrid, dsm_errors
 
 FloatArray = NDArray[np.float64]
@@ -39,9 +40,9 @@ def disparities_by_stamp(reader: Any) -> dict[int, NDArray[np.float32]]:
     from ..ros.conversions import image_to_array, stamp_to_ns
 
     out: dict[int, NDArray[np.float32]] = {}
-    if "disparity" not in reader.topics():
+    if contract.DISPARITY not in reader.topics():
         return out
-    for item in reader.messages(topics=["disparity"]):
+    for item in reader.messages(topics=[contract.DISPARITY]):
         d = image_to_array(item.msg.image).astype(np.float32)
         d[d < item.msg.min_disparity] = np.nan
         out[stamp_to_ns(item.msg.header.stamp)] = d

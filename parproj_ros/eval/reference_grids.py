@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..imaging.matching import match_normalized
 from ..io.scene_import import MODEL_TRANSFORMATION_TAG, crop_offset, read_image
 from ..ros.bag import BagReader
@@ -323,7 +324,7 @@ def read_stereo_pair(out_bag: str | Path, index: int = 0) -> Any:
 
     """
     reader = BagReader(Path(out_bag))
-    pairs = [item.msg for item in reader.messages(topics=["stereo_pair"])]
+    pairs = [item.msg for item in reader.messages(topics=[contract.STEREO_PAIR])]
     if len(pairs) <= index:
         raise ValueError(f"{out_bag}: {len(pairs)} stereo_pair messages, #{index} asked for")
     return pairs[index]

@@ -19,8 +19,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from ..core import contract
 from .bag import BagReader, BagWriter, get_message_class
-from .conversions import PAIR_IMAGE_TOPICS
 
 
 def ros_environment(domain_id: int | None = None, log_dir: Path | None = None) -> dict[str, str]:
@@ -250,11 +250,11 @@ class Recorder:
         the left image alone, lost the right image once in CI.
         """
         with self._lock:
-            done = self.messages.get("stereo_pair", [])[:pairs]
+            done = self.messages.get(contract.STEREO_PAIR, [])[:pairs]
             if len(done) < pairs:
                 return False
             whole = sum(1 for p in done if not getattr(p, "streamed", False))
-            return all(self.counts.get(t, 0) >= whole for t in PAIR_IMAGE_TOPICS) and all(
+            return all(self.counts.get(t, 0) >= whole for t in contract.PAIR_IMAGE_TOPICS) and all(
                 self.counts.get(t, 0) >= pairs for t in also
             )
 
@@ -384,7 +384,7 @@ def run_through_node(
 
     The node gets ``params`` (plus reliable QoS on the bag's input topics: a lossless replay)
     from ``workdir/node_params.yaml`` and logs to ``workdir/node.log``; an rclpy node of ours,
-    in its own Context, records :data:`conversions.OUTPUT_TOPICS` into ``workdir/output``,
+    in its own Context, records ``contract.OUTPUT_TOPICS`` into ``workdir/output``,
     waits for the outputs to be discovered, replays, waits until ``pairs`` pairs have come
     with all their images and one message on each ``also`` topic (or ``timeout_s``, or the
     node died), and stops the node (SIGINT).
@@ -393,26 +393,25 @@ def run_through_node(
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
 
-    from .conversions import OUTPUT_TOPICS
     from .inputs import views_from_bag
 
     workdir.mkdir(parents=True, exist_ok=True)
     env = env or ros_environment(log_dir=workdir / "ros_log")
     views = views_from_bag(BagReader(bag))
-    inputs = ["/navigation"] + [f"/{v.name}/image_strip" for v in views]
+    inputs = [contract.fully_qualified(t) for t in contract.stream_topics(v.name for v in views)]
     pfile = node_params_yaml(params, workdir / "node_params.yaml", reliable_inputs=inputs)
     proc = NodeProcess(pfile, env, workdir / "node.log")
     ctx = Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("parproj_recorder", context=ctx)
-    recorder = Recorder(node, workdir / "output", OUTPUT_TOPICS)
+    recorder = Recorder(node, workdir / "output", contract.OUTPUT_TOPICS)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     res: dict[str, Any] = {}
     try:
-        discovered = recorder.wait_for_publishers(list(OUTPUT_TOPICS), timeout_s=60.0)
+        discovered = recorder.wait_for_publishers(list(contract.OUTPUT_TOPICS), timeout_s=60.0)
         if not discovered:
             log("live: the node's output topics were not discovered in 60 s")
         res = replay(
@@ -422,8 +421,8 @@ def run_through_node(
             max_gap_s=max_gap_s,
             # every input stream the node subscribes to: navigation too, so that its first
             # samples are not published before the node's subscription is matched
-            wait_for=[f"{v.name}/image_strip" for v in views]
-            + [t for t in ("navigation",) if t in BagReader(bag).topics()],
+            wait_for=[contract.strip_topic(v.name) for v in views]
+            + [t for t in (contract.NAVIGATION,) if t in BagReader(bag).topics()],
             progress=progress,
             log=log,
         )

@@ -1,7 +1,7 @@
 """Recording simulated scenarios into input bags.
 
-The bags hold the topics of the input-bag contract (:mod:`parproj_ros.ros.inputs`, which also
-reads them back).
+The bags hold the input topics of the interface contract (:mod:`parproj_ros.core.contract`;
+:mod:`parproj_ros.ros.inputs` reads them back).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.frames import DEFAULT_FRAME
+from ..core import contract
 from ..core.results import GroundPoint
 from ..core.trajectory import NavSample
 from ..geometry import LineCamera
@@ -26,7 +26,7 @@ from ..ros.conversions import (
 from .scenarios import Scenario, ground_points
 
 #: The object frame of simulated bags (a local Cartesian frame, metres, Z up).
-FRAME_ID = DEFAULT_FRAME
+FRAME_ID = contract.DEFAULT_FRAME
 
 
 def _progress(total: int, desc: str, enabled: bool) -> Any:
@@ -81,24 +81,18 @@ def record_scenario(
     last = max(sc.start_s + sc.lines * _cam(scn, sc.view).line_period for sc in scn.scenes) + 1.0
     dtype = np.dtype(scn.dtype)
     with BagWriter(path, compression="zstd") as bw:
-        bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
-        for v in scn.views:
-            bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
-            bw.add_topic(
-                f"{v.name}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local"
-            )
-        bw.add_topic("gcp", "parproj_msgs/msg/GroundControlPoints", "transient_local")
-        bw.add_topic("truth/points", "parproj_msgs/msg/GroundControlPoints", "transient_local")
+        bw.add_topics(contract.input_topics(v.name for v in scn.views))
         t_first = scn.time_ns(first)
         for v in scn.views:
-            bw.write(f"{v.name}/scanner_info", scanner_info_msg(v, stamp_ns=t_first), t_first)
+            info = scanner_info_msg(v, stamp_ns=t_first)
+            bw.write(contract.scanner_info_topic(v.name), info, t_first)
         bw.write(
-            "gcp",
+            contract.GCP,
             gcp_to_msg(gcp, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
             t_first,
         )
         bw.write(
-            "truth/points",
+            contract.TRUTH_POINTS,
             gcp_to_msg(truth, GroundControlPoints(), frame_id=FRAME_ID, stamp_ns=t_first),
             t_first,
         )
@@ -114,9 +108,9 @@ def record_scenario(
                     s.t_ns,
                     0,
                     (
-                        "navigation",
+                        contract.NAVIGATION,
                         sample_to_odometry(
-                            s, Odometry(), frame_id=FRAME_ID, child_frame_id="base_link"
+                            s, Odometry(), frame_id=FRAME_ID, child_frame_id=contract.BODY_FRAME
                         ),
                     ),
                 )
@@ -136,7 +130,7 @@ def record_scenario(
                         frame_id=scn.scene_id(i),
                         stamp_ns=stamp,
                     )
-                    events.append((stamp, 1, (f"{sc.view}/image_strip", msg)))
+                    events.append((stamp, 1, (contract.strip_topic(sc.view), msg)))
         events.sort(key=lambda e: (e[0], e[1]))
         for stamp, _, (topic, msg) in events:
             bw.write(topic, msg, stamp)

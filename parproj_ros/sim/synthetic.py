@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core import contract
 from ..core.pipeline import ViewConfig
 from ..core.trajectory import NavSample
 from ..geometry import ConstantMotion, LineCamera, PushbroomModel, rotation_from_angles
@@ -233,4 +234,6 @@ def nav_message(plat: Platform, t_s: float) -> Any:
     from ..ros.conversions import sample_to_odometry
 
     s = NavSample(T0_NS + round(t_s * 1e9), plat.position(t_s), plat.body, plat.velocity)
-    return sample_to_odometry(s, Odometry(), frame_id="map", child_frame_id="base_link")
+    return sample_to_odometry(
+        s, Odometry(), frame_id=contract.DEFAULT_FRAME, child_frame_id=contract.BODY_FRAME
+    )
