@@ -63,7 +63,7 @@ def working_set_floor(config: Any) -> tuple[float, float]:
     Streamed pairs (``streaming``, a ``scene_lines``, two views: what :class:`Streamer` needs)
     hold column blocks; the others are normalized as whole images.
     """
-    if config.streaming and config.scene_lines > 0 and not config.single_camera:
+    if config.stream.enabled and config.scenes.lines > 0 and not config.single_camera:
         return float(WORKING_SET_PAIRS), 0.0
     return float(WHOLE_IMAGE_WORKING_SET_PAIRS), WHOLE_IMAGE_WORKING_SET_MB
 

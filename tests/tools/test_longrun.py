@@ -125,7 +125,7 @@ def test_pipeline_forgets_navigation_and_gcp_of_finished_pairs() -> None:
     # and its repetition's 28 GCP are kept; nothing older.
     rate_hz = 20
     scene_s = 768 / 6500
-    bound = (pipe.config.nav_history_s + scene_s + 1.0 + 0.1) * rate_hz
+    bound = (pipe.config.navigation.history_s + scene_s + 1.0 + 0.1) * rate_hz
     assert all(n <= bound for n, _ in held), held
     assert all(g == 28 for _, g in held), held
     assert held[-1] == held[1]
