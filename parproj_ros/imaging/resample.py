@@ -2,7 +2,9 @@
 
 The map of an output pixel is exact: normalized pixel -> normalized metres -> inverse of the
 scene's 2x3 normalization affine -> parallel scene coordinates (x, y') -> inverse PTP (Eq 7) ->
-perspective y -> (line, sample) of the original scene. ``cv2.remap`` then interpolates.
+perspective y -> (line, sample) of the original scene. ``cv2.remap`` then interpolates with
+the kernel the ``interpolation`` parameter names, a row of
+:data:`parproj_ros.imaging.kernels.KERNELS` (its OpenCV flag: :func:`kernel_flag`).
 """
 
 from __future__ import annotations
@@ -18,11 +20,22 @@ from ..geometry.epipolar import invert_affine_2x3
 from ..geometry.navigation import SceneFrame
 from ..geometry.ptp import ptp_inverse
 from .encodings import DTYPE_ENCODINGS
+from .kernels import kernel
 
 FloatArray = NDArray[np.float64]
 
 #: Supported pixel types (numpy dtype -> ROS encoding of a single-channel image).
 ENCODINGS = DTYPE_ENCODINGS
+
+
+def kernel_flag(name: str) -> int:
+    """OpenCV interpolation flag of the kernel ``name`` (a row of ``imaging.kernels.KERNELS``).
+
+    Raises:
+        ValueError: not a kernel of the table (the known ones named).
+
+    """
+    return int(getattr(cv2, kernel(name).opencv))
 
 
 @dataclass(frozen=True)
