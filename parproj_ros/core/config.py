@@ -1,11 +1,14 @@
 """The pipeline's settings, built from the one parameter table (:mod:`parproj_ros.core.params`).
 
-:class:`PipelineConfig` has one field per row of :data:`~parproj_ros.core.params.PARAMS` that
-fills it, with the table's default; :func:`config_from_values` builds it from parameter values
-as parproj_node has them, :func:`view_config` a :class:`ViewConfig` from a view's values. The
-rows themselves are in :mod:`parproj_ros.core.params` (re-exported here), what they render
-(docs/node.md's table, config/parproj_node.yaml) in :mod:`parproj_ros.core.param_docs`;
-``python -m parproj_ros.core.config --write .`` still runs its writer.
+:class:`PipelineConfig` holds the views and one frozen settings group per concern (each part
+of the work checks its own settings): a group's fields are the rows of
+:data:`~parproj_ros.core.params.PARAMS` of its concern, with the table's defaults
+(``config.dense.cell_m`` is ``heights_cell_m``). :func:`config_from_values` builds it from
+parameter values as parproj_node has them, :func:`view_config` a :class:`ViewConfig` from a
+view's values. The rows themselves are in :mod:`parproj_ros.core.params` (re-exported here),
+what they render (docs/node.md's table, config/parproj_node.yaml) in
+:mod:`parproj_ros.core.param_docs`; ``python -m parproj_ros.core.config --write .`` still runs
+its writer.
 
 Nothing here imports ROS.
 """

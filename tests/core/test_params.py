@@ -1,10 +1,10 @@
 """The one parameter table (parproj_ros/core/params.py), what is generated from it or must agree.
 
-docs/node.md's Parameters table and config/parproj_node.yaml are the rendered ones; PipelineConfig
-has a field per row that fills one, with the table's default; ``parproj process`` has an option
-per offline row with the same default and range; setup.cfg and package.xml list what the code
-imports. The live half (the node started with config/parproj_node.yaml) is in
-test_params_live.py.
+docs/node.md's Parameters table and config/parproj_node.yaml are the rendered ones; each settings
+group of PipelineConfig has a field per row of its concern, with the table's default; ``parproj
+process`` has an option per offline row with the same default and range; setup.cfg and
+package.xml list what the code imports. The live half (the node started with
+config/parproj_node.yaml) is in test_params_live.py.
 """
 
 from __future__ import annotations
