@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from parproj_ros.core import contract
 from parproj_ros.sim.synthetic import (
     LINE_RATE_HZ,
     VIEWS,
@@ -175,7 +176,7 @@ def bench_live(
         shm=cfg.shm,
         fast_repair=cfg.fast_repair,
     )
-    inputs = ["/navigation"] + [f"/{v}/image_strip" for v in VIEWS]
+    inputs = [contract.fully_qualified(t) for t in contract.stream_topics(VIEWS)]
     extra = dict(node_params or {})
     if cfg.memory_budget_mb is not None:
         extra.setdefault("memory_budget_mb", float(cfg.memory_budget_mb))
@@ -236,19 +237,19 @@ def bench_live(
     strip_qos = QoSProfile(
         depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
     )
-    pubs = {v: rnode.create_publisher(Image, f"{v}/image_strip", strip_qos) for v in VIEWS}
+    pubs = {v: rnode.create_publisher(Image, contract.strip_topic(v), strip_qos) for v in VIEWS}
     nav_pub = rnode.create_publisher(
         Odometry,
-        "navigation",
+        contract.NAVIGATION,
         QoSProfile(depth=500, reliability=ReliabilityPolicy.RELIABLE),
     )
     pair_sub = rnode.create_subscription(
         StereoPair,
-        "stereo_pair",
+        contract.STEREO_PAIR,
         obs.on_pair,
         QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE),
     )
-    rnode.create_subscription(DiagnosticArray, "/diagnostics", obs.on_diag, 100)
+    rnode.create_subscription(DiagnosticArray, contract.DIAGNOSTICS, obs.on_diag, 100)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(rnode)
     spinning = threading.Event()
@@ -579,7 +580,7 @@ def passthrough_main() -> None:
             except Exception:  # an overloaded writer: the strip is lost (counted by the bench)
                 pass
 
-        node.create_subscription(Image, f"{v}/image_strip", on_strip, in_qos)
+        node.create_subscription(Image, contract.strip_topic(v), on_strip, in_qos)
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
     while not stop.is_set():
@@ -661,7 +662,7 @@ def _passthrough_at(
     qos = QoSProfile(
         depth=50, reliability=ReliabilityPolicy.RELIABLE, history=HistoryPolicy.KEEP_LAST
     )
-    pubs = [rnode.create_publisher(Image, f"{v}/image_strip", qos) for v in VIEWS]
+    pubs = [rnode.create_publisher(Image, contract.strip_topic(v), qos) for v in VIEWS]
     sent: dict[tuple[int, int], float] = {}
     back: dict[tuple[int, int], float] = {}
     lock = threading.Lock()

@@ -37,6 +37,7 @@ def write_input_bag(
     """
     from rclpy.serialization import serialize_message
 
+    from parproj_ros.core import contract
     from parproj_ros.ros import conversions as conv
     from parproj_ros.ros.bag import BagWriter
 
@@ -44,24 +45,22 @@ def write_input_bag(
     strips = StripMessages(plat, strip_lines)
     n = 0
     with BagWriter(path, compression=compression, overwrite=True) as bw:
-        bw.add_topic("navigation", "nav_msgs/msg/Odometry", "sensor_data")
+        declared = [contract.NAVIGATION]  # an input bag without GCP and truth
         for v in plat.views:
-            bw.add_topic(f"{v.name}/image_strip", "sensor_msgs/msg/Image", "sensor_data")
-            bw.add_topic(
-                f"{v.name}/scanner_info", "parproj_msgs/msg/ScannerInfo", "transient_local"
-            )
+            declared += [contract.strip_topic(v.name), contract.scanner_info_topic(v.name)]
+        bw.add_topics(map(contract.topic, declared))
         t_first = T0_NS - 2_000_000_000
         for v in plat.views:
             info = conv.scanner_info_msg(v, stamp_ns=t_first)
-            bw.write(f"{v.name}/scanner_info", info, t_first)
+            bw.write(contract.scanner_info_topic(v.name), info, t_first)
             n += 1
         for ev in events:
             log_ns = T0_NS + round(ev.due_s * 1e9)
             if ev.kind == "nav":
-                bw.write("navigation", nav_message(plat, ev.t_s), log_ns)
+                bw.write(contract.NAVIGATION, nav_message(plat, ev.t_s), log_ns)
             else:
                 data = serialize_message(strips.get(ev))
-                bw.write_raw(f"{VIEWS[ev.view]}/image_strip", data, log_ns)
+                bw.write_raw(contract.strip_topic(VIEWS[ev.view]), data, log_ns)
             n += 1
     return n
 

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from parproj_ros.core import contract
 from parproj_ros.eval.dsm_compare import (
     FrameDsm,
     MapDsm,
@@ -287,17 +288,18 @@ def normalized_pairs(
     images: dict[str, tuple[NDArray[Any], NDArray[Any]]] = {}
     ranges: dict[str, tuple[int, int]] = {}
     left = right = None
-    topics = ["left/image_normalized", "right/image_normalized", "stereo_pair", "dsm"]
+    left_topic, right_topic = map(contract.normalized_image_topic, contract.SIDES)
+    topics = [left_topic, right_topic, contract.STEREO_PAIR, contract.DSM]
     for item in reader.messages(topics=topics):
         m = item.msg
-        if item.topic == "left/image_normalized":
+        if item.topic == left_topic:
             left = image_to_array(m)
-        elif item.topic == "right/image_normalized":
+        elif item.topic == right_topic:
             right = image_to_array(m)
-        elif item.topic == "stereo_pair" and left is not None and right is not None:
+        elif item.topic == contract.STEREO_PAIR and left is not None and right is not None:
             images[str(m.pair_id)] = (left, right)
             left = right = None
-        elif item.topic == "dsm":
+        elif item.topic == contract.DSM:
             ranges[str(m.pair_id)] = (int(m.disparity_min), int(m.disparity_max))
     return {k: (*images[k], ranges[k]) for k in images if k in ranges}
 
@@ -555,7 +557,7 @@ def run_case(case: Case, work: Path, log: Callable[[str], None]) -> dict[str, An
                 res.setdefault("notes", []).append(f"{tif.name}: {err}")
         # the pipeline's own fusion (process publishes dsm_fused): its last, all-pair DSM
         try:
-            piped = frame_dsms_from_bag(out, frame_id=frame, topic="dsm_fused")
+            piped = frame_dsms_from_bag(out, frame_id=frame, topic=contract.DSM_FUSED)
         except ValueError:
             piped = []
         if piped:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from parproj_ros.core import contract
 from parproj_ros.core.results import GroundPoint
 from parproj_ros.eval.evaluate import normalized_px
 from parproj_ros.imaging.encodings import ENCODING_DTYPES
@@ -53,7 +54,7 @@ def shift_message(topic: str, msg: Any, rep: int, offset_ns: int) -> None:
     header = getattr(msg, "header", None)
     if header is not None:
         conv.ns_to_stamp(conv.stamp_to_ns(header.stamp) + offset_ns, header.stamp)
-    if header is not None and topic.endswith("/image_strip"):
+    if header is not None and contract.view_of(topic) is not None:
         header.frame_id = repetition_id(header.frame_id, rep)
     points = getattr(msg, "points", None)
     if points is not None:
@@ -98,7 +99,7 @@ def plan_bag(bag: Path, margin_s: float = 1.0) -> BagPlan:
         raise ValueError(f"{bag}: empty bag")
     views = [v.name for v in views_from_bag(reader)]
     scenes: dict[str, list[str]] = {v: [] for v in views}
-    for item in reader.messages(topics=[f"{v}/image_strip" for v in views]):
+    for item in reader.messages(topics=[contract.strip_topic(v) for v in views]):
         sid = item.msg.header.frame_id
         ids = scenes[item.topic.rsplit("/", 1)[0]]
         if sid not in ids:
@@ -289,7 +290,8 @@ class PairChecker:
     digests of the first repetition and the numbers of the first repetition is kept.
     """
 
-    IMAGE_TOPICS = conv.PAIR_IMAGE_TOPICS
+    IMAGE_TOPICS = contract.PAIR_IMAGE_TOPICS
+    BLOCK_TOPICS = frozenset(map(contract.normalized_block_topic, contract.SIDES))
 
     def __init__(
         self, plan: BagPlan, truth: list[GroundPoint], t0: float, rtol: float = 0.0
@@ -317,7 +319,7 @@ class PairChecker:
 
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         subs = []
-        for topic, msgtype in conv.OUTPUT_TOPICS.items():
+        for topic, msgtype in contract.OUTPUT_TOPICS.items():
             cls = get_message_class(msgtype)
             subs.append(
                 node.create_subscription(cls, topic, lambda m, t=topic: self.on_message(t, m), qos)
@@ -327,16 +329,16 @@ class PairChecker:
     def on_message(self, topic: str, msg: Any) -> None:
         """Dispatch one received message."""
         with self._lock:
-            if topic == "/diagnostics":
+            if topic == contract.DIAGNOSTICS:
                 self._on_diagnostics(msg)
-            elif topic == "parallel_projection":
+            elif topic == contract.PARALLEL_PROJECTION:
                 self._on_scene(msg)
-            elif topic.endswith("/normalized_block"):
+            elif topic in self.BLOCK_TOPICS:
                 self._blocks.setdefault((msg.pair_id, msg.side), []).append(msg)
             else:
                 stamp = conv.stamp_to_ns(msg.header.stamp)
                 pend = self._pending.setdefault(stamp, _Pending())
-                if topic == "stereo_pair":
+                if topic == contract.STEREO_PAIR:
                     pend.sp = msg
                 else:
                     pend.images[topic] = msg
@@ -411,17 +413,19 @@ class PairChecker:
             probs += self._check_blocks(sp, blocks, digests)
         else:
             embedded = {"left": sp.left, "right": sp.right}
-            for side in ("left", "right"):
-                topic = images[f"{side}/image_normalized"]
+            for side in contract.SIDES:
+                name = contract.normalized_image_topic(side)
+                topic = images[name]
                 probs += _image_problems(embedded[side], f"StereoPair.{side}", w, h, 1)
-                probs += _image_problems(topic, f"{side}/image_normalized", w, h, 1)
+                probs += _image_problems(topic, name, w, h, 1)
                 digests[side] = _digest(topic)
                 if _digest(embedded[side]) != digests[side]:
-                    probs.append(f"StereoPair.{side} differs from {side}/image_normalized")
+                    probs.append(f"StereoPair.{side} differs from {name}")
             if sp.left.encoding != sp.right.encoding:
                 probs.append(f"encodings differ: {sp.left.encoding} / {sp.right.encoding}")
-            probs += _image_problems(images["anaglyph"], "anaglyph", w, h, 3)
-            digests["anaglyph"] = _digest(images["anaglyph"])
+            anaglyph = images[contract.ANAGLYPH]
+            probs += _image_problems(anaglyph, "anaglyph", w, h, 3)
+            digests["anaglyph"] = _digest(anaglyph)
         ytruth = self._truth_y_rms(sp, ls, rs) if ls and rs else None
         numbers = pair_numbers(sp)
         numbers["images"] = json.dumps(digests, sort_keys=True)

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from parproj_ros.ros import conversions as conv
+from parproj_ros.core import contract
 from parproj_ros.ros.bag import BagReader, get_message_class
 from parproj_ros.ros.inputs import node_parameters, truth_from_bag, views_from_bag
 from parproj_ros.ros.live import NodeProcess, _qos, node_params_yaml
@@ -113,7 +113,7 @@ def run_longrun(
     truth = truth_from_bag(reader)
     env = join_ros_domain()
     params = node_parameters(views, scene_timeout=2.0, **(node_params or {}))
-    inputs = ["/navigation"] + [f"/{v.name}/image_strip" for v in views]
+    inputs = [contract.fully_qualified(t) for t in contract.stream_topics(v.name for v in views)]
     pfile = _params_file(params, out / "node_params.yaml", inputs)
     machine = machine_info()
     log(
@@ -158,7 +158,7 @@ def run_longrun(
         return _wait_until(ok, timeout_s, alive, poll_s=0.02)
 
     try:
-        outputs = [t for t in conv.OUTPUT_TOPICS if t != "/diagnostics"]
+        outputs = [t for t in contract.OUTPUT_TOPICS if t != contract.DIAGNOSTICS]
         discovered = wait_until(
             lambda: (
                 all(node.count_publishers(t) > 0 for t in outputs)
@@ -366,8 +366,8 @@ def _report(
     def count(key: str) -> int | None:
         return int(final[key]) if key in final else None
 
-    strips_sent = sum(n for t, n in sent.items() if t.endswith("/image_strip"))
-    nav_sent = sent.get("navigation", 0)
+    strips_sent = sum(n for t, n in sent.items() if contract.view_of(t) is not None)
+    nav_sent = sent.get(contract.NAVIGATION, 0)
     drops = {
         "strips_rejected": count("strips_rejected"),
         "nav_rejected": count("nav_rejected"),
