@@ -424,3 +424,274 @@ def test_core_imports_and_runs_without_ros() -> None:
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert proc.stdout.startswith("ok 1"), proc.stdout
+
+
+# ---- the interface contract: no topic name written outside core/contract.py --------------------
+
+#: The one module that spells topic names (parproj_ros/core/contract.py).
+CONTRACT = PACKAGE / "core" / "contract.py"
+TOOLS = ROOT / "tools"
+#: Files being rewritten now (issue 23: the node, the pipeline and its policies, ``parproj
+#: process``) and migrated to the contract by their author afterwards: their literals are not
+#: checked yet. Empty it as each one imports the contract (pipeline, streaming, pairing and
+#: navigation had none left when it was written; node.py and process.py had some).
+PENDING_CONTRACT = {
+    "parproj_ros/ros/node.py",  # subscriptions, publishers, frame observations, dispatch
+    "parproj_ros/core/pipeline.py",
+    "parproj_ros/core/streaming.py",
+    "parproj_ros/core/pairing.py",
+    "parproj_ros/core/navigation.py",
+    "parproj_ros/apps/process.py",  # its input dispatch and IMAGE_TOPICS
+}
+
+#: Names that are topics wherever they are written (a leading "/" aside).
+TOPIC_ONLY_NAMES = {
+    "stereo_pair",
+    "parallel_projection",
+    "normalized_block",
+    "image_normalized",
+    "image_strip",
+    "scanner_info",
+    "dsm_fused",
+    "truth/points",
+    "diagnostics",
+}
+#: Suffixes of per-view and per-side topics: ``left/image_strip``, f"{side}/normalized_block".
+TOPIC_SUFFIXES = ("/image_strip", "/scanner_info", "/image_normalized", "/normalized_block")
+#: Topic names that are also words of the results, parameters and reports ("navigation" is a
+#: Method, "gcp" a source, "height" a field): topics only where used as one (below).
+AMBIGUOUS_NAMES = {"navigation", "gcp", "pairs", "dsm", "height", "disparity", "anaglyph"}
+#: Calls whose string arguments are topic names (bags, rclpy, the frame observer).
+TOPIC_CALLS = {
+    "add_topic",
+    "write",
+    "write_raw",
+    "create_publisher",
+    "create_subscription",
+    "observe",
+    "first_frame_id",
+    "messages",
+    "raw_messages",
+}
+#: Keyword arguments holding topic names besides ``*topic*``.
+TOPIC_KEYWORDS = {"wait_for", "also", "reliable_inputs"}
+#: Dictionaries keyed by topic besides ``*topic*`` ones (``counts["dsm"]``, ``sent.get(...)``).
+TOPIC_KEYED = {"counts", "sent", "messages", "pubs", "images"}
+
+
+def _is_topic_name(text: str, context: bool) -> bool:
+    """Whether a string constant spells a topic (in a topic context when ``context``)."""
+    from parproj_ros.core import contract
+
+    bare = text.removeprefix("/")
+    concrete = set(contract.OUTPUT_TOPICS) | {t.name for t in contract.INPUTS}
+    if bare in TOPIC_ONLY_NAMES or (text in concrete and "/" in text):
+        return True
+    if bare.endswith(TOPIC_SUFFIXES) and bare.count("/") == 1 and " " not in bare:
+        return True
+    if text.startswith("/") and bare in {n.lstrip("/") for n in concrete}:
+        return True  # fully qualified, "/navigation"
+    return context and bare in AMBIGUOUS_NAMES
+
+
+def _named_topic(node: ast.AST) -> bool:
+    """An expression naming topics: ``x.topic``, ``topics``, ``reader.topics()``, ``topic_of``."""
+    if isinstance(node, ast.Call):
+        return _named_topic(node.func)
+    name = node.id if isinstance(node, ast.Name) else getattr(node, "attr", None)
+    return isinstance(name, str) and "topic" in name.lower()
+
+
+def _keyed_by_topic(node: ast.AST) -> bool:
+    name = node.id if isinstance(node, ast.Name) else getattr(node, "attr", None)
+    return isinstance(name, str) and ("topic" in name.lower() or name in TOPIC_KEYED)
+
+
+def _strings(node: ast.AST | None) -> list[ast.Constant]:
+    if node is None:
+        return []
+    return [n for n in ast.walk(node) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+
+
+def _topic_contexts(tree: ast.AST) -> set[int]:
+    """ids of the string constants written where a topic goes (see :func:`topic_literals`)."""
+    marked: set[int] = set()
+
+    def mark(node: ast.AST | None) -> None:
+        marked.update(id(c) for c in _strings(node))
+
+    # lists iterated as topics (``for topic, cb in inputs``): what is put in them
+    carriers = {
+        node.iter.id
+        for node in ast.walk(tree)
+        if isinstance(node, ast.For)
+        and isinstance(node.iter, ast.Name)
+        and any(_named_topic(n) for n in ast.walk(node.target) if isinstance(n, ast.Name))
+    }
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(isinstance(t, ast.Name) and t.id in carriers for t in targets):
+                mark(node.value)
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("append", "extend", "insert")
+            and isinstance(node.func.value, ast.Name)
+            and node.func.value.id in carriers
+        ):
+            for a in node.args:
+                mark(a)
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            func = node.func
+            called = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+            if called in TOPIC_CALLS:
+                for a in node.args:
+                    if isinstance(a, ast.Constant | ast.JoinedStr):
+                        mark(a)
+            if called == "get" and isinstance(func, ast.Attribute) and node.args:
+                if _keyed_by_topic(func.value):
+                    mark(node.args[0])
+            for kw in node.keywords:
+                if kw.arg and ("topic" in kw.arg or kw.arg in TOPIC_KEYWORDS):
+                    mark(kw.value)
+        elif isinstance(node, ast.Subscript) and _keyed_by_topic(node.value):
+            mark(node.slice)
+        elif isinstance(node, ast.Compare):
+            operands = [node.left, *node.comparators]
+            if any(_named_topic(o) for o in operands):
+                for o in operands:
+                    mark(o)
+        elif isinstance(node, ast.Assign | ast.AnnAssign):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(_named_topic(n) for t in targets for n in ast.walk(t)):
+                mark(node.value)
+        elif isinstance(node, ast.For | ast.comprehension):
+            names = [n for n in ast.walk(node.target) if isinstance(n, ast.Name)]
+            tested = [n for c in getattr(node, "ifs", []) for n in ast.walk(c)]
+            loop_vars = {n.id for n in names}
+            if any(_named_topic(n) for n in names) or any(
+                isinstance(c, ast.Compare)
+                and any(_named_topic(o) for o in [c.left, *c.comparators])
+                and any(isinstance(o, ast.Name) and o.id in loop_vars for o in [c.left])
+                for c in tested
+            ):
+                mark(node.iter)
+        elif isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            args = node.args
+            positional = [*args.posonlyargs, *args.args]
+            pairs = list(
+                zip(positional[len(positional) - len(args.defaults) :], args.defaults, strict=True)
+            )
+            pairs += [
+                (a, d)
+                for a, d in zip(args.kwonlyargs, args.kw_defaults, strict=True)
+                if d is not None
+            ]
+            for a, d in pairs:
+                if "topic" in a.arg:
+                    mark(d)
+    return marked
+
+
+def topic_literals(path: Path, root: Path = ROOT) -> list[str]:
+    """Topic names spelt in ``path``: ``file:line: text``, docstrings left out.
+
+    A string constant is a topic name when it is one wherever it is written (``stereo_pair``,
+    ``left/image_strip``, ``/diagnostics``, ``truth/points``, ...), an f-string ending in a
+    per-view or per-side suffix (f"{view}/image_strip"), or a word that is also a result or a
+    parameter (``navigation``, ``gcp``, ``dsm``, ``height`` ...) written where a topic goes: an
+    argument of ``add_topic``/``write``/``create_subscription``/..., a ``topic``/``topics``
+    keyword or parameter default, compared with a ``.topic`` or ``reader.topics()``, a key of a
+    dictionary of topics, a value given to or iterated as a ``topic`` variable.
+    """
+    tree = ast.parse(path.read_text(), str(path))
+    docstrings = {
+        id(n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)
+    }
+    in_fstring = {id(v) for n in ast.walk(tree) if isinstance(n, ast.JoinedStr) for v in n.values}
+    contexts = _topic_contexts(tree)
+    rel = path.relative_to(root).as_posix()
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.JoinedStr):
+            parts = [v.value for v in node.values if isinstance(v, ast.Constant)]
+            tail = node.values[-1] if node.values else None
+            if (
+                isinstance(tail, ast.Constant)
+                and isinstance(tail.value, str)
+                and tail.value.endswith(TOPIC_SUFFIXES)
+                and tail.value.count("/") == 1
+            ):
+                found.append(f"{rel}:{node.lineno}: f-string ...{''.join(map(str, parts))!r}")
+        elif (
+            isinstance(node, ast.Constant)
+            and isinstance(node.value, str)
+            and id(node) not in docstrings
+            and id(node) not in in_fstring
+            and _is_topic_name(node.value, id(node) in contexts)
+        ):
+            found.append(f"{rel}:{node.lineno}: {node.value!r}")
+    return sorted(set(found), key=lambda s: (s.split(":")[0], int(s.split(":")[1])))
+
+
+def _code_files() -> list[Path]:
+    return sorted(p for p in [*PACKAGE.rglob("*.py"), *TOOLS.rglob("*.py")] if p != CONTRACT)
+
+
+def test_no_topic_literal_outside_the_contract() -> None:
+    """Topic names are written once, in core/contract.py; everything else imports them."""
+    found = {p.relative_to(ROOT).as_posix(): topic_literals(p) for p in _code_files()}
+    spelt = [line for f, lines in found.items() if f not in PENDING_CONTRACT for line in lines]
+    assert not spelt, (
+        "topic names spelt outside parproj_ros/core/contract.py (use its names):\n"
+        + "\n".join(spelt)
+    )
+    gone = sorted(f for f in PENDING_CONTRACT if f not in found)
+    assert not gone, f"PENDING_CONTRACT names files that do not exist: {gone}"
+
+
+def test_the_topic_check_sees_each_kind(tmp_path: Path) -> None:
+    """:func:`topic_literals` on a file holding each kind of topic literal, and none."""
+    src = tmp_path / "x.py"
+    src.write_text(
+        textwrap.dedent(
+            '''
+            """Docstring naming stereo_pair and left/image_strip: not code."""
+            a = "stereo_pair"
+            b = f"{view}/image_strip"
+            c = "/diagnostics"
+            bw.add_topic("dsm", "t", "reliable")
+            if item.topic == "navigation":
+                pass
+            n = reader.messages(topics=["gcp"])
+            def read(path, topic="height"):
+                pass
+            for topic, x in (("pairs", 1),):
+                pass
+            inputs = [("navigation", 1)]
+            inputs.append(("gcp", 2))
+            for topic, n in inputs:
+                pass
+            ok = ["gcp", "navigation", Method("height"), "anaglyph", "dsm_fused: prose"]
+            Issue(Level.WARN, "navigation", "a report's label, not a topic")
+            '''
+        )
+    )
+    got = [line.split(":", 1)[1] for line in topic_literals(src, tmp_path)]
+    assert got == [
+        "3: 'stereo_pair'",
+        "4: f-string ...'/image_strip'",
+        "5: '/diagnostics'",
+        "6: 'dsm'",
+        "7: 'navigation'",
+        "9: 'gcp'",
+        "10: 'height'",
+        "12: 'pairs'",
+        "14: 'navigation'",
+        "15: 'gcp'",
+    ], got
