@@ -131,3 +131,9 @@ def test_the_format_table_is_where_the_search_order_comes_from() -> None:
     order = [s.name for s in formats.sidecar_formats()]
     assert order == ["rpb", "rpc_txt", "geom", "dimap"]
     assert formats.sidecars_looked_for(Path("/d/a.tif"), gdal=True) == "no a.RPB / a_RPC.TXT"
+
+
+def test_docs_hold_the_format_table() -> None:
+    """docs/extending.md's table of formats is the rendered table (paste it when a row changes)."""
+    doc = Path(__file__).resolve().parents[2] / "docs" / "extending.md"
+    assert formats.formats_markdown() in doc.read_text()

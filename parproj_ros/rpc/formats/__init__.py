@@ -172,6 +172,27 @@ def sidecars_looked_for(image: str | Path, *, gdal: bool) -> str:
     return "; ".join(words)
 
 
+def formats_markdown() -> str:
+    """The format table as markdown (docs/extending.md holds it; a test compares)."""
+    rows = [
+        "| format | module | written | read by GDAL | sidecar of an image "
+        "| extension (no content match) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in FORMATS.values():
+        module = s.read.__module__.replace(".", "/") + ".py"
+        gdal = {None: "no", "raster": "yes (the raster)"}.get(s.gdal, f"yes (sidecar {s.gdal})")
+        beside = " ".join(f"`<stem>{x}`" for x in s.sidecar_suffixes[:1])
+        if s.find_in_folder is not None:
+            beside = (beside + " " if beside else "") + "folder pattern"
+        exts = ", ".join(f"`{e}`" for e in s.extensions) or "-"
+        rows.append(
+            f"| `{s.name}` ({s.label}) | `{module}` | {'yes' if s.write else 'no'} | {gdal} "
+            f"| {beside or '-'} | {exts} |"
+        )
+    return "\n".join(rows)
+
+
 __all__ = [
     "FORMATS",
     "GdalReader",
@@ -182,6 +203,7 @@ __all__ = [
     "detect_rpc_format",
     "dimap_pixel_origin",
     "find_sidecar",
+    "formats_markdown",
     "model_from_values",
     "number",
     "read_dimap_rpc",
