@@ -387,3 +387,36 @@ def test_the_checker_catches_what_is_gone(tmp_path: Path) -> None:
         "link missing.md: no such file",
         "link p.md#nowhere: no heading #nowhere in p.md",
     ]
+
+
+# ---- docs/node.md's topic tables are the interface contract's -----------------------------------
+
+
+def test_node_doc_topic_tables_are_the_contract() -> None:
+    """docs/node.md's Subscribed and Published topics tables are what parproj_ros/core/contract.py
+    renders from its rows (``python -m parproj_ros.core.contract --write .`` rewrites them)."""
+    from parproj_ros.core import contract
+
+    text = (ROOT / contract.NODE_DOC).read_text()
+    for begin, end, table in contract.DOC_TABLES:
+        start = text.index(begin) + len(begin) + 1
+        assert text[start : text.index(end)] == table(), (
+            f"{contract.NODE_DOC}: the table after {begin!r} differs from the contract's: run "
+            "python -m parproj_ros.core.contract --write ."
+        )
+    published = re.findall(r"^\| `([^`]+)` \|", contract.published_markdown(), re.M)
+    assert published == list(contract.OUTPUT_TOPICS)
+
+
+def test_contract_write_rewrites_the_tables(tmp_path: Path) -> None:
+    """``--write`` replaces the text between each pair of markers, and nothing else."""
+    from parproj_ros.core import contract
+
+    (tmp_path / "docs").mkdir()
+    doc = tmp_path / contract.NODE_DOC
+    (b1, e1, t1), (b2, e2, t2) = contract.DOC_TABLES
+    doc.write_text(f"x\n{b1}\nold\n{e1}\ny\n{b2}\n| old |\n{e2}\nz\n")
+    assert contract.main(["--write", str(tmp_path)]) == 0
+    assert doc.read_text() == f"x\n{b1}\n{t1()}{e1}\ny\n{b2}\n{t2()}{e2}\nz\n"
+    with pytest.raises(ValueError, match="needs the lines"):
+        contract.doc_with_tables(f"x\n{b1}\n{e1}\n")
