@@ -577,7 +577,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.write:
         doc = Path(args.write) / NODE_DOC
-        doc.write_text(doc_with_tables(doc.read_text()))
+        try:
+            doc.write_text(doc_with_tables(doc.read_text()))
+        except (OSError, ValueError) as err:
+            print(f"{parser.prog}: --write {args.write}: {err}", file=sys.stderr)
+            return 2
         print(f"wrote {doc}")
     else:
         sys.stdout.write(subscribed_markdown() + "\n" + published_markdown())
