@@ -300,7 +300,7 @@ PARAMS: tuple[Param, ...] = (
         "interpolation",
         "interpolation",
         "string",
-        "linear",
+        next(iter(kernels.KERNELS)),  # the kernel table's first row
         f"resampling (OpenCV remap): {kernels.choices_text()}",
         choices=tuple(kernels.KERNELS),
         offline=True,
