@@ -168,7 +168,7 @@ def test_the_parser_sees_every_kind_of_import() -> None:
     node = {(i.target, i.how) for i in ALL_IMPORTS["parproj_ros.ros.node"]}
     assert ("rclpy", "module") in node
     assert ("parproj_ros.ros.conversions", "module") in node  # `from . import conversions as conv`
-    assert ("parproj_ros.core.pipeline", "module") in node
+    assert ("parproj_ros.core.session", "module") in node
     assert ("rclpy.duration", "function") in node
     geometry = {i.target for i in ALL_IMPORTS["parproj_ros.geometry"]}
     assert "parproj_ros.geometry.epipolar" in geometry

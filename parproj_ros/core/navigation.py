@@ -3,31 +3,32 @@
 Navigation arrives on its own topic, in no fixed order with the strips: a sample far ahead of
 the newest one is held until the next confirms the jump, one far behind is dropped; samples are
 kept only as long as a scene may still need them; complete scenes that navigation does not cover
-yet wait here (:attr:`NavigationFeed.waiting`). Times are nanoseconds.
+yet wait in the ledger (:attr:`~parproj_ros.core.ledger.PairLedger.waiting`). Times are
+nanoseconds.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
-from ..imaging.assembly import Scene, SceneAssembler
+from ..imaging.assembly import SceneAssembler
 from .config import PipelineConfig
+from .ledger import PairLedger
 from .results import Issue, Level
 from .trajectory import NavSample, TrajectoryBuffer
 
 
 class NavigationFeed:
-    """Navigation samples accepted (:attr:`buffer`) and the scenes waiting for them."""
+    """Navigation samples accepted (:attr:`buffer`); scenes waiting for them are the ledger's."""
 
-    def __init__(self, config: PipelineConfig) -> None:
+    def __init__(self, config: PipelineConfig, ledger: PairLedger) -> None:
         self.config = config
+        self.ledger = ledger
         self.buffer = TrajectoryBuffer()
         #: A sample more than ``nav_jump_s`` ahead of the newest one, until the next one comes.
         self.pending: NavSample | None = None
         #: Earliest navigation stamp accepted (ns), None before any.
         self.first_ns: int | None = None
-        #: Complete scenes that navigation does not cover yet, in completion order.
-        self.waiting: list[Scene] = []
 
     def add(self, sample: NavSample) -> tuple[bool, list[Issue]]:
         """Take one sample: (whether it was accepted now, issues).
@@ -87,7 +88,7 @@ class NavigationFeed:
         streamed pairs' scenes (``streamed``); for a view with no open scene, the end of its
         data (its next scene cannot start earlier). Unknown while a view has received no strip.
         """
-        times = [s.first_line_ns for s in self.waiting]
+        times = [s.first_line_ns for s in self.ledger.waiting]
         times += list(streamed)
         for asm in assemblers.values():
             opened = asm.open_scene()

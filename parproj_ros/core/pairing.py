@@ -2,8 +2,9 @@
 
 Two views: the k-th scenes of the two views pair up. One view (single-camera mode, e.g. an agile
 satellite looking forward then back): acquisitions 2k and 2k+1 pair up, or the pairs selected by
-scene ids (:meth:`Pairing.set_pairs`, the node's ``pairs`` topic). Oriented scenes wait here for
-their partner; scenes done with are remembered so that late inputs naming them are reported.
+scene ids (:meth:`Pairing.set_pairs`, the node's ``pairs`` topic). Oriented scenes wait for their
+partner in the ledger (:attr:`PairLedger.ready`), which also remembers the scenes done with so
+that late inputs naming them are reported; this module is the policy, the ledger its state.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from collections.abc import Callable, Sequence
 from ..imaging.assembly import Scene
 from .config import PipelineConfig
 from .gcp_store import GcpStore
+from .ledger import PairLedger
 from .results import Issue, Level, Outputs, SceneResult
 
 #: Makes (normalizes, refines, publishes) one pair of oriented scenes (left, right).
@@ -20,30 +22,18 @@ MakePair = Callable[[SceneResult, SceneResult], Outputs]
 
 
 class Pairing:
-    """Oriented scenes waiting for their partner, the pair selection, the pairs made."""
+    """Which oriented scenes pair up: the policy; its state is the ledger's."""
 
-    def __init__(self, config: PipelineConfig) -> None:
+    def __init__(self, config: PipelineConfig, ledger: PairLedger) -> None:
         self.config = config
-        #: Oriented scenes waiting for their partner: view -> scene index (single camera: the
-        #: acquisition) -> result.
-        self.ready: dict[str, dict[int, SceneResult]] = {v.name: {} for v in config.views}
-        # The latest scenes done with (processed or skipped): scene id -> (view, method), so
-        # that GCP arriving after their scene are reported, not kept.
-        self.done: dict[str, tuple[str, str]] = {}
-        # Single-camera pair selection (the `pairs` topic): the (left, right) scene ids of the
-        # pairs still to make, in order; None: acquisitions 2k and 2k+1 pair up.
-        self.selection: list[tuple[str, str]] | None = None
-        # single-camera pairs made (their two scene ids; an ordered set of the latest 1024)
-        self.made: dict[frozenset[str], None] = {}
+        self.ledger = ledger
 
     def done_with(self, scene: Scene, method: str) -> None:
-        """Remember that a scene is done with (``method``, or "skipped"); the latest 256 kept."""
-        self.done[scene.scene_id] = (scene.view, method)
-        while len(self.done) > 256:
-            del self.done[next(iter(self.done))]
+        """Remember that a scene is done with (``method``, or "skipped")."""
+        self.ledger.done_with(scene, method)
 
     def _done_how(self, scene_id: str) -> str:
-        method = self.done[scene_id][1]
+        method = self.ledger.done[scene_id][1]
         return "skipped" if method == "skipped" else f"processed ({method})"
 
     def add(self, result: SceneResult) -> list[Issue]:
@@ -53,12 +43,12 @@ class Pairing:
         """
         scene = result.scene
         if not self.config.single_camera:
-            self.ready[scene.view][scene.index] = result
+            self.ledger.ready[scene.view][scene.index] = result
         elif scene.part == 0:
             # Single camera: pairs are acquisitions 2k and 2k+1 (a look forward, then back),
             # whatever parts a gap or scene_lines cut them into; each is paired by its first
             # part, so that one split does not shift every later pair.
-            self.ready[scene.view][scene.acquisition] = result
+            self.ledger.ready[scene.view][scene.acquisition] = result
         else:
             return [
                 Issue(
@@ -73,29 +63,23 @@ class Pairing:
 
     def selected_scene_ids(self) -> set[str]:
         """Scene ids that a selected pair not made yet still needs."""
-        return {s for pair in self.selection or () for s in pair}
-
-    def _mark_made(self, left: str, right: str) -> None:
-        """Remember a single-camera pair as made (the latest 1024), for later selections."""
-        self.made[frozenset((left, right))] = None
-        while len(self.made) > 1024:
-            del self.made[next(iter(self.made))]
+        return self.ledger.selected_scene_ids()
 
     def make_pairs(self, make: MakePair, gcps: GcpStore) -> Outputs:
         """Make (``make``) every pair whose two scenes are ready."""
         out = Outputs()
         names = [v.name for v in self.config.views]
-        if self.config.single_camera and self.selection is not None:
+        if self.config.single_camera and self.ledger.selection is not None:
             out.extend(self.make_selected(make, gcps))
         elif self.config.single_camera:
-            ready = self.ready[names[0]]
+            ready = self.ledger.ready[names[0]]
             for i in sorted(ready):
                 if i % 2 == 0 and i + 1 in ready:
                     left, right = ready.pop(i), ready.pop(i + 1)
-                    self._mark_made(left.scene.scene_id, right.scene.scene_id)
+                    self.ledger.mark_made(left.scene.scene_id, right.scene.scene_id)
                     out.extend(make(left, right))
         else:
-            left_ready, right_ready = self.ready[names[0]], self.ready[names[1]]
+            left_ready, right_ready = self.ledger.ready[names[0]], self.ledger.ready[names[1]]
             for i in sorted(set(left_ready) & set(right_ready)):
                 out.extend(make(left_ready.pop(i), right_ready.pop(i)))
         return out
@@ -125,7 +109,7 @@ class Pairing:
                 )
             )
             return out
-        held = {r.scene.scene_id for r in self.ready[self.config.views[0].name].values()}
+        held = {r.scene.scene_id for r in self.ledger.ready[self.config.views[0].name].values()}
         chosen: list[tuple[str, str]] = []
         seen: set[frozenset[str]] = set()
         for left, right in pairs:
@@ -138,12 +122,12 @@ class Pairing:
                 why = f"scene {left} paired with itself (no base)"
             elif key in seen:
                 why = "listed twice (in this or the reverse order): the first one kept"
-            elif key in self.made:
+            elif key in self.ledger.made:
                 seen.add(key)
                 out.issues.append(Issue(Level.OK, f"pair {name}", "already made: not made again"))
                 continue
             else:
-                gone = [s for s in (left, right) if s in self.done and s not in held]
+                gone = [s for s in (left, right) if s in self.ledger.done and s not in held]
                 if gone:
                     why = "scene " + ", ".join(
                         f"{s} was already {self._done_how(s)} and released" for s in gone
@@ -153,7 +137,7 @@ class Pairing:
                 continue
             seen.add(key)
             chosen.append((left, right))
-        self.selection = chosen
+        self.ledger.selection = chosen
         out.issues.append(
             Issue(
                 Level.OK if chosen else Level.WARN,
@@ -173,15 +157,15 @@ class Pairing:
         for each released scene that no pair used.
         """
         out = Outputs()
-        ready = self.ready[self.config.views[0].name]
+        ready = self.ledger.ready[self.config.views[0].name]
         by_id = {r.scene.scene_id: r for r in ready.values()}
         remaining: list[tuple[str, str]] = []
-        for left, right in self.selection or ():
+        for left, right in self.ledger.selection or ():
             if left in by_id and right in by_id:
-                self._mark_made(left, right)
+                self.ledger.mark_made(left, right)
                 out.extend(make(by_id[left], by_id[right]))
                 continue
-            gone = [s for s in (left, right) if s in self.done and s not in by_id]
+            gone = [s for s in (left, right) if s in self.ledger.done and s not in by_id]
             if gone:
                 out.issues.append(
                     Issue(
@@ -194,14 +178,14 @@ class Pairing:
                 )
                 continue
             remaining.append((left, right))
-        self.selection = remaining
+        self.ledger.selection = remaining
         needed = self.selected_scene_ids()
         for acq, res in list(ready.items()):
             sid = res.scene.scene_id
             if sid in needed:
                 continue
             del ready[acq]  # every pair that needed it is made: its pixels are released
-            if warn_unpaired and not any(sid in pair for pair in self.made):
+            if warn_unpaired and not any(sid in pair for pair in self.ledger.made):
                 out.issues.append(
                     Issue(
                         Level.WARN,
@@ -215,9 +199,9 @@ class Pairing:
     def unmade(self, make: MakePair, gcps: GcpStore) -> Outputs:
         """End of data: an ERROR per selected pair not made (a scene never arrived)."""
         out = Outputs()
-        ready = self.ready[self.config.views[0].name] if self.config.single_camera else {}
+        ready = self.ledger.ready[self.config.views[0].name] if self.config.single_camera else {}
         have = {r.scene.scene_id for r in ready.values()}
-        for left, right in self.selection or ():
+        for left, right in self.ledger.selection or ():
             missing = [s for s in (left, right) if s not in have]
             out.issues.append(
                 Issue(
@@ -228,7 +212,7 @@ class Pairing:
                     + " never received (unknown scene id?): selected pair not made",
                 )
             )
-        if self.selection:
-            self.selection = []
+        if self.ledger.selection:
+            self.ledger.selection = []
             out.extend(self.make_selected(make, gcps, warn_unpaired=False))  # release them
         return out

@@ -18,10 +18,13 @@ call into a focused module, and :meth:`Pipeline._process_scene` reads as those s
 8. fuse (``heights`` on): each pair's DSM with those of the earlier pairs it overlaps
    (:class:`~parproj_ros.core.fusion.FusionStage`).
 
-Navigation (its holds and pruning) is :class:`~parproj_ros.core.navigation.NavigationFeed`, GCP
-memory :class:`~parproj_ros.core.gcp_store.GcpStore`; streaming (two views, normalized blocks
-while the scenes arrive) is :class:`~parproj_ros.core.streaming.Streamer`. Every problem becomes
-an :class:`Issue` that says what was wrong and what was done (:mod:`parproj_ros.core.results`).
+Every pair's record and state is in one place, the ledger
+(:class:`~parproj_ros.core.ledger.PairLedger`); the policies read it and record their decisions
+there: navigation (its holds and pruning) :class:`~parproj_ros.core.navigation.NavigationFeed`,
+pairing :class:`~parproj_ros.core.pairing.Pairing`, streaming (two views, normalized blocks while
+the scenes arrive) :class:`~parproj_ros.core.streaming.Streamer`; GCP memory is
+:class:`~parproj_ros.core.gcp_store.GcpStore`. Every problem becomes an :class:`Issue` that says
+what was wrong and what was done (:mod:`parproj_ros.core.results`).
 """
 
 from __future__ import annotations
@@ -38,17 +41,17 @@ from .config import ViewConfig as ViewConfig
 from .fusion import FusionStage
 from .gcp_store import GcpStore
 from .heights import HeightsStage, options_of
+from .ledger import PairLedger
 from .navigation import NavigationFeed
 from .normalization import (
     cut_into_segments,
     interpolation_flag,
     normalize_pair,
-    pair_terrain,
     resample_scene,
-    y_parallax,
 )
 from .orientation import orient_scene, start_unseen
 from .pairing import Pairing
+from .publish import finish_pair
 from .render_process import RenderProcess
 from .results import (
     MIN_SHARED_SHARE,
@@ -57,15 +60,26 @@ from .results import (
     Issue,
     Level,
     Outputs,
-    PairGeometry,
     PairResult,
     SceneResult,
     YParallaxSource,
 )
 from .streaming import Streamer
-from .terrain import Terrain, terrain_from_heights
+from .terrain import terrain_from_heights
 from .tiepoints import TieRefinement, refine_with_tie_points
 from .trajectory import NavSample, TrajectoryBuffer
+
+#: The facade's names: the pipeline, its settings and what it returns.
+__all__ = [
+    "GroundPoint",
+    "Issue",
+    "Outputs",
+    "PairResult",
+    "Pipeline",
+    "PipelineConfig",
+    "SceneResult",
+    "ViewConfig",
+]
 
 
 class Pipeline:
@@ -86,19 +100,12 @@ class Pipeline:
             )
             for v in config.views
         }
-        self.feed = NavigationFeed(config)
+        #: Every pair's record and state (the policies below read it and record in it).
+        self.ledger = PairLedger([v.name for v in config.views])
+        self.feed = NavigationFeed(config, self.ledger)
         self.gcps = GcpStore()
-        self.pairing = Pairing(config)
-        self.streamer = Streamer(
-            config,
-            self.assemblers,
-            self.feed,
-            self.gcps,
-            self.pairing,
-            whole=self._scene_done,
-            publish_pair=self._publish_pair,
-        )
-        self.pairs_done = 0
+        self.pairing = Pairing(config, self.ledger)
+        self.streamer = Streamer(config, self.assemblers, self.feed, self.gcps, self.ledger)
         self.heights = HeightsStage(options_of(config)) if config.heights else None
         self.fusion = (
             FusionStage(config.heights_fuse_mb)
@@ -161,8 +168,13 @@ class Pipeline:
 
     @property
     def _ready(self) -> dict[str, dict[int, SceneResult]]:
-        """Oriented scenes waiting for their partner (:attr:`Pairing.ready`)."""
-        return self.pairing.ready
+        """Oriented scenes waiting for their partner (:attr:`PairLedger.ready`)."""
+        return self.ledger.ready
+
+    @property
+    def pairs_done(self) -> int:
+        """Pairs whose result was returned."""
+        return self.ledger.pairs_made
 
     @property
     def has_open_scene(self) -> bool:
@@ -188,14 +200,14 @@ class Pipeline:
         if not accepted:
             return out
         out.extend(self._process_waiting())
-        if self.streamer.wait and self.streamer.can_stream:
+        if self.ledger.held_until and self.streamer.can_stream:
             # A streaming decision held for navigation may be taken now; then the scenes it
             # held, if it could not stream them.
             out.extend(self.streamer.start())
             for view in self.assemblers:
                 out.extend(self.streamer.advance(view))
             out.extend(self._process_waiting())
-        self.feed.prune(self.assemblers, self.streamer.first_lines())
+        self.feed.prune(self.assemblers, self.ledger.first_lines())
         return self._step7(out)
 
     def _process_waiting(self) -> Outputs:
@@ -205,7 +217,7 @@ class Pipeline:
         """
         out = Outputs()
         still = []
-        for scene in self.feed.waiting:
+        for scene in self.ledger.waiting:
             end = scene.last_line_ns
             if self.streamer.held(scene) or not self.nav.covers(scene.first_line_ns, end):
                 still.append(scene)
@@ -214,7 +226,7 @@ class Pipeline:
             if self.streamer.undecided(scene):
                 # Navigation has passed the whole scene and its pair could still not be
                 # decided (its other scene cannot be processed): give up streaming.
-                self.streamer.give_up(k)
+                self.ledger.not_stream(k)
                 out.issues.append(
                     Issue(
                         Level.WARN,
@@ -224,7 +236,7 @@ class Pipeline:
                     )
                 )
             out.extend(self._process_scene(scene))
-        self.feed.waiting[:] = still
+        self.ledger.waiting[:] = still
         return out
 
     def add_gcp(self, points: Sequence[GroundPoint]) -> Outputs:
@@ -233,7 +245,7 @@ class Pipeline:
         Observations in a scene already done with (processed without them, or skipped) are
         dropped and reported, one warning per scene: they come too late to be used.
         """
-        return self._step7(self.gcps.add(points, self.pairing.done))
+        return self._step7(self.gcps.add(points, self.ledger.done))
 
     def set_pairs(self, pairs: Sequence[tuple[str, str]]) -> Outputs:
         """Select which acquisitions pair up (single-camera mode; the node's ``pairs`` topic).
@@ -287,7 +299,7 @@ class Pipeline:
         for scene in scenes:
             if scene.reason == SceneEnd.GAP:
                 out.issues.append(self._split(scene, stamp_ns))
-            out.extend(self.streamer.scene_closed(scene))
+            out.extend(self._closed(scene))
         if self.streamer.can_stream:
             out.extend(self.streamer.start())
             out.extend(self.streamer.advance(view))
@@ -314,7 +326,7 @@ class Pipeline:
         """
         out = Outputs()
         for scene in self.assemblers[view].flush():
-            out.extend(self.streamer.scene_closed(scene))
+            out.extend(self._closed(scene))
         return self._step7(out)
 
     def open_scenes(self) -> dict[str, OpenScene]:
@@ -330,7 +342,7 @@ class Pipeline:
         out = Outputs()
         for asm in self.assemblers.values():
             for scene in asm.flush():
-                out.extend(self.streamer.scene_closed(scene))
+                out.extend(self._closed(scene))
         return out
 
     def close_idle_scenes(self) -> Outputs:
@@ -353,13 +365,13 @@ class Pipeline:
             if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
                 continue
             for scene in asm.flush():
-                out.extend(self.streamer.scene_closed(scene))
+                out.extend(self._closed(scene))
         return self._step7(out)
 
     def flush(self) -> Outputs:
         """End of data: close open scenes, process what can be, report what cannot."""
         out = self._close_all()
-        for scene in self.feed.waiting:
+        for scene in self.ledger.waiting:
             if self.gcps.for_scene(scene)[0].shape[0] >= self.config.min_gcp:
                 out.extend(self._process_scene(scene))  # navigation ended early: GCP only
                 continue
@@ -371,12 +383,17 @@ class Pipeline:
                     "navigation never covered this scene and it has no GCP: scene skipped",
                 )
             )
-        self.feed.waiting.clear()
-        self.streamer.end_of_data()
+        self.ledger.waiting.clear()
+        self.ledger.end_of_data()
         out.extend(self.pairing.unmade(self._make_pair, self.gcps))
         return self._step7(out)
 
     # ---- scenes -------------------------------------------------------------------------
+    def _closed(self, scene: Scene) -> Outputs:
+        """A scene is complete: the end of its stream, or processed whole (:meth:`_scene_done`)."""
+        streamed = self.streamer.scene_closed(scene)
+        return self._scene_done(scene) if streamed is None else streamed
+
     def _scene_done(self, scene: Scene) -> Outputs:
         """A complete scene not streamed: processed now, or waiting for navigation."""
         out = Outputs()
@@ -406,7 +423,7 @@ class Pipeline:
                     )
                 )
                 return out
-            self.feed.waiting.append(scene)
+            self.ledger.waiting.append(scene)
             return out
         out.extend(self._process_scene(scene))
         return out
@@ -486,7 +503,17 @@ class Pipeline:
                         metres_per_px=geo.left_grid.pixel / geo.normalization.parallax_per_height,
                     )
         # 6. publish: the pair result, with its y-parallax and terrain.
-        pair = self._publish_pair(left, right, geo, (img_l, img_r), stamp, terrain)
+        pair = finish_pair(
+            left,
+            right,
+            geo,
+            (img_l, img_r),
+            stamp,
+            config=self.config,
+            gcps=self.gcps,
+            ledger=self.ledger,
+            terrain=terrain,
+        )
         if tie is not None:
             pair = replace(
                 pair, y_parallax_px=tie.residual_px, y_parallax_source=YParallaxSource.TIE_POINTS
@@ -508,45 +535,3 @@ class Pipeline:
             )
         out.pairs.append(pair)
         return out
-
-    def _publish_pair(
-        self,
-        left: SceneResult,
-        right: SceneResult,
-        geo: PairGeometry,
-        images: tuple[NDArray[np.generic] | None, NDArray[np.generic] | None],
-        stamp_ns: int,
-        terrain: Terrain | None = None,
-    ) -> PairResult:
-        """The :class:`PairResult` of a normalized pair; its scenes' GCP are forgotten.
-
-        ``terrain``: the pair's terrain when measured; else that of its GCP or the prior
-        (:func:`pair_terrain`), taken before the GCP are forgotten.
-        """
-        ypar, source = y_parallax(
-            left, right, geo.left_geom, geo.right_geom, self.gcps, self.config
-        )
-        k = geo.normalization.parallax_per_height
-        self.pairs_done += 1
-        if terrain is None:
-            terrain = pair_terrain(left, right, self.config, self.gcps)
-        ids = (left.scene.scene_id, right.scene.scene_id)
-        self.gcps.forget(ids, keep=self.pairing.selected_scene_ids())
-        self.streamer.pair_done(left.scene.index)
-        return PairResult(
-            geo.pair_id,
-            stamp_ns,
-            left,
-            right,
-            geo.normalization,
-            geo.left_grid,
-            geo.right_grid,
-            images[0],
-            images[1],
-            geo.left_grid.pixel / k,
-            (geo.left_grid.x_origin - geo.right_grid.x_origin - geo.normalization.parallax_offset)
-            / k,
-            ypar,
-            source,
-            terrain,
-        )

@@ -13,15 +13,15 @@ grow with the scene length. When both scenes are complete, the scene parameters 
 (without pixels) are emitted, and the extrapolated motion is checked against a fit on all the
 navigation of the scene.
 
-:class:`Streamer` owns that state (pairs streamed, not streamed, waiting for navigation) and
-the decisions that change it; :func:`plan_blocks` and :func:`render_block` do the pixel work.
+:class:`Streamer` is the policy: it reads the ledger (:class:`~parproj_ros.core.ledger.
+PairLedger`: pairs streamed, not streamed, held for navigation; scenes waiting) and records its
+decisions there; :func:`plan_blocks` and :func:`render_block` do the pixel work.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Mapping
 from contextlib import closing
-from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,26 +32,16 @@ from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd
 from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles, render_block
 from .config import PipelineConfig
 from .gcp_store import GcpStore
+from .ledger import Block, PairLedger, SideStream, StreamPair
 from .navigation import NavigationFeed
 from .normalization import interpolation_flag, pair_geometry
 from .orientation import start_seen
-from .pairing import Pairing
+from .publish import finish_pair
 from .render_process import RenderProcess
-from .results import BlockResult, Issue, Level, Outputs, PairGeometry, PairResult, SceneResult
+from .results import BlockResult, Issue, Level, Outputs, SceneResult
 from .trajectory import NavigationError
 
 FloatArray = NDArray[np.float64]
-#: Makes the :class:`PairResult` of a pair: (left, right, geometry, images or None, stamp ns).
-PublishPair = Callable[
-    [
-        SceneResult,
-        SceneResult,
-        PairGeometry,
-        tuple[NDArray[np.generic] | None, NDArray[np.generic] | None],
-        int,
-    ],
-    PairResult,
-]
 
 #: Columns per streamed block (the tile width of the resampler, so blocks hold whole tiles).
 BLOCK_COLS = 256
@@ -71,48 +61,7 @@ STALE_MIN_S = 2.0
 LINE_MARGIN = 3
 
 
-@dataclass
-class _Block:
-    col0: int
-    cols: int
-    tiles: list[Tile]
-    min_line: int
-    max_line: int
-
-
-@dataclass
-class SideStream:
-    """The streaming state of one side of a pair."""
-
-    side: str
-    view: str
-    result: SceneResult
-    geom: SceneGeometry
-    grid: OutputGrid
-    lines: int
-    blocks: list[_Block]
-    next_block: int = 0
-    done: bool = False
-    prefetched: bool = False
-
-    def needed_from(self) -> int:
-        """First line any block still to come needs."""
-        rest = self.blocks[self.next_block :]
-        return min((b.min_line for b in rest), default=self.lines)
-
-
-@dataclass
-class StreamPair:
-    """Streaming state of pair k."""
-
-    index: int
-    geometry: PairGeometry
-    sides: dict[str, SideStream]
-    stamp_ns: int
-    scenes: dict[str, Scene] = field(default_factory=dict)
-
-
-def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[_Block]:
+def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[Block]:
     """Column blocks of the output with the tiles they contain and the lines they need."""
     tiles = plan_tiles(geom, grid, tile=BLOCK_COLS, tile_rows=TILE_ROWS)
     groups: dict[int, list[Tile]] = {}
@@ -132,7 +81,7 @@ def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[_Bloc
         col0 = b * BLOCK_COLS
         cols = min(BLOCK_COLS, grid.width - col0)
         blocks.append(
-            _Block(
+            Block(
                 col0,
                 cols,
                 ts,
@@ -144,14 +93,14 @@ def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[_Bloc
 
 
 class Streamer:
-    """The streaming of two-view pairs: its state and every decision that changes it.
+    """The streaming of two-view pairs: the decisions, recorded in the ledger.
 
-    It shares the pipeline's components (passed in, not owned): the assemblers (scenes under
-    way and their retained lines), the navigation feed (samples, scenes waiting for
-    navigation), the GCP store (a scene with GCP is processed whole), and the pairing's
-    ``ready`` scenes. ``whole(scene)`` processes a complete scene that is not streamed, and
-    ``publish_pair(left, right, geometry, images, stamp_ns)`` makes the :class:`PairResult` of a
-    pair (the pipeline's bookkeeping: GCP forgotten, pairs counted). Times are nanoseconds.
+    It reads the pipeline's components (passed in, not owned): the assemblers (scenes under
+    way and their retained lines), the navigation feed (samples), the GCP store (a scene with
+    GCP is processed whole), and the ledger, where the pairs' state is (streams, pairs not
+    streamed, decisions held for navigation, scenes waiting for navigation or their partner).
+    A complete scene it does not stream is handed back (:meth:`scene_closed` returns None) for
+    the pipeline to process whole. Times are nanoseconds.
     """
 
     def __init__(
@@ -160,24 +109,15 @@ class Streamer:
         assemblers: Mapping[str, SceneAssembler],
         feed: NavigationFeed,
         gcps: GcpStore,
-        pairing: Pairing,
-        *,
-        whole: Callable[[Scene], Outputs],
-        publish_pair: PublishPair,
+        ledger: PairLedger,
     ) -> None:
         self.config = config
         self.views = {v.name: v for v in config.views}
         self.assemblers = assemblers
-        self.feed = feed
         self.nav = feed.buffer
+        self.feed = feed
         self.gcps = gcps
-        self.pairing = pairing
-        self.whole = whole
-        self.publish_pair = publish_pair
-        #: Streamed pairs under way, by pair index k.
-        self.streams: dict[int, StreamPair] = {}
-        #: Pairs decided not to stream (processed whole).
-        self.no_stream: set[int] = set()
+        self.ledger = ledger
         #: Renders blocks out of the caller's GIL (the node's), or None: in the calling thread.
         self.renderer: RenderProcess | None = None
         #: Takes each block as soon as it is rendered, instead of :attr:`Outputs.blocks`; its
@@ -185,46 +125,18 @@ class Streamer:
         #: (copy them to keep them). With the render process the next block is rendered
         #: meanwhile. None: blocks are returned in the outputs.
         self.block_sink: Callable[[BlockResult], None] | None = None
-        #: Pairs whose streaming decision waits for navigation (it lagged behind their first
-        #: strips): pair index -> the scene start it must reach (see :meth:`_predict_scene`).
-        self.wait: dict[int, int] = {}
-
-    def first_lines(self) -> list[int]:
-        """First line times (ns) of the streamed pairs' scenes (navigation they still need)."""
-        return [
-            side.result.scene.first_line_ns
-            for stream in self.streams.values()
-            for side in stream.sides.values()
-        ]
-
-    def give_up(self, index: int) -> None:
-        """Pair ``index`` is not streamed: its scenes are processed whole."""
-        self.no_stream.add(index)
-
-    def pair_done(self, index: int) -> None:
-        """Pair ``index`` is made: nothing about it needs remembering."""
-        self.no_stream.discard(index)
-
-    def end_of_data(self) -> None:
-        """No more data: no streaming decision waits for navigation any more."""
-        self.wait.clear()
 
     def _start_seen(self, first_line_ns: int) -> bool:
         return start_seen(first_line_ns, self.feed.first_ns, self.config.start_margin_s)
 
     def undecided(self, scene: Scene) -> bool:
-        """Whether ``scene``'s pair waits for navigation to decide streaming (:attr:`wait`).
+        """Whether ``scene``'s pair waits for navigation to decide streaming (held).
 
         Only a scene still arriving at the decision time counts: one complete before it would
         have been processed whole anyway.
         """
-        t = self.wait.get(scene.index)
-        return (
-            t is not None
-            and scene.index not in self.streams
-            and scene.index not in self.no_stream
-            and scene.last_line_ns >= t
-        )
+        t = self.ledger.held_until.get(scene.index)
+        return t is not None and not self.ledger.decided(scene.index) and scene.last_line_ns >= t
 
     def held(self, scene: Scene) -> bool:
         """Whether a complete scene is held for its pair's streaming decision.
@@ -240,11 +152,11 @@ class Streamer:
         c = self.config
         return c.streaming and not c.single_camera and c.scene_lines > 0
 
-    def scene_closed(self, scene: Scene) -> Outputs:
-        """A scene is complete: the end of its stream, or (not streamed) ``whole(scene)``."""
-        stream = self.streams.get(scene.index)
+    def scene_closed(self, scene: Scene) -> Outputs | None:
+        """A scene is complete: the end of its stream; None: not streamed, to process whole."""
+        stream = self.ledger.streams.get(scene.index)
         if stream is None or scene.view not in [s.view for s in stream.sides.values()]:
-            return self.whole(scene)
+            return None
         return self._close(stream, scene)
 
     def start(self) -> Outputs:
@@ -254,32 +166,31 @@ class Streamer:
         navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
         sees the same ground later) keeps its parameters and has all its blocks emitted at once.
         When navigation lags behind the strips (separate topics, no ordering between them), the
-        decision is held (:attr:`wait`: pair -> the decision time, the first line of the
-        later scene) until navigation reaches that time; a scene still arriving then but
-        completed in the meantime is held too (it waits for navigation anyway) and streamed at
-        once, and a scene completed before it is processed whole first, as it would have been.
-        So the outputs do not depend on the order in which the topics were delivered.
+        decision is held (:attr:`PairLedger.held_until`: pair -> the decision time, the first
+        line of the later scene) until navigation reaches that time; a scene still arriving
+        then but completed in the meantime is held too (it waits for navigation anyway) and
+        streamed at once, and a scene completed before it is processed whole first, as it would
+        have been. So the outputs do not depend on the order in which the topics were delivered.
         """
         out = Outputs()
-        for k in list(self.wait):
-            if k in self.streams or k in self.no_stream:
-                del self.wait[k]
+        ledger = self.ledger
+        ledger.release_decided_holds()
         names = [v.name for v in self.config.views]
         opened = {n: self.assemblers[n].open_scene() for n in names}
-        pending = {o.index for o in opened.values() if o is not None} | set(self.wait)
+        pending = {o.index for o in opened.values() if o is not None} | set(ledger.held_until)
         for k in sorted(pending):
-            if k in self.streams or k in self.no_stream:
+            if ledger.decided(k):
                 continue
             parts: list[tuple[str, OpenScene | SceneResult]] = []
             held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
             waiting = False  # a complete scene of the pair waits for navigation
             for n in names:
                 o = opened[n]
-                sc = next((w for w in self.feed.waiting if w.view == n and w.index == k), None)
+                sc = next((w for w in ledger.waiting if w.view == n and w.index == k), None)
                 if o is not None and o.index == k:
                     parts.append((n, o))
-                elif k in self.pairing.ready[n]:
-                    parts.append((n, self.pairing.ready[n][k]))
+                elif k in ledger.ready[n]:
+                    parts.append((n, ledger.ready[n][k]))
                 elif sc is not None and self.held(sc):
                     held[n] = sc
                     parts.append((n, OpenScene(sc.scene_id, k, sc.first_line_ns, sc.lines)))
@@ -291,16 +202,16 @@ class Streamer:
                 if (
                     waiting
                     and opens
-                    and k not in self.wait
+                    and k not in ledger.held_until
                     and (last is None or last < max(opens) - self.nav.max_gap_s * 1e9)
                 ):
                     # The other scene, complete, waits for navigation, which lags far behind
                     # this one's start: the decision waits for navigation (see above).
-                    self.wait[k] = max(opens)
+                    ledger.hold(k, max(opens))
                 continue
             short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
             if short:
-                self.no_stream.add(k)
+                self.ledger.not_stream(k)
                 out.issues.append(
                     Issue(
                         Level.WARN,
@@ -318,7 +229,7 @@ class Streamer:
             ):
                 # Perhaps the rest of a scene under way when the pipeline started: it will be
                 # skipped when complete (orientation.start_unseen), not streamed.
-                self.no_stream.add(k)
+                self.ledger.not_stream(k)
                 continue
             # Time of the line after the last one received, per open scene.
             ends = {
@@ -342,7 +253,7 @@ class Streamer:
                 # Strips of a scene stopped coming while the other view went on (by more than
                 # a scene, at least STALE_MIN_S): it is short (end of a pass) and its length is
                 # unknown, so it is processed whole. A view merely delivered late is not stale.
-                self.no_stream.add(k)
+                self.ledger.not_stream(k)
                 out.issues.append(
                     Issue(
                         Level.OK,
@@ -371,12 +282,12 @@ class Streamer:
                 if res is None:
                     return out
                 results.append(res)
-            if k in self.no_stream:
+            if k in ledger.not_streamed:
                 continue
             out.extend(self._open_stream(k, results))
-            stream = self.streams.get(k)
+            stream = ledger.streams.get(k)
             if stream is not None:
-                if k in self.wait:
+                if k in ledger.held_until:
                     out.issues.append(
                         Issue(
                             Level.OK,
@@ -386,8 +297,12 @@ class Streamer:
                         )
                     )
                 for sc in held.values():
-                    self.feed.waiting.remove(sc)
-                    out.extend(self._close(stream, sc))
+                    ledger.waiting.remove(sc)
+                    closed = self._close(stream, sc)
+                    if closed is None:  # not streamed after all: waits for navigation again
+                        ledger.waiting.append(sc)
+                    else:
+                        out.extend(closed)
         return out
 
     def _period(self, opened: OpenScene) -> float:
@@ -409,17 +324,17 @@ class Streamer:
 
         ``decide_ns``: the decision time (the first line of the pair's later scene). When
         navigation has not reached within ``max_gap_s`` of the scene start then (it lags:
-        separate topics), the pair waits (:attr:`wait`) until navigation reaches the
+        separate topics), the pair waits (held) until navigation reaches the
         decision time, and the motion is then fitted on the navigation up to that time only,
         as an on-time decision would have been. None: not (yet) possible.
         """
         sid, k, t0, _ = opened
         if self.gcps.count(sid) >= self.config.min_gcp:
-            self.no_stream.add(k)  # GCP-based parameters need the whole scene
+            self.ledger.not_stream(k)  # GCP-based parameters need the whole scene
             return None
         view = self.views[name]
         lines = self.config.scene_lines
-        until = self.wait.get(k)
+        until = self.ledger.held_until.get(k)
         last = self.nav.last_ns
         if until is not None and (last is None or last < until):
             return None  # navigation has not reached the decision time yet: keep waiting
@@ -427,9 +342,9 @@ class Streamer:
             fit = self.nav.fit_recent(t0, view.mounting, until_ns=until)
         except NavigationError as err:
             if until is None:
-                self.wait[k] = decide_ns  # navigation lags: wait for it (see above)
+                self.ledger.hold(k, decide_ns)  # navigation lags: wait for it (see above)
                 return None
-            self.no_stream.add(k)
+            self.ledger.not_stream(k)
             out.issues.append(
                 Issue(
                     Level.WARN,
@@ -449,7 +364,7 @@ class Streamer:
                 crab_tolerance_px=self.config.crab_tolerance_px,
             )
         except GeometryError as err:
-            self.no_stream.add(k)
+            self.ledger.not_stream(k)
             out.issues.append(
                 Issue(
                     Level.WARN, f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing"
@@ -482,7 +397,7 @@ class Streamer:
         lines = (results[0].scene.lines, results[1].scene.lines)
         geo = pair_geometry(results[0], results[1], lines, self.config, self.gcps)
         if isinstance(geo, Issue):
-            self.no_stream.add(k)
+            self.ledger.not_stream(k)
             out.issues.append(geo)
             return out
         sides: dict[str, SideStream] = {}
@@ -501,7 +416,7 @@ class Streamer:
             )
         stamp = max(r.scene.last_line_ns for r in results)
         stream = StreamPair(k, geo, sides, stamp)
-        self.streams[k] = stream
+        self.ledger.stream(stream)
         out.issues.append(
             Issue(
                 Level.OK,
@@ -512,8 +427,12 @@ class Streamer:
         )
         for side in sides.values():
             if side.result.scene.image.shape[0] > 0:  # a side that was already complete
-                self.pairing.ready[side.view].pop(k, None)
-                out.extend(self._close(stream, side.result.scene, prefetched=True))
+                self.ledger.ready[side.view].pop(k, None)
+                closed = self._close(stream, side.result.scene, prefetched=True)
+                if closed is None:  # not streamed after all: it waits for its partner again
+                    self.ledger.ready[side.view][k] = side.result
+                else:
+                    out.extend(closed)
         return out
 
     def _emit_blocks(
@@ -535,7 +454,7 @@ class Streamer:
             return out
         interp = interpolation_flag(self.config)
         sink = self.block_sink
-        rendered: Generator[tuple[_Block, NDArray[np.generic] | None], None, None]
+        rendered: Generator[tuple[Block, NDArray[np.generic] | None], None, None]
         if self.renderer is not None:
             rendered = self.renderer.render_blocks(
                 ready, data, first, side.grid.height, nodata=self.config.nodata,
@@ -578,7 +497,7 @@ class Streamer:
         opened = asm.open_scene()
         if opened is None:
             return out
-        stream = self.streams.get(opened.index)
+        stream = self.ledger.streams.get(opened.index)
         if stream is None:
             return out
         for side in stream.sides.values():
@@ -590,24 +509,25 @@ class Streamer:
                 asm.release(side.needed_from())
         return out
 
-    def _close(self, stream: StreamPair, scene: Scene, prefetched: bool = False) -> Outputs:
+    def _close(self, stream: StreamPair, scene: Scene, prefetched: bool = False) -> Outputs | None:
         """A streamed side's scene is complete: its last blocks, and the pair if both are.
 
         ``prefetched``: the scene was complete before the stream started (its result is known;
-        no parameters are published for it again).
+        no parameters are published for it again). None: the scene ended short before anything
+        was published: the pair is not streamed, the scene is to be processed whole.
         """
         out = Outputs()
         side = next(s for s in stream.sides.values() if s.view == scene.view)
         where = f"{scene.view}/{scene.scene_id}"
         if scene.lines != side.lines:
-            self.streams.pop(stream.index, None)
-            self.no_stream.add(stream.index)
+            self.ledger.end_stream(stream.index)
+            self.ledger.not_stream(stream.index)
             if all(s.next_block == 0 for s in stream.sides.values()) and scene.released == 0:
                 # Nothing was published or released yet: fall back to whole scenes, unseen.
                 for s in stream.sides.values():
                     if s.prefetched or (s.done and s.result.scene.image.shape[0] > 0):
-                        self.pairing.ready[s.view][stream.index] = s.result
-                return self.whole(scene)
+                        self.ledger.ready[s.view][stream.index] = s.result
+                return None
             out.issues.append(
                 Issue(
                     Level.ERROR,
@@ -625,7 +545,7 @@ class Streamer:
         stream.scenes[side.side] = scene
         if not all(s.done for s in stream.sides.values()):
             return out
-        self.streams.pop(stream.index, None)
+        self.ledger.end_stream(stream.index)
         results = []
         for s in (stream.sides["left"], stream.sides["right"]):
             results.append(s.result)
@@ -635,10 +555,17 @@ class Streamer:
             if check is not None:
                 out.issues.append(check)
             out.scenes.append(s.result)
-            self.pairing.done_with(s.result.scene, s.result.method)
+            self.ledger.done_with(s.result.scene, s.result.method)
         out.pairs.append(
-            self.publish_pair(
-                results[0], results[1], stream.geometry, (None, None), stream.stamp_ns
+            finish_pair(
+                results[0],
+                results[1],
+                stream.geometry,
+                (None, None),
+                stream.stamp_ns,
+                config=self.config,
+                gcps=self.gcps,
+                ledger=self.ledger,
             )
         )
         return out

@@ -666,6 +666,7 @@ class ParprojNode(Node):
                 message=message,
                 values=[KeyValue(key=k, value=str(v)) for k, v in self.counts.items()]
                 + [KeyValue(key=k, value=str(v)) for k, v in self.admission.counts.items()]
+                + [KeyValue(key=k, value=str(v)) for k, v in self.pipeline.ledger.counts().items()]
                 + [
                     KeyValue(key=k, value=str(v))
                     for k, v in (

@@ -1,0 +1,205 @@
+"""The ledger of pairs: the one owner of every pair's record and state in the pipeline.
+
+A pair's life (paper 2 section 4 applied to a stream) crosses several policies: the navigation
+feed (a complete scene waits until navigation covers it), the pairing (an oriented scene waits
+for its partner; single-camera selections), the streaming (a pair normalized by column blocks
+while its scenes arrive, or a decision held until navigation reaches the scenes). Those policies
+keep no state of their own: they read the :class:`PairLedger` and record their decisions in it,
+so one object answers "where is pair k?" (:meth:`PairLedger.state`) and the node's summary
+reports it (:meth:`PairLedger.counts`).
+
+States (:class:`PairState`): ``waiting`` (scenes arriving, or waiting for navigation or their
+partner), ``held`` (the streaming decision waits for navigation), ``streaming`` (column blocks
+emitted as lines arrive), ``whole`` (decided: normalized from whole scenes), ``made`` (its
+:class:`~parproj_ros.core.results.PairResult` returned). Pair k is the k-th scenes of two views;
+single-camera pairs are named by their scene ids and their state is that of their scenes.
+Times are nanoseconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+from ..imaging.assembly import Scene
+from ..imaging.resample import OutputGrid, SceneGeometry, Tile
+from .results import PairGeometry, SceneResult
+
+#: Scenes done with, and single-camera pairs made, remembered (the latest ones) so that late
+#: inputs naming them are reported.
+DONE_KEPT = 256
+MADE_KEPT = 1024
+
+
+class PairState(StrEnum):
+    """Where a pair is (:meth:`PairLedger.state`)."""
+
+    WAITING = "waiting"
+    HELD = "held"
+    STREAMING = "streaming"
+    WHOLE = "whole"
+    MADE = "made"
+
+
+@dataclass
+class Block:
+    """One column block of a streamed side: its tiles and the scan lines they need."""
+
+    col0: int
+    cols: int
+    tiles: list[Tile]
+    min_line: int
+    max_line: int
+
+
+@dataclass
+class SideStream:
+    """The streaming record of one side (left, right) of a pair."""
+
+    side: str
+    view: str
+    result: SceneResult
+    geom: SceneGeometry
+    grid: OutputGrid
+    lines: int
+    blocks: list[Block]
+    next_block: int = 0
+    done: bool = False
+    prefetched: bool = False
+
+    def needed_from(self) -> int:
+        """First line any block still to come needs."""
+        rest = self.blocks[self.next_block :]
+        return min((b.min_line for b in rest), default=self.lines)
+
+
+@dataclass
+class StreamPair:
+    """The streaming record of pair k: its geometry, both sides, the scenes completed."""
+
+    index: int
+    geometry: PairGeometry
+    sides: dict[str, SideStream]
+    stamp_ns: int
+    scenes: dict[str, Scene] = field(default_factory=dict)
+
+
+class PairLedger:
+    """Every pair's record and state; the policies read it and record their decisions here.
+
+    Attributes:
+        waiting: complete scenes that navigation does not cover yet, in completion order.
+        ready: oriented scenes waiting for their partner: view -> pair index (single camera:
+            the acquisition) -> result.
+        streams: the streamed pairs under way, by pair index.
+        not_streamed: pairs decided not to stream (made from whole scenes).
+        held_until: pairs whose streaming decision waits for navigation -> the time it must
+            reach (the first line of the pair's later scene).
+        done: the latest scenes done with (processed or skipped): scene id -> (view, method).
+        selection: single-camera pair selection still to make ((left, right) scene ids, in
+            order); None: acquisitions 2k and 2k+1 pair up.
+        made: the latest single-camera pairs made (their two scene ids).
+        pairs_made: pairs whose result was returned.
+    """
+
+    def __init__(self, views: Sequence[str]) -> None:
+        self.waiting: list[Scene] = []
+        self.ready: dict[str, dict[int, SceneResult]] = {v: {} for v in views}
+        self.streams: dict[int, StreamPair] = {}
+        self.not_streamed: set[int] = set()
+        self.held_until: dict[int, int] = {}
+        self.done: dict[str, tuple[str, str]] = {}
+        self.selection: list[tuple[str, str]] | None = None
+        self.made: dict[frozenset[str], None] = {}
+        self.pairs_made = 0
+        self._made_index: dict[int, None] = {}
+
+    # ---- what the policies record ----------------------------------------------------------
+    def stream(self, stream: StreamPair) -> None:
+        """Pair ``stream.index`` streams from now on."""
+        self.streams[stream.index] = stream
+
+    def end_stream(self, index: int) -> None:
+        """Pair ``index`` streams no more (complete, or abandoned)."""
+        self.streams.pop(index, None)
+
+    def not_stream(self, index: int) -> None:
+        """Pair ``index`` is not streamed: its scenes are processed whole."""
+        self.not_streamed.add(index)
+
+    def hold(self, index: int, until_ns: int) -> None:
+        """Pair ``index``'s streaming decision waits until navigation reaches ``until_ns``."""
+        self.held_until[index] = until_ns
+
+    def decided(self, index: int) -> bool:
+        """Whether pair ``index`` streams or was decided not to."""
+        return index in self.streams or index in self.not_streamed
+
+    def release_decided_holds(self) -> None:
+        """Forget the holds of the pairs decided since."""
+        for k in [k for k in self.held_until if self.decided(k)]:
+            del self.held_until[k]
+
+    def end_of_data(self) -> None:
+        """No more data: no streaming decision waits for navigation any more."""
+        self.held_until.clear()
+
+    def pair_made(self, index: int) -> None:
+        """The result of pair ``index`` was returned: nothing about it needs remembering."""
+        self.pairs_made += 1
+        self.not_streamed.discard(index)
+        self._made_index[index] = None
+        while len(self._made_index) > MADE_KEPT:
+            del self._made_index[next(iter(self._made_index))]
+
+    def done_with(self, scene: Scene, method: str) -> None:
+        """A scene is done with (``method``, or "skipped"); the latest :data:`DONE_KEPT` kept."""
+        self.done[scene.scene_id] = (scene.view, method)
+        while len(self.done) > DONE_KEPT:
+            del self.done[next(iter(self.done))]
+
+    def mark_made(self, left: str, right: str) -> None:
+        """A single-camera pair was made (the latest :data:`MADE_KEPT` kept)."""
+        self.made[frozenset((left, right))] = None
+        while len(self.made) > MADE_KEPT:
+            del self.made[next(iter(self.made))]
+
+    # ---- what anyone may ask ----------------------------------------------------------------
+    def selected_scene_ids(self) -> set[str]:
+        """Scene ids that a selected pair not made yet still needs."""
+        return {s for pair in self.selection or () for s in pair}
+
+    def state(self, index: int) -> PairState:
+        """Where pair ``index`` (two views: the k-th scenes) is."""
+        if index in self.streams:
+            return PairState.STREAMING
+        if index in self.held_until and index not in self.not_streamed:
+            return PairState.HELD
+        if index in self.not_streamed:
+            return PairState.WHOLE
+        if index in self._made_index:
+            return PairState.MADE
+        return PairState.WAITING
+
+    def first_lines(self) -> list[int]:
+        """First line times of the streamed pairs' scenes (the navigation they still need)."""
+        return [
+            side.result.scene.first_line_ns
+            for stream in self.streams.values()
+            for side in stream.sides.values()
+        ]
+
+    def counts(self) -> dict[str, int]:
+        """The ledger at a glance (the node's summary): pairs and scenes in each state.
+
+        Read from another thread (the node's 1 Hz summary), so only whole-dict copies are
+        iterated.
+        """
+        return {
+            "pairs_streaming": len(self.streams),
+            "pairs_held": sum(1 for k in list(self.held_until) if not self.decided(k)),
+            "scenes_waiting_navigation": len(self.waiting),
+            "scenes_waiting_partner": sum(len(r) for r in self.ready.values()),
+            "pairs_made": self.pairs_made,
+        }
