@@ -151,9 +151,9 @@ def test_auto_prefault_is_two_raw_pairs() -> None:
     """prefault_mb -1 (the default): two raw pairs of the configured scenes, 0 without them."""
     from dataclasses import replace
 
+    from parproj_ros.core.admission import auto_prefault_mb
     from parproj_ros.core.config import PipelineConfig
     from parproj_ros.core.params import PARAMS
-    from parproj_ros.core.admission import auto_prefault_mb
     from parproj_ros.sim.synthetic import make_platform
 
     assert next(p for p in PARAMS if p.name == "prefault_mb").default == -1.0
