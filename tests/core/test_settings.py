@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pickle
 from dataclasses import fields, replace
+from typing import Literal, get_args, get_origin, get_type_hints
 
 import pytest
 
@@ -106,3 +107,17 @@ def test_config_survives_pickling() -> None:
     cfg = PipelineConfig(VIEWS, heights=True, output_extent="union")
     back = pickle.loads(pickle.dumps(cfg))
     assert back.dense == cfg.dense and back.output == cfg.output and back.heights
+
+
+def test_group_field_types_are_the_row_types() -> None:
+    """Each field's annotation is its row's type; a closed set is the row's choices."""
+    plain = {"bool": bool, "integer": int, "double": float, "string": str}
+    rows = {p.target: p for p in PARAMS if p.target is not None}
+    for concern, cls in GROUPS.items():
+        hints = get_type_hints(cls)
+        for f in fields(cls):
+            p, hint = rows[(concern, f.name)], hints[f.name]
+            if get_origin(hint) is Literal:
+                assert set(get_args(hint)) == set(p.choices), p.name
+            else:
+                assert hint is plain[p.type], p.name
