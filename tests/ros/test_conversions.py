@@ -389,3 +389,62 @@ def test_whole_images_once_and_no_anaglyph() -> None:
     for name in sp_full.get_fields_and_field_types():
         if name not in ("left", "right"):
             assert repr(getattr(sp_full, name)) == repr(getattr(sp_lean, name)), name
+
+
+def test_contract_qos_are_the_node_profiles() -> None:
+    """``qos_profile`` of the contract's QoS gives the rclpy profiles the node has always built
+    (node.py: strips and navigation sensor-data reliability with deep queues, GCP and pair
+    selection reliable transient-local, outputs and /diagnostics ``QoSProfile(depth=10)``)."""
+    from rclpy.qos import (
+        DurabilityPolicy,
+        HistoryPolicy,
+        QoSProfile,
+        ReliabilityPolicy,
+        qos_profile_sensor_data,
+    )
+
+    from parproj_ros.core import contract
+    from parproj_ros.ros.conversions import qos_profile
+
+    sensor = qos_profile_sensor_data.reliability
+    node = {
+        "navigation": QoSProfile(depth=500, reliability=sensor, history=HistoryPolicy.KEEP_LAST),
+        "left/image_strip": QoSProfile(
+            depth=200, reliability=sensor, history=HistoryPolicy.KEEP_LAST
+        ),
+        "gcp": QoSProfile(
+            depth=10,
+            reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL,
+        ),
+        **{t: QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE) for t in OUTPUTS},
+        "/diagnostics": QoSProfile(depth=10),  # create_publisher(..., 10)
+    }
+    node["pairs"] = node["gcp"]
+    for name, profile in node.items():
+        assert qos_profile(contract.topic(name).qos) == profile, name
+    # the bags' presets are rclpy's QoSProfile(depth=10), sensor data and a latched depth 1
+    assert qos_profile(contract.BAG_QOS["reliable"]) == QoSProfile(depth=10)
+    assert qos_profile(contract.BAG_QOS["sensor_data"]) == qos_profile_sensor_data
+    latched = QoSProfile(
+        depth=1,
+        reliability=ReliabilityPolicy.RELIABLE,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL,
+    )
+    assert qos_profile(contract.BAG_QOS["transient_local"]) == latched
+
+
+#: The published topics, as node.py and process.py have always named them.
+OUTPUTS = (
+    "parallel_projection",
+    "stereo_pair",
+    "left/image_normalized",
+    "right/image_normalized",
+    "anaglyph",
+    "left/normalized_block",
+    "right/normalized_block",
+    "disparity",
+    "height",
+    "dsm",
+    "dsm_fused",
+)
