@@ -16,6 +16,7 @@ result is a float32 disparity map in the left normalized image's pixel grid, NaN
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -213,11 +214,18 @@ def sgbm_matcher(params: SgbmParams, dmin: int, ndisp: int) -> cv2.StereoSGBM:
 
 
 def _texture(image: UInt8Array, size: int) -> Float32Array:
-    """Local standard deviation of the horizontal gradient over size x size, DN per pixel."""
-    f = cv2.Sobel(image.astype(np.float32), cv2.CV_32F, 1, 0, ksize=1) * np.float32(0.5)
-    m = cv2.boxFilter(f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
-    m2 = cv2.boxFilter(f * f, cv2.CV_32F, (size, size), borderType=cv2.BORDER_REFLECT)
-    return cast("Float32Array", np.sqrt(np.maximum(m2 - m * m, 0.0)))
+    """Local variance of the horizontal gradient over size x size, (DN per pixel)^2.
+
+    The gradient is the central difference; compare the result with the square of a
+    standard deviation.
+    """
+    f = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    box = (size, size)
+    m = cast("Float32Array", cv2.boxFilter(f, cv2.CV_32F, box, borderType=cv2.BORDER_REFLECT))
+    var = cast("Float32Array", cv2.sqrBoxFilter(f, cv2.CV_32F, box, borderType=cv2.BORDER_REFLECT))
+    m *= m
+    var -= m
+    return var
 
 
 # Outcome codes of a pixel (their order is the order of precedence).
@@ -245,6 +253,18 @@ class _Prepared:
     pad: int
     shift: int
 
+    def stretch(self, side: int, part: NDArray[Any]) -> UInt8Array:
+        """``part`` of one image stretched to uint8 (:func:`to_uint8` with its limits).
+
+        8- and 16-bit images go through a lookup table of every value (the same figures, a
+        third of the time).
+        """
+        lo, hi = self.limits[side]
+        if part.dtype in (np.uint8, np.uint16):
+            lut = _stretch_table(part.dtype, lo, hi)
+            return cast("UInt8Array", np.take(lut, part))
+        return to_uint8(part, lo, hi)
+
     def window(
         self, side: int, rows: tuple[int, int], cols: tuple[int, int]
     ) -> tuple[UInt8Array, BoolArray]:
@@ -258,37 +278,53 @@ class _Prepared:
         if b > a:
             part = img[r0:r1, a:b]
             m = _valid_mask(part, self.nodata, None if mask is None else mask[r0:r1, a:b])
-            pix[:, a - c0 : b - c0] = np.where(m, to_uint8(part, *self.limits[side]), 0)
+            inner = pix[:, a - c0 : b - c0]
+            inner[...] = self.stretch(side, part)
+            np.copyto(inner, 0, where=~m)
             ok[:, a - c0 : b - c0] = m
         return pix, ok
 
 
+@functools.lru_cache(maxsize=8)
+def _stretch_table(dtype: np.dtype[Any], low: float, high: float) -> UInt8Array:
+    """:func:`to_uint8` of every value of an 8- or 16-bit ``dtype``, indexed by the value."""
+    return to_uint8(np.arange(np.iinfo(dtype).max + 1, dtype=dtype), low, high)
+
+
 def _average_with_partner(
-    dl: Float32Array, raw_r: NDArray[Any], ok: BoolArray, invalid: int
+    dl: Float32Array, xr: Float32Array, raw_r: NDArray[Any], ok: BoolArray, invalid: int
 ) -> Float32Array:
     """The mean of each left disparity and its partner's right disparity, where both agree.
 
     The right disparity is interpolated linearly at the partner's position ``x - d`` (not
     taken at the nearest right pixel): two independent sub-pixel estimates of one parallax,
     whose mean halves the variance of the matching noise that is not common to both (on the
-    Marseille pair 1-2 against s2p: NMAD 0.85 -> 0.84 m; with 8 paths 0.784 -> 0.774 m).
+    Marseille pair 1-2 against s2p: NMAD 0.929 -> 0.918 m; with 8 paths 0.784 -> 0.774 m).
 
     Args:
         dl: left disparities (rows, cols), pixels.
-        raw_r: OpenCV's right disparities of the mirrored pass (16 x pixels), in the right
-            window's columns.
+        xr: the partners' columns ``x - dl`` in the right window, pixels (same shape).
+        raw_r: OpenCV's right disparities of the mirrored pass (16 x pixels) over the right
+            window (rows, window columns).
         ok: the left pixels whose partner passed the left-right check.
         invalid: OpenCV's code of a right pixel without disparity.
     """
-    width = dl.shape[1]
-    xr = np.arange(width, dtype=np.float32)[None, :] - dl
-    f0 = np.clip(np.floor(xr).astype(np.int64), 0, width - 2)
-    w = np.clip(xr - f0, 0.0, 1.0).astype(np.float32)
-    rows = np.arange(dl.shape[0])[:, None]
-    r0, r1 = raw_r[rows, f0], raw_r[rows, f0 + 1]
+    width = raw_r.shape[1]
+    f0 = np.floor(xr)
+    np.clip(f0, 0, width - 2, out=f0)
+    w = xr - f0
+    np.clip(w, 0.0, 1.0, out=w)
+    idx = f0.astype(np.int32)
+    idx += (np.arange(dl.shape[0], dtype=np.int32) * width)[:, None]
+    flat = raw_r.ravel()
+    r0 = flat.take(idx)
+    idx += 1
+    r1 = flat.take(idx)
     both = ok & (r0 != invalid) & (r1 != invalid)
     partner = ((1.0 - w) * r0 + w * r1) / np.float32(16.0)
-    out: Float32Array = np.where(both, np.float32(0.5) * (dl + partner), dl).astype(np.float32)
+    partner += dl
+    partner *= np.float32(0.5)
+    out: Float32Array = np.where(both, partner, dl)
     return out
 
 
@@ -302,50 +338,67 @@ def _match_tile(
     """Disparity and outcome codes of left columns cols[0]:cols[1], rows rows[0]:rows[1].
 
     Both images are cut to the same extended column window (the tile plus ``pad`` on each
-    side, no data outside the image), so that every searched partner is inside it.
+    side, no data outside the image), so that every searched partner is inside it. The
+    checks run on the tile's own columns only; a partner is looked up in the right window
+    with ``cv2.remap`` (nearest: the same pixel as ``rint``; outside the window: no data).
     """
     a, b = cols
     ext = (a - prep.pad, b + prep.pad)
     lwin, lok = prep.window(0, rows, ext)
     rwin, rok = prep.window(1, rows, (ext[0] - prep.shift, ext[1] - prep.shift))
     invalid = (prep.dmin - 1) * 16
+    s = slice(prep.pad, prep.pad + (b - a))
     raw_l = matcher.compute(lwin, rwin)
-    dl = raw_l.astype(np.float32) / 16.0
-    width = lwin.shape[1]
+    dl = raw_l[:, s].astype(np.float32)
+    dl *= np.float32(1.0 / 16.0)
+    n_rows = lwin.shape[0]
     half = params.block_size // 2
     # No data, or a block that reaches into no data.
-    lbad = ~lok
-    rbad = ~rok
+    lbad = (~lok).view(np.uint8)
+    rbad = (~rok).view(np.uint8)
     if half > 0:
         kernel = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
-        lbad = cv2.dilate(lbad.astype(np.uint8), kernel).astype(bool)
-        rbad = cv2.dilate(rbad.astype(np.uint8), kernel).astype(bool)
-    code = np.full(lwin.shape, _VALID, dtype=np.uint8)
+        lbad = cast("UInt8Array", cv2.dilate(lbad, kernel))
+        rbad = cast("UInt8Array", cv2.dilate(rbad, kernel))
     # The partner (the right pixel nearest to x - d) must have data and, with the "flip"
     # check, point back within tolerance.
-    xs = np.arange(width, dtype=np.float32)[None, :]
-    u = np.rint(xs - dl).astype(np.int64)
-    inside = (u >= 0) & (u < width)
-    uc = np.clip(u, 0, width - 1)
-    rr = np.arange(lwin.shape[0])[:, None]
-    lr_ok = inside & ~rbad[rr, uc]
-    if params.lr_check == "flip":
-        raw_r = matcher.compute(
-            np.ascontiguousarray(rwin[:, ::-1]), np.ascontiguousarray(lwin[:, ::-1])
-        )[:, ::-1]  # disparity of each right pixel u: its left partner is u + d
-        back = raw_r[rr, uc]
-        lr_ok &= (back != invalid) & (
-            np.abs(back.astype(np.float32) / 16.0 - dl) <= params.lr_tolerance_px
+    xr = np.arange(s.start, s.stop, dtype=np.float32)[None, :] - dl
+    yr = np.broadcast_to(np.arange(n_rows, dtype=np.float32)[:, None], xr.shape)
+    yr = np.ascontiguousarray(yr)
+
+    def partner(image: NDArray[Any], outside: int) -> NDArray[Any]:
+        return cast(
+            "NDArray[Any]",
+            cv2.remap(
+                image,
+                xr,
+                yr,
+                cv2.INTER_NEAREST,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=outside,
+            ),
         )
-        dl = _average_with_partner(dl, raw_r, lr_ok, invalid)
+
+    lr_ok = partner(rbad, 1) == 0
+    if params.lr_check == "flip":
+        # disparity of each right pixel u: its left partner is u + d
+        raw_r = cv2.flip(matcher.compute(cv2.flip(rwin, 1), cv2.flip(lwin, 1)), 1)
+        back = partner(raw_r, invalid)
+        diff = back.astype(np.float32)
+        diff *= np.float32(1.0 / 16.0)
+        diff -= dl
+        lr_ok &= (back != invalid) & (np.abs(diff) <= params.lr_tolerance_px)
+        dl = _average_with_partner(dl, xr, raw_r, lr_ok, invalid)
+    code = np.full(dl.shape, _VALID, dtype=np.uint8)
     code[~lr_ok] = _LR
-    code[raw_l == invalid] = _NO_MATCH
-    low = _texture(lwin, 2 * params.block_size + 1) < params.min_texture_dn
-    code[low] = _LOW_TEXTURE
-    code[lbad] = _NODATA
-    out = np.where(code == _VALID, dl + np.float32(prep.shift), np.float32(np.nan))
-    s = slice(prep.pad, prep.pad + (b - a))
-    return out[:, s].astype(np.float32), code[:, s]
+    code[raw_l[:, s] == invalid] = _NO_MATCH
+    if params.min_texture_dn > 0:
+        var = _texture(lwin, 2 * params.block_size + 1)[:, s]
+        code[var < params.min_texture_dn**2] = _LOW_TEXTURE
+    code[lbad[:, s] != 0] = _NODATA
+    dl += np.float32(prep.shift)
+    dl[code != _VALID] = np.nan
+    return dl, code
 
 
 def _spans(n: int, tile: int) -> list[tuple[int, int]]:

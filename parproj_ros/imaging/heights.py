@@ -321,6 +321,7 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
         ((dr * dr + dc * dc, dr, dc) for dr in range(-r, r + 1) for dc in range(-r, r + 1)),
     )
     src = heights.copy()
+    has = ~holes
     todo = holes.copy()
     rows, cols = heights.shape
     for d2, dr, dc in offsets:
@@ -331,9 +332,9 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
         tj = slice(max(0, -dc), cols - max(0, dc))
         si = slice(max(0, dr), rows - max(0, -dr))
         sj = slice(max(0, dc), cols - max(0, -dc))
-        take = todo[ti, tj] & np.isfinite(src[si, sj])
-        heights[ti, tj][take] = src[si, sj][take]
-        todo[ti, tj][take] = False
+        take = todo[ti, tj] & has[si, sj]
+        np.copyto(heights[ti, tj], src[si, sj], where=take)
+        todo[ti, tj] &= ~take
     out: BoolArray = holes & ~todo
     return out
 
@@ -399,28 +400,39 @@ def make_dsm(
     count = np.zeros(n_cells, dtype=np.int64)
     keys: list[NDArray[np.int64]] = []
     vals: list[Float32Array] = []
+    # The cell of pixel (c, r) at height z: floor(k . (c, r, z) + k0), k per cell axis (the
+    # mapping is affine), with the terms of c and r broadcast over the block.
+    m, v = mapping._pixel_to_ground
+    kc = np.array([m[0, 0], m[0, 1], v[0], m[0, 2] - grid.x0]) / grid.cell
+    kr = np.array([m[1, 0], m[1, 1], v[1], m[1, 2] - grid.y0]) / -grid.cell
+    pix_cols = np.arange(disparity.shape[1], dtype=float)
     for r0, r1 in _spans(h, block_rows):
-        d = disparity[r0:r1]
-        rr, cc = np.nonzero(np.isfinite(d))
-        if rr.size == 0:
-            continue
-        z = heights_from_disparity(d[rr, cc], a, b)
-        x, y = mapping.pixel_to_ground(cc, rr + r0, z)
-        gr, gc = grid.index(x, y)
-        inside = (gr >= 0) & (gr < grid.height) & (gc >= 0) & (gc < grid.width)
-        idx = gr[inside] * grid.width + gc[inside]
-        zin = z[inside]
+        z = heights_from_disparity(disparity[r0:r1], a, b)  # NaN where no disparity
+        pix_rows = np.arange(r0, r1, dtype=float)[:, None]
+        fc = kc[0] * pix_cols + (kc[1] * pix_rows + (kc[3] + 0.5))
+        fc += kc[2] * z
+        np.floor(fc, out=fc)
+        fr = kr[0] * pix_cols + (kr[1] * pix_rows + (kr[3] + 0.5))
+        fr += kr[2] * z
+        np.floor(fr, out=fr)
+        # NaN (no disparity) compares False: outside
+        inside = (fc >= 0) & (fc < grid.width) & (fr >= 0) & (fr < grid.height)
+        fr *= grid.width
+        fr += fc
+        idx = fr[inside].astype(np.int64)
         if idx.size == 0:
             continue
+        zin = z[inside]
         if reducer == "median":
             keys.append(idx)
             vals.append(zin)
         lo = int(idx.min())
         n = int(idx.max()) - lo + 1
-        sums[lo : lo + n] += np.bincount(idx - lo, weights=zin.astype(np.float64), minlength=n)
-        count[lo : lo + n] += np.bincount(idx - lo, minlength=n)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(count > 0, sums / np.maximum(count, 1), np.nan)
+        rel = idx - lo
+        sums[lo : lo + n] += np.bincount(rel, weights=zin, minlength=n)
+        count[lo : lo + n] += np.bincount(rel, minlength=n)
+    out = np.full(n_cells, np.nan)
+    np.divide(sums, count, out=out, where=count > 0)
     if reducer == "median" and keys:
         k = np.concatenate(keys)
         v = np.concatenate(vals)
@@ -475,26 +487,48 @@ def orthoimage(
     """
     g = dsm.grid
     out = np.full((g.height, g.width), nodata, dtype=image.dtype)
+    if scene is None:
+        # pixel = K (X, Y, Z, 1) (affine): the terms of X and Y broadcast over each block
+        pix = _ground_to_pixel_matrix(mapping)
+        xs = g.x0 + g.cell * np.arange(g.width, dtype=float)
     for r0, r1 in _spans(g.height, block_rows):
-        x, y = g.centres((r0, r1))
-        z = dsm.heights[r0:r1].astype(float)
+        z = dsm.heights[r0:r1]
         ok = np.isfinite(z)
-        zz = np.where(ok, z, 0.0)
         if scene is None:
-            col, row = mapping.ground_to_pixel(x, y, zz)
+            ys = (g.y0 - g.cell * np.arange(r0, r1, dtype=float))[:, None]
+            col, row = (
+                (k[0] * xs + (k[1] * ys + k[3])).astype(np.float32) + np.float32(k[2]) * z
+                for k in pix
+            )
         else:
+            x, y = g.centres((r0, r1))
+            zz = np.where(ok, z.astype(float), 0.0)
             xn, yn = mapping.ground_to_normalized(x, y, zz)
-            row, col = scene.normalized_to_image(xn, yn)
-        col = np.where(ok, col, -1e6)
-        row = np.where(ok, row, -1e6)
+            row64, col64 = scene.normalized_to_image(xn, yn)
+            col, row = col64.astype(np.float32), row64.astype(np.float32)
+        col[~ok] = -1e6
+        row[~ok] = -1e6
         out[r0:r1] = cv2.remap(
             image,
-            col.astype(np.float32),
-            row.astype(np.float32),
+            col,
+            row,
             interpolation,
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=float(nodata),
         )
+    return out
+
+
+def _ground_to_pixel_matrix(mapping: GroundMapping) -> FloatArray:
+    """2x4 K: normalized pixel (col, row) = K (X, Y, Z, 1) of ``mapping`` (metres in)."""
+    a = mapping.affine.matrix  # scene (x, y') = a (X, Y, Z, 1)
+    h = mapping.to_normalized  # normalized metres = h (x, y', 1)
+    g = mapping.grid
+    k = h[:, :2] @ a
+    k[:, 3] += h[:, 2]
+    k[0, 3] -= g.x_origin
+    k[1, 3] -= g.y_origin
+    out: FloatArray = k / g.pixel
     return out
 
 
