@@ -38,6 +38,7 @@ import importlib.util
 import json
 import os
 import re
+import shlex
 import shutil
 import stat
 import struct
@@ -58,7 +59,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Schema
+from mcap.records import Channel, Header, Schema
 from mcap.writer import CompressionType, Writer
 
 from ..core import contract
@@ -1113,6 +1114,102 @@ def _regular_size(path: Path) -> int:
     return st.st_size
 
 
+# --------------------------------------------------------------------------------------------
+# Foreign bags: refused by name, with what to do (every command reads bags through BagReader)
+# --------------------------------------------------------------------------------------------
+
+#: The first 16 bytes of every SQLite 3 database, hence of a rosbag2 ``.db3`` file.
+SQLITE_MAGIC = b"SQLite format 3\x00"
+#: A rosbag2 sqlite3 bag: what it is and what to do (``{src}``: the bag, shell-quoted).
+SQLITE_BAG = (
+    "a rosbag2 sqlite3 bag, not MCAP: convert it with `rosbags-convert --src {src} --dst OUT "
+    "--dst-storage mcap` or `ros2 bag convert` (storage_id mcap), then give OUT"
+)
+#: A ROS 1 recording in MCAP: what to do (after what marks it).
+ROS1_ADVICE = (
+    "parproj reads ROS 2 bags (CDR messages); convert the ROS 1 recording's .bag with "
+    "`rosbags-convert --src REC.bag --dst OUT --dst-storage mcap`, then give OUT"
+)
+#: The MCAP profile, message encoding and schema encoding of ROS 1 data.
+ROS1_PROFILE, ROS1_ENCODING, ROS1_SCHEMA_ENCODING = "ros1", "ros1", "ros1msg"
+#: Largest MCAP header record read for its profile (bytes; a writer puts two short strings).
+_MAX_HEADER_BYTES = 1 << 20
+
+
+def _sqlite_bag_error(path: Path) -> BagError:
+    """The one-line refusal of a rosbag2 sqlite3 bag (a ``.db3`` file or its folder)."""
+    return BagError(SQLITE_BAG.format(src=shlex.quote(str(path))), path)
+
+
+def _is_sqlite(path: Path) -> bool:
+    """Whether ``path`` is a regular file starting with SQLite's magic (no FIFO is opened)."""
+    try:
+        if not stat.S_ISREG(path.stat().st_mode):
+            return False
+        with path.open("rb") as f:
+            return f.read(len(SQLITE_MAGIC)) == SQLITE_MAGIC
+    except OSError:
+        return False
+
+
+def _check_folder_storage(folder: Path, metadata: Mapping[str, Any] | None) -> None:
+    """Refuse a rosbag2 folder of another storage than MCAP, by name.
+
+    ``metadata``'s ``storage_identifier`` (``sqlite3``), the ``.db3`` files it lists, or, with
+    no ``.mcap`` file listed or present, a ``.db3`` file in the folder.
+
+    Raises:
+        BagError: a rosbag2 sqlite3 bag, or a storage other than ``mcap`` named by metadata.yaml.
+    """
+    storage = (metadata or {}).get("storage_identifier")
+    listed = [str(p) for p in (metadata or {}).get("relative_file_paths") or []]
+    if storage == "sqlite3" or any(p.endswith(".db3") for p in listed):
+        raise _sqlite_bag_error(folder)
+    if isinstance(storage, str) and storage not in ("", "mcap"):
+        raise BagError(
+            f"a rosbag2 bag of storage {storage!r} (metadata.yaml), not MCAP: convert it with "
+            "`ros2 bag convert` (storage_id mcap), then give the result",
+            folder,
+        )
+    if not listed and not any(folder.glob("*.mcap")) and any(folder.glob("*.db3")):
+        raise _sqlite_bag_error(folder)
+
+
+def _mcap_profile(f: Any) -> str | None:
+    """The profile of the MCAP header record at the file position (after the magic), or None.
+
+    The position is left after the header record (or where it was, if there is none).
+    """
+    start = f.tell()
+    head = f.read(9)
+    if len(head) == 9:
+        opcode, length = _RECORD_HEAD.unpack(head)
+        if opcode == Opcode.HEADER and length <= _MAX_HEADER_BYTES:
+            body = f.read(length)
+            if len(body) == length:
+                with contextlib.suppress(McapError, ValueError, struct.error, EOFError):
+                    return str(Header.read(ReadDataStream(BytesIO(body))).profile)
+    f.seek(start)
+    return None
+
+
+def _ros1_marks(
+    profile: str | None, schemas: Iterable[Schema], channels: Iterable[Channel]
+) -> list[str]:
+    """What marks an MCAP file as ROS 1 data: its profile and encodings (empty: none)."""
+    marks = [f"profile {ROS1_PROFILE!r}"] if profile == ROS1_PROFILE else []
+    if any(ch.message_encoding == ROS1_ENCODING for ch in channels):
+        marks.append(f"message encoding {ROS1_ENCODING!r}")
+    if any(s.encoding == ROS1_SCHEMA_ENCODING for s in schemas):
+        marks.append(f"schema encoding {ROS1_SCHEMA_ENCODING!r}")
+    return marks
+
+
+def _ros1_bag_error(path: Path, marks: list[str]) -> BagError:
+    """The one-line refusal of a ROS 1 recording in MCAP."""
+    return BagError(f"a ROS 1 bag in MCAP ({', '.join(marks)}): {ROS1_ADVICE}", path)
+
+
 def _read_metadata(meta_path: Path) -> dict[str, Any] | None:
     """The ``rosbag2_bagfile_information`` mapping of a ``metadata.yaml``, checked.
 
@@ -1164,8 +1261,15 @@ def _index_file(path: Path, validate_crcs: bool) -> _FileIndex:
     index = _FileIndex(path)
     size = _regular_size(path)
     with path.open("rb") as f:
-        if f.read(8) != _MAGIC:
+        magic = f.read(len(SQLITE_MAGIC))
+        if magic == SQLITE_MAGIC:
+            raise _sqlite_bag_error(path)
+        if magic[:8] != _MAGIC:
             raise BagError("not an MCAP file (bad magic)", path)
+        f.seek(8)
+        profile = _mcap_profile(f)
+        if profile == ROS1_PROFILE:  # refused before anything else is read
+            raise _ros1_bag_error(path, _ros1_marks(profile, (), ()))
         f.seek(max(0, size - 8))
         closed = size >= 8 + 9 + 20 + 8 and f.read(8) == _MAGIC
         summary = None
@@ -1188,13 +1292,16 @@ def _index_file(path: Path, validate_crcs: bool) -> _FileIndex:
             index.chunk_channels = {
                 int(ci.chunk_start_offset): frozenset(ci.message_index_offsets) for ci in chunks
             }
-        return index
-    for msg in _scan(index, index.recovery, validate_crcs=validate_crcs):
-        index.counts[msg.channel_id] = index.counts.get(msg.channel_id, 0) + 1
-        t = msg.log_time
-        index.start_ns = t if index.start_ns is None else min(index.start_ns, t)
-        index.end_ns = t if index.end_ns is None else max(index.end_ns, t)
-        index.recovery.messages_read += 1
+    else:
+        for msg in _scan(index, index.recovery, validate_crcs=validate_crcs):
+            index.counts[msg.channel_id] = index.counts.get(msg.channel_id, 0) + 1
+            t = msg.log_time
+            index.start_ns = t if index.start_ns is None else min(index.start_ns, t)
+            index.end_ns = t if index.end_ns is None else max(index.end_ns, t)
+            index.recovery.messages_read += 1
+    marks = _ros1_marks(profile, index.schemas.values(), index.channels.values())
+    if marks:
+        raise _ros1_bag_error(path, marks)
     return index
 
 
@@ -1222,7 +1329,10 @@ class BagReader:
     Raises:
         FileNotFoundError: No such path, no MCAP file in the folder, or a file listed in
             ``metadata.yaml`` is missing.
-        BagError: A file is not MCAP.
+        BagError: A file is not MCAP; a rosbag2 sqlite3 bag (a ``.db3`` file, or a folder
+            whose metadata.yaml or files say so) or a ROS 1 recording in MCAP (profile
+            ``ros1``, message encoding ``ros1``, schema encoding ``ros1msg``), each refused
+            in one line saying what it is and how to convert it.
 
     """
 
@@ -1234,6 +1344,7 @@ class BagReader:
             meta_path = self.path / "metadata.yaml"
             if meta_path.exists() or meta_path.is_symlink():
                 self.metadata = _read_metadata(meta_path)
+            _check_folder_storage(self.path, self.metadata)
             listed = (self.metadata or {}).get("relative_file_paths")
             if listed:
                 self.files = [self.path / Path(p).name for p in listed]
