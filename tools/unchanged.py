@@ -39,6 +39,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -757,6 +758,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = args.out or Path("/tmp") / f"unchanged_{base_t.rev[:7]}_{cur_t.rev[:7]}"
         if out.resolve().is_relative_to(ROOT):
             raise SetupError(f"--out {out} is inside the checkout; choose a folder outside it")
+        for old in [out / "base", out / "current", *out.glob("probe_*")]:
+            shutil.rmtree(old, ignore_errors=True)  # no result of an earlier run is compared
         env = environment(args, out)
         base, cur = (Runner.make(t, env, out / "logs") for t in trees)
         for r in (base, cur):
