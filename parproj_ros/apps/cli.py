@@ -48,9 +48,40 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: {message} (see {self.prog} --help)\n")
 
 
+def package_version() -> str:
+    """The installed package's version (its metadata); the source's ``__version__`` if none."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("parproj_ros")
+    except PackageNotFoundError:  # run from a checkout that is not installed
+        from .. import __version__
+
+        return __version__
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: ``parproj <version>`` on stdout, exit 0 (the metadata read only then)."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        kwargs.setdefault("help", "print parproj's version and exit")
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        print(f"{parser.prog} {package_version()}")
+        parser.exit(EXIT_OK)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``parproj`` (one sub-command per offline job)."""
     parser = _Parser(prog="parproj", description=(__doc__ or "").split("\n")[0])
+    parser.add_argument("--version", action=_VersionAction, dest="version")
     parser.add_argument(
         "--debug",
         action="store_true",

@@ -579,6 +579,8 @@ def test_one_line_exit_2(
 #: Options of other programs that messages may name: ROS 2's (``ros2 run ... --ros-args
 #: --params-file FILE``), which parproj_node takes from the ROS 2 command line.
 FOREIGN_OPTIONS = {"--ros-args": "ROS 2", "--params-file": "ROS 2"}
+#: rosbags-convert's, in the foreign-bag advice of parproj_ros/ros/bag.py.
+FOREIGN_OPTIONS |= dict.fromkeys(("--src", "--dst", "--dst-storage"), "rosbags-convert")
 _OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:-[a-z0-9]+)*")
 
 
