@@ -77,7 +77,11 @@ class SgbmParams:
             memory).
         lr_check: "flip" (default): a second, right-to-left SGBM pass on both images mirrored
             and swapped, and the left and right disparities compared (where they agree, the
-            disparity is their mean); "none": no check (half the time; only partners without
+            disparity is their mean); "reduced": the right-to-left pass on both images
+            reduced by 2 (a quarter of the pixels, half the disparities: some 0.3 of a pass),
+            its disparities interpolated back and compared, no mean (Marseille 1-2 against
+            s2p: NMAD 0.925 against 0.918 m, 97.3 against 98.2 % complete; docs/heights.md);
+            "none": no check (half the time; only partners without
             data are rejected). OpenCV's own check
             (``disp12MaxDiff``) is not offered: it removed nothing here that the uniqueness
             test had not removed already.
@@ -99,7 +103,7 @@ class SgbmParams:
     speckle_window: int = 100
     speckle_range: int = 2
     mode: int = cv2.STEREO_SGBM_MODE_SGBM_3WAY
-    lr_check: Literal["flip", "none"] = "flip"
+    lr_check: Literal["flip", "reduced", "none"] = "flip"
     lr_tolerance_px: float = 1.0
     min_texture_dn: float = 1.0
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)
@@ -107,8 +111,10 @@ class SgbmParams:
     min_valid_share: float = 0.2
 
     def __post_init__(self) -> None:
-        if self.lr_check not in ("flip", "none"):
-            raise ValueError(f"lr_check must be 'flip' or 'none', got {self.lr_check!r}")
+        if self.lr_check not in ("flip", "reduced", "none"):
+            raise ValueError(
+                f"lr_check must be 'flip', 'reduced' or 'none', got {self.lr_check!r}"
+            )
         if self.block_size < 1 or self.block_size % 2 == 0:
             raise ValueError(f"block_size must be odd and >= 1, got {self.block_size}")
         lo, hi = self.stretch_percentiles
@@ -366,7 +372,7 @@ def _match_tile(
     yr = np.broadcast_to(np.arange(n_rows, dtype=np.float32)[:, None], xr.shape)
     yr = np.ascontiguousarray(yr)
 
-    def partner(image: NDArray[Any], outside: int) -> NDArray[Any]:
+    def partner(image: NDArray[Any], outside: float) -> NDArray[Any]:
         return cast(
             "NDArray[Any]",
             cv2.remap(
@@ -389,6 +395,11 @@ def _match_tile(
         diff -= dl
         lr_ok &= (back != invalid) & (np.abs(diff) <= params.lr_tolerance_px)
         dl = _average_with_partner(dl, xr, raw_r, lr_ok, invalid)
+    elif params.lr_check == "reduced":
+        right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
+        diff = partner(right_d, math.nan)  # NaN outside the window and where it has none
+        diff -= dl
+        lr_ok &= np.abs(diff) <= params.lr_tolerance_px  # False for NaN
     code = np.full(dl.shape, _VALID, dtype=np.uint8)
     code[~lr_ok] = _LR
     code[raw_l[:, s] == invalid] = _NO_MATCH
@@ -399,6 +410,38 @@ def _match_tile(
     dl += np.float32(prep.shift)
     dl[code != _VALID] = np.nan
     return dl, code
+
+
+def _reduced_right_pass(
+    lwin: UInt8Array, rwin: UInt8Array, dmin: int, ndisp: int, params: SgbmParams
+) -> Float32Array:
+    """Disparities of the right window's pixels from a pass at half resolution, pixels.
+
+    Both windows are mirrored and swapped (as the "flip" check does), cut to even sizes,
+    reduced by 2 x 2 means, matched over the halved range, and the disparities (doubled)
+    interpolated back onto the full-resolution right window (NaN where the reduced pass has
+    none, or next to such a pixel).
+    """
+    rows, cols = lwin.shape
+    hr, hc = rows // 2, cols // 2
+    if hr < 1 or hc < 1:
+        return np.full(lwin.shape, np.nan, dtype=np.float32)
+    small = [
+        cv2.resize(cv2.flip(img, 1)[: 2 * hr, : 2 * hc], (hc, hr), interpolation=cv2.INTER_AREA)
+        for img in (rwin, lwin)
+    ]
+    lo = math.floor(dmin / 2) - 1
+    hi = math.ceil((dmin + ndisp - 1) / 2) + 1
+    nd = max(16, math.ceil((hi - lo + 1) / 16) * 16)
+    raw = sgbm_matcher(params, lo, nd).compute(small[0], small[1])
+    d = raw.astype(np.float32)
+    d *= np.float32(2.0 / 16.0)
+    d[raw == (lo - 1) * 16] = np.nan
+    out = np.full(lwin.shape, np.nan, dtype=np.float32)
+    # a reduced pixel is the mean of 2 x 2: its centre is full-resolution (2 j + 0.5), which
+    # is where a 2x linear enlargement puts it; then mirrored back
+    out[: 2 * hr, : 2 * hc] = cv2.resize(d, (2 * hc, 2 * hr), interpolation=cv2.INTER_LINEAR)
+    return cast("Float32Array", cv2.flip(out, 1))
 
 
 def _spans(n: int, tile: int) -> list[tuple[int, int]]:

@@ -350,7 +350,7 @@ def make_dsm(
     reducer: Literal["mean", "median"] = "mean",
     fill: Literal["none", "nearest"] = "none",
     max_fill_cells: float = 3.0,
-    block_rows: int = 512,
+    block_px: int = 1 << 22,
 ) -> Dsm:
     """Grid the heights of a left disparity map in the object frame.
 
@@ -372,7 +372,9 @@ def make_dsm(
         fill: "nearest" fills holes from the nearest cell with points, up to
             ``max_fill_cells`` cells away, and flags them in :attr:`Dsm.filled`.
         max_fill_cells: largest filled distance, cells.
-        block_rows: disparity rows handled at once (bounds the temporaries).
+        block_px: disparity pixels handled at once, in whole rows (at least one; bounds the
+            temporaries, some 40 bytes per pixel; each block also costs a pass over the
+            cells it reaches, so blocks smaller than the grid cost more time).
 
     Returns:
         The DSM (all NaN when the map has no valid pixel).
@@ -406,7 +408,7 @@ def make_dsm(
     kc = np.array([m[0, 0], m[0, 1], v[0], m[0, 2] - grid.x0]) / grid.cell
     kr = np.array([m[1, 0], m[1, 1], v[1], m[1, 2] - grid.y0]) / -grid.cell
     pix_cols = np.arange(disparity.shape[1], dtype=float)
-    for r0, r1 in _spans(h, block_rows):
+    for r0, r1 in _spans(h, max(1, block_px // max(1, disparity.shape[1]))):
         z = heights_from_disparity(disparity[r0:r1], a, b)  # NaN where no disparity
         pix_rows = np.arange(r0, r1, dtype=float)[:, None]
         fc = kc[0] * pix_cols + (kc[1] * pix_rows + (kc[3] + 0.5))
@@ -431,8 +433,8 @@ def make_dsm(
         rel = idx - lo
         sums[lo : lo + n] += np.bincount(rel, weights=zin, minlength=n)
         count[lo : lo + n] += np.bincount(rel, minlength=n)
-    out = np.full(n_cells, np.nan)
-    np.divide(sums, count, out=out, where=count > 0)
+    out = np.full(n_cells, np.nan, dtype=np.float32)
+    np.divide(sums, count, out=out, where=count > 0, casting="same_kind")
     if reducer == "median" and keys:
         k = np.concatenate(keys)
         v = np.concatenate(vals)
@@ -443,7 +445,7 @@ def make_dsm(
         lo_i = starts + (lens - 1) // 2
         hi_i = starts + lens // 2
         out[k[starts]] = 0.5 * (v[lo_i].astype(float) + v[hi_i].astype(float))
-    heights = out.reshape(grid.height, grid.width).astype(np.float32)
+    heights = out.reshape(grid.height, grid.width)
     filled = np.zeros(heights.shape, dtype=bool)
     if fill == "nearest" and np.isfinite(heights).any():
         filled = _fill_nearest(heights, max_fill_cells)

@@ -8,6 +8,7 @@ disparity ``col_left - col_right`` is known.
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -169,7 +170,8 @@ def test_left_right_check_rejects_what_the_right_image_does_not_show(
     right[80:160, 120:200] = np.clip(texture(80, 80, seed=7), 1, 2047).astype(np.uint16)
     patch = (slice(90, 150), slice(145, 205))  # left pixels whose partners were replaced
     valid = {}
-    for mode in ("flip", "none"):
+    modes: tuple[Literal["flip", "reduced", "none"], ...] = ("flip", "reduced", "none")
+    for mode in modes:
         res = match_pair(left, right, d_range=(0, 24), params=SgbmParams(lr_check=mode))
         assert res.status == DenseStatus.OK
         valid[mode] = np.isfinite(res.disparity[patch]).mean()
@@ -177,6 +179,8 @@ def test_left_right_check_rejects_what_the_right_image_does_not_show(
         ok[80:160, 110:215] = False
         assert np.median(np.abs(res.disparity[ok] - truth[ok])) < 0.2
     assert valid["flip"] < 0.2 and valid["flip"] < 0.75 * valid["none"], valid
+    # the check on a right pass at half resolution rejects them as well
+    assert valid["reduced"] < 0.2 and valid["reduced"] < 0.75 * valid["none"], valid
     with pytest.raises(ValueError, match="lr_check"):
         SgbmParams(lr_check="internal")  # type: ignore[arg-type]
 
