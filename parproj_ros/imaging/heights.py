@@ -433,8 +433,8 @@ def make_dsm(
         rel = idx - lo
         sums[lo : lo + n] += np.bincount(rel, weights=zin, minlength=n)
         count[lo : lo + n] += np.bincount(rel, minlength=n)
-    out = np.full(n_cells, np.nan, dtype=np.float32)
-    np.divide(sums, count, out=out, where=count > 0, casting="same_kind")
+    with np.errstate(invalid="ignore"):  # 0 / 0: NaN, a cell without points
+        out = (sums / count).astype(np.float32)
     if reducer == "median" and keys:
         k = np.concatenate(keys)
         v = np.concatenate(vals)
