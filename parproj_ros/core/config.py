@@ -202,6 +202,7 @@ class DenseSettings(_Settings):
     max_fill_cells: float = _default("heights_max_fill_cells")
     matcher: HeightsMatcher = field(default=_default("heights_matcher"))
     fuse_mb: float = _default("heights_fuse_mb")
+    cloud_step: int = _default("dsm_cloud_step")
     tile_px: int = _default("heights_tile_px")
 
 
@@ -362,6 +363,7 @@ class PipelineConfig:
     heights_tile_px = _Flat[int]()
     heights_fuse_mb = _Flat[float]()
     heights_matcher = _Flat[HeightsMatcher]()
+    dsm_cloud_step = _Flat[int]()
     nav_jump_s = _Flat[float]()
     nav_position_tolerance_m = _Flat[float]()
     segment_max_error_px = _Flat[float]()

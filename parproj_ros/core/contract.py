@@ -49,7 +49,9 @@ __all__ = [
     "DIAGNOSTICS",
     "DISPARITY",
     "DSM",
+    "DSM_CLOUD",
     "DSM_FUSED",
+    "DSM_FUSED_CLOUD",
     "FRAME_TOPICS",
     "GCP",
     "HEIGHT",
@@ -193,7 +195,9 @@ ANAGLYPH = "anaglyph"
 DISPARITY = "disparity"
 HEIGHT = "height"
 DSM = "dsm"
+DSM_CLOUD = "dsm_cloud"
 DSM_FUSED = "dsm_fused"
+DSM_FUSED_CLOUD = "dsm_fused_cloud"
 DIAGNOSTICS = "/diagnostics"
 
 #: The child (body) frame of navigation.
@@ -274,6 +278,7 @@ _IMAGE = "sensor_msgs/msg/Image"
 _POINTS = "parproj_msgs/msg/GroundControlPoints"
 _GRID = "parproj_msgs/msg/ElevationGrid"
 _BLOCK = "parproj_msgs/msg/NormalizedBlock"
+_CLOUD = "sensor_msgs/msg/PointCloud2"
 
 #: Input topics, in the order a simulated input bag declares them.
 INPUTS: tuple[Topic, ...] = (
@@ -420,6 +425,18 @@ OUTPUTS: tuple[Topic, ...] = (
         "`HeightsResult.dsm`, `HeightsResult.ortho` (`Outputs.heights`)",
     ),
     Topic(
+        DSM_CLOUD,
+        _CLOUD,
+        OUTPUT_QOS,
+        "reliable",
+        "`heights` on and `dsm_cloud_step` not 0: the same DSM for viewers (RViz, Foxglove): one "
+        "point per DSM cell with a height, every `dsm_cloud_step`-th row and column (-1: the "
+        "least step giving at most 2 M points), fields x y z intensity (float32; x y z the "
+        "cell centre and its height, metres in the object frame; intensity the ortho-image's "
+        "value); NaN cells left out (`is_dense`, one row)",
+        "`HeightsResult.dsm`, `HeightsResult.ortho` (`Outputs.heights`)",
+    ),
+    Topic(
         DSM_FUSED,
         _GRID,
         OUTPUT_QOS,
@@ -429,6 +446,14 @@ OUTPUTS: tuple[Topic, ...] = (
         "(`pair_id` `fused:<pair>,<pair>,...`; heights only: per cell the weighted mean of the "
         "samples near their median, after the pairs' level offsets; `parproj_ros/core/fusion.py`)"
         "; the offsets before and after on `/diagnostics`",
+        "`Outputs.fused` (`FusedResult`)",
+    ),
+    Topic(
+        DSM_FUSED_CLOUD,
+        _CLOUD,
+        OUTPUT_QOS,
+        "reliable",
+        "`dsm_fused` as `dsm_cloud` is `dsm`: fields x y z (no ortho-image), same decimation",
         "`Outputs.fused` (`FusedResult`)",
     ),
     Topic(

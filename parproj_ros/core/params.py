@@ -37,6 +37,12 @@ CONCERNS: dict[str, str] = {
     "runtime": "parproj_node's process: memory, workers, timers, shutdown",
 }
 
+#: Most points of a DSM cloud with ``dsm_cloud_step`` -1 (the topics ``dsm_cloud`` and
+#: ``dsm_fused_cloud``): what RViz and Foxglove draw and turn interactively, and 32 MB at 16
+#: bytes a point (x y z intensity float32) where the DSM's ElevationGrid takes 6 bytes a cell
+#: (1.1 GB for a full IKONOS-size pair's 13816 x 13336 cells).
+DSM_CLOUD_POINTS = 2_000_000
+
 #: ROS parameter types (rcl_interfaces/ParameterType names, lower case).
 ParamType = Literal["bool", "integer", "double", "string", "string_array", "double_array"]
 
@@ -459,6 +465,23 @@ PARAMS: tuple[Param, ...] = (
         unit="MB",
         low=0.0,
         high=1.0e6,
+        offline=True,
+    ),
+    _p(
+        "dense",
+        "cloud_step",
+        "dsm_cloud_step",
+        "integer",
+        -1,
+        "the DSM (and the fused DSM) as a sensor_msgs/PointCloud2 for viewers (topics dsm_cloud, "
+        "dsm_fused_cloud): one point every this many cells along rows and columns; -1 = the "
+        f"least step giving at most {DSM_CLOUD_POINTS / 1e6:g} M points, which RViz and Foxglove "
+        "draw interactively (1, every cell, for the 787 x 791 cells of bags/airborne_foreaft; "
+        "10 for the 184 M cells of a full IKONOS-size pair, a DSM of 13816 x 13336); 0 = no "
+        "cloud",
+        unit="cells",
+        low=-1,
+        high=100_000,
         offline=True,
     ),
     _p(

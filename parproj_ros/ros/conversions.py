@@ -14,7 +14,7 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from ..core import contract
+from ..core import contract, params
 from ..core.contract import OUTPUT_TOPICS as OUTPUT_TOPICS  # the node's, process's (for now)
 from ..core.contract import PAIR_IMAGE_TOPICS as PAIR_IMAGE_TOPICS
 from ..core.results import METHODS, BlockResult, GroundPoint, Level, PairResult, SceneResult
@@ -117,14 +117,21 @@ def array_to_image(
     # place: assigning ``msg.data`` copies again without ROS_PYTHON_CHECK_FIELDS (the setter
     # runs array.array('B', value): 2.2 s of the offline run's 36 s at full size), and bytes
     # are checked element by element with it (0.7 s against 0.013 s for 14 MB).
-    little = _little_endian(a)
+    _fill_data(msg, _little_endian(a))
+    return msg
+
+
+def _fill_data(msg: Any, arr: NDArray[Any]) -> None:
+    """``msg.data`` (a uint8[] field) := the bytes of the C-contiguous ``arr``, one copy.
+
+    Into the message's own array.array('B'), filled in place (see :func:`array_to_image`).
+    """
     data = msg.data
     if not isinstance(data, array.array) or data.typecode != "B":
         msg.data = array.array("B")
         data = msg.data
     del data[:]
-    data.frombytes(cast(Any, little.reshape(-1).view(np.uint8)))
-    return msg
+    data.frombytes(cast(Any, arr.reshape(-1).view(np.uint8)))
 
 
 def odometry_to_sample(msg: Any) -> NavSample:
@@ -367,6 +374,7 @@ def outputs_to_messages(
     stereo_pair_images: bool = True,
     anaglyph: bool = True,
     raw_blocks: bool = False,
+    dsm_cloud_step: int = params.default("dsm_cloud_step"),
 ) -> list[tuple[str, Any, int]]:
     """Pipeline outputs -> [(topic, message, stamp_ns)] on the node's published topics.
 
@@ -375,6 +383,8 @@ def outputs_to_messages(
     out once, on ``left/image_normalized`` and ``right/image_normalized``). ``anaglyph``
     false: no ``anaglyph`` message is made. ``raw_blocks``: streamed blocks as CDR bytes
     (:func:`block_to_cdr`; ``Publisher.publish`` and ``BagWriter.write_raw`` take them).
+    ``dsm_cloud_step``: the parameter of that name (cells; -1 auto, 0 no ``dsm_cloud`` and
+    ``dsm_fused_cloud``; :func:`cloud_step`).
     """
     from parproj_msgs.msg import ParallelProjection
     from sensor_msgs.msg import Image
@@ -419,9 +429,16 @@ def outputs_to_messages(
                 msgs.append((contract.ANAGLYPH, ana, pair.stamp_ns))
         msgs.append((contract.STEREO_PAIR, sp, pair.stamp_ns))
     for h in getattr(out, "heights", []):
-        msgs += heights_to_msgs(h, frame_id=frame_id)
+        msgs += heights_to_msgs(h, frame_id=frame_id, dsm_cloud_step=dsm_cloud_step)
     for f in getattr(out, "fused", []):
         msgs.append((contract.DSM_FUSED, fused_to_msg(f, frame_id=frame_id), f.stamp_ns))
+        step = cloud_step(f.fused.heights.shape, dsm_cloud_step)
+        if step:
+            d = f.fused
+            cloud = dsm_to_cloud(
+                d.heights, d.grid, None, step=step, frame_id=frame_id, stamp_ns=f.stamp_ns
+            )
+            msgs.append((contract.DSM_FUSED_CLOUD, cloud, f.stamp_ns))
     if out.issues:
         msgs.append(
             (
@@ -537,8 +554,10 @@ def fused_to_msg(f: Any, *, frame_id: str) -> Any:
     return m
 
 
-def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
-    """A pair's :class:`~parproj_ros.core.results.HeightsResult` -> its three messages.
+def heights_to_msgs(
+    h: Any, *, frame_id: str, dsm_cloud_step: int = params.default("dsm_cloud_step")
+) -> list[tuple[str, Any, int]]:
+    """A pair's :class:`~parproj_ros.core.results.HeightsResult` -> its messages.
 
     ``disparity`` (stereo_msgs/DisparityImage, 32FC1 in the left normalized grid,
     ``col_left - col_right`` pixels; an invalid pixel holds ``min_disparity - 1``, below the
@@ -546,7 +565,8 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
     and baseline, its heights are linear in disparity, ``Z = a d + b``, published as
     StereoPair.height_per_disparity_px and .height_offset_m and applied in ``height``);
     ``height`` (sensor_msgs/Image 32FC1, the same grid, metres, NaN invalid); ``dsm``
-    (parproj_msgs/ElevationGrid, only when there is a DSM).
+    (parproj_msgs/ElevationGrid, only when there is a DSM) and ``dsm_cloud`` (the same DSM as a
+    sensor_msgs/PointCloud2 at :func:`cloud_step` ``(dsm, dsm_cloud_step)``, unless that is 0).
     """
     from parproj_msgs.msg import ElevationGrid
     from sensor_msgs.msg import Image
@@ -602,7 +622,89 @@ def heights_to_msgs(h: Any, *, frame_id: str) -> list[tuple[str, Any, int]]:
         m.terrain_source = str(h.terrain.source)
         m.terrain_points = int(h.terrain.points)
     out.append((contract.DSM, m, h.stamp_ns))
+    step = cloud_step(h.dsm.heights.shape, dsm_cloud_step)
+    if step:
+        cloud = dsm_to_cloud(
+            h.dsm.heights, g, h.ortho, step=step, frame_id=frame_id, stamp_ns=h.stamp_ns
+        )
+        out.append((contract.DSM_CLOUD, cloud, h.stamp_ns))
     return out
+
+
+def cloud_step(shape: tuple[int, ...], step: int) -> int:
+    """The decimation of a DSM's cloud, cells (0: no cloud).
+
+    ``step`` itself, or for -1 the least step giving at most
+    :data:`~parproj_ros.core.params.DSM_CLOUD_POINTS` points. ``shape``: the DSM's (rows,
+    columns). A cloud at step s holds the cells (i s, j s).
+    """
+    if step >= 0:
+        return int(step)
+    rows, cols = (int(n) for n in shape[:2])
+    s = max(1, math.isqrt(max(0, rows * cols - 1) // params.DSM_CLOUD_POINTS))
+    while -(-rows // s) * -(-cols // s) > params.DSM_CLOUD_POINTS:
+        s += 1
+    return s
+
+
+def dsm_to_cloud(
+    heights: NDArray[np.floating[Any]],
+    grid: Any,
+    ortho: NDArray[np.generic] | None,
+    *,
+    step: int,
+    frame_id: str,
+    stamp_ns: int,
+) -> Any:
+    """A DSM -> sensor_msgs/PointCloud2 (filled and returned), for RViz and Foxglove.
+
+    One point per cell (i step, j step) with a finite height, in row-major order: x y z the
+    cell's centre and height (``x0 + col cell``, ``y0 - row cell``, the heights; metres in the
+    object frame ``frame_id``, as ElevationGrid defines them) and, with an ``ortho`` on the same
+    grid, intensity its value; all float32 little-endian. Unorganized (height 1), ``is_dense``
+    (no NaN point), ``point_step`` 16 (12 without ortho). No Python loop over points.
+
+    Raises:
+        ConversionError: ``step`` < 1, or an ortho of another shape than the heights.
+    """
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    if step < 1:
+        raise ConversionError(f"a DSM cloud's step must be >= 1 cell, got {step}")
+    if ortho is not None and ortho.shape[:2] != heights.shape[:2]:
+        raise ConversionError(f"ortho {ortho.shape[:2]} and heights {heights.shape[:2]} differ")
+    z = heights[::step, ::step]
+    ok = np.isfinite(z)
+    rows, cols = np.nonzero(ok)
+    names = ("x", "y", "z") if ortho is None else ("x", "y", "z", "intensity")
+    f4 = np.dtype("<f4")
+    point = np.dtype(
+        {
+            "names": names,
+            "formats": [f4] * len(names),
+            "offsets": [4 * i for i in range(len(names))],
+        }
+    )
+    pts = np.empty(rows.size, dtype=point)
+    pts["x"] = float(grid.x0) + float(grid.cell) * (cols * step).astype(np.float64)
+    pts["y"] = float(grid.y0) - float(grid.cell) * (rows * step).astype(np.float64)
+    pts["z"] = z[ok]
+    if ortho is not None:
+        pts["intensity"] = ortho[::step, ::step][ok]
+    msg = PointCloud2()
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = 1, int(rows.size)
+    msg.fields = [
+        PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+        for i, n in enumerate(names)
+    ]
+    msg.is_bigendian = False
+    msg.point_step = int(point.itemsize)
+    msg.row_step = int(point.itemsize * rows.size)
+    msg.is_dense = True
+    _fill_data(msg, pts)
+    return msg
 
 
 def elevation_grid_from_msg(msg: Any) -> tuple[Any, Any, Any]:

@@ -21,7 +21,9 @@ def test_output_table_is_the_published_topics_in_order() -> None:
         ("disparity", "stereo_msgs/msg/DisparityImage"),
         ("height", "sensor_msgs/msg/Image"),
         ("dsm", "parproj_msgs/msg/ElevationGrid"),
+        ("dsm_cloud", "sensor_msgs/msg/PointCloud2"),
         ("dsm_fused", "parproj_msgs/msg/ElevationGrid"),
+        ("dsm_fused_cloud", "sensor_msgs/msg/PointCloud2"),
         ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
     ]
     assert {t.recorded for t in contract.OUTPUTS} == {"reliable"}
