@@ -203,7 +203,8 @@ def test_process_writes_the_cloud_of_the_dsm(tmp_path: Path, option: int | None)
     assert step == (1 if option is None else option)
     # the decimation as the cloud shows it: its smallest x spacing, in cells
     xs = np.unique(cloud_points(cloud)["x"].astype(np.float64))
-    assert round(float(np.min(np.diff(xs))) / geo[2]) == step
+    seen = round(float(np.min(np.diff(xs))) / geo[2])
+    assert seen == step, f"cloud at step {seen}: the option did not reach outputs_to_messages"
     expect = expected_points(heights, ortho, geo, step)
     assert expect["z"].size > 0.9 * heights[::step, ::step].size  # 92.9 % of cells have a height
     assert_cloud_is_grid(cloud, expect)
