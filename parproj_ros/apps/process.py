@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+from ..core import contract
 from ..core.config import PipelineConfig
 from ..core.memory import raw_pair_bytes, tune_malloc
 from ..core.results import Issue, Level, Outputs
@@ -232,32 +233,21 @@ def _bag_issues(reader: BagReader, name: str) -> Outputs:
     return out
 
 
-#: Output topics that carry images (``image_compression``).
-IMAGE_TOPICS = (
-    "stereo_pair",
-    "left/image_normalized",
-    "right/image_normalized",
-    "anaglyph",
-    "left/normalized_block",
-    "right/normalized_block",
-)
-
-
 def _input(topic: str, msg: Any, strip_topics: dict[str, str]) -> tuple[InputKind, Any] | None:
     """The session input of a bag message (None: a topic the pipeline does not take).
 
     Raises:
         conversions.ConversionError: a message that does not convert.
     """
-    if topic == "navigation":
+    if topic == contract.NAVIGATION:
         return InputKind.NAV, conv.odometry_to_sample(msg)
     if topic in strip_topics:
         pixels = conv.image_to_array(msg)
         stamp = conv.stamp_to_ns(msg.header.stamp)
         return InputKind.STRIP, Strip(strip_topics[topic], stamp, msg.header.frame_id, pixels)
-    if topic == "gcp":
+    if topic == contract.GCP:
         return InputKind.GCP, conv.gcp_from_msg(msg)
-    if topic == "pairs":
+    if topic == contract.PAIRS:
         return InputKind.PAIRS, conv.pairs_from_msg(msg)
     return None
 
@@ -298,15 +288,16 @@ def process_bag(
     tune_malloc(2 * raw_pair_bytes(cfg))
     session = Session(cfg)
     summary = ProcessSummary()
-    strip_topics = {f"{v.name}/image_strip": v.name for v in cfg.views}
+    strip_topics = {contract.strip_topic(v.name): v.name for v in cfg.views}
     per_topic = (
-        {t: image_compression for t in IMAGE_TOPICS} if image_compression is not None else None
+        {t: image_compression for t in contract.image_topics()}
+        if image_compression is not None
+        else None
     )
     with BagWriter(
         dst, compression=compression, topic_compression=per_topic, overwrite=True, direct=direct
     ) as bw:
-        for topic, msgtype in conv.OUTPUT_TOPICS.items():
-            bw.add_topic(topic, msgtype, "reliable")
+        bw.add_topics(contract.OUTPUTS)
 
         def emit(out: Outputs, stamp_ns: int) -> None:
             for topic, msg, _ in conv.outputs_to_messages(

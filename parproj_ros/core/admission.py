@@ -12,11 +12,19 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from .memory import held_bytes, malloc_trim, raw_pair_bytes, rss_bytes
+from ..imaging.assembly import SceneAssembler
+from .memory import (
+    held_bytes,
+    malloc_trim,
+    prefault_heap,
+    raw_pair_bytes,
+    rss_bytes,
+    tune_malloc,
+)
 from .results import Issue, Level
 
 
@@ -320,7 +328,45 @@ class PairAdmission:
             self._in_flight.clear()
         malloc_trim()
 
+    def memory_values(self) -> list[tuple[str, str | int]]:
+        """The summary's view of the admission: pairs in flight and the memory terms, MB."""
+        mb = 2**20
+        return [
+            ("pairs_in_flight", self.in_flight),
+            ("working_set_mb", f"{self.working_set / mb:.0f}"),
+            ("raw_mb", f"{self.raw_held() / mb:.0f}"),
+            ("startup_mb", f"{self.base / mb:.0f}"),
+            ("held_mb", f"{held_bytes() / mb:.0f}"),
+            ("rss_mb", f"{rss_bytes() / mb:.0f}"),
+            ("memory_budget_mb", f"{self.budget / mb:.0f}"),
+        ]
+
     @property
     def in_flight(self) -> int:
         """Pairs admitted and not yet published."""
         return len(self._in_flight)
+
+
+def prefault(config: Any, prefault_mb: float, assemblers: Mapping[str, SceneAssembler]) -> str:
+    """Keep freed memory for reuse (process-wide), and touch the ``prefault_mb`` reserve.
+
+    ``prefault_mb`` -1: :func:`auto_prefault_mb`. The line buffers of each view's scenes are
+    touched too (``scene_lines`` set). Returns what was touched, in words ("" if nothing).
+    """
+    if prefault_mb < 0:
+        prefault_mb = auto_prefault_mb(config)
+    tune_malloc(int(prefault_mb * 2**20))
+    if prefault_mb <= 0:
+        return ""
+    t0 = time.monotonic()
+    heap = prefault_heap(int(prefault_mb * 2**20))
+    lines = 0
+    if config.scenes.lines > 0:
+        for vc in config.views:
+            asm = assemblers[vc.name]
+            asm.pool.prefault(config.scenes.lines * vc.camera.detectors * 2)
+            lines += asm.pool.held_bytes
+    return (
+        f"prefault_mb: {heap / 2**20:.0f} MB of heap and {lines / 2**20:.0f} MB of line "
+        f"buffers touched in {time.monotonic() - t0:.1f} s"
+    )

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from ..imaging.assembly import SceneAssembler
-from .config import PipelineConfig
+from .config import NavigationSettings
 from .ledger import PairLedger
 from .results import Issue, Level
 from .trajectory import NavSample, TrajectoryBuffer
@@ -21,8 +21,8 @@ from .trajectory import NavSample, TrajectoryBuffer
 class NavigationFeed:
     """Navigation samples accepted (:attr:`buffer`); scenes waiting for them are the ledger's."""
 
-    def __init__(self, config: PipelineConfig, ledger: PairLedger) -> None:
-        self.config = config
+    def __init__(self, settings: NavigationSettings, ledger: PairLedger) -> None:
+        self.settings = settings
         self.ledger = ledger
         self.buffer = TrajectoryBuffer()
         #: A sample more than ``nav_jump_s`` ahead of the newest one, until the next one comes.
@@ -38,7 +38,7 @@ class NavigationFeed:
         than ``nav_jump_s`` behind is dropped and reported.
         """
         issues = []
-        jump = self.config.nav_jump_s * 1e9
+        jump = self.settings.jump_s * 1e9
         last = self.buffer.last_ns
         if self.pending is not None:
             pending, self.pending = self.pending, None
@@ -105,4 +105,4 @@ class NavigationFeed:
         needed = self.needed_from(assemblers, streamed)
         last = self.buffer.last_ns
         if needed is not None and last is not None:
-            self.buffer.prune_before(min(needed, last) - round(self.config.nav_history_s * 1e9))
+            self.buffer.prune_before(min(needed, last) - round(self.settings.history_s * 1e9))

@@ -94,22 +94,22 @@ class Pipeline:
             v.name: SceneAssembler(
                 v.name,
                 v.camera.line_period,
-                scene_lines=config.scene_lines,
-                max_gap_lines=config.max_gap_lines,
-                nodata=config.nodata,
+                scene_lines=config.scenes.lines,
+                max_gap_lines=config.scenes.max_gap_lines,
+                nodata=config.output.nodata,
             )
             for v in config.views
         }
         #: Every pair's record and state (the policies below read it and record in it).
         self.ledger = PairLedger([v.name for v in config.views])
-        self.feed = NavigationFeed(config, self.ledger)
+        self.feed = NavigationFeed(config.navigation, self.ledger)
         self.gcps = GcpStore()
         self.pairing = Pairing(config, self.ledger)
         self.streamer = Streamer(config, self.assemblers, self.feed, self.gcps, self.ledger)
-        self.heights = HeightsStage(options_of(config)) if config.heights else None
+        self.heights = HeightsStage(options_of(config)) if config.dense.enabled else None
         self.fusion = (
-            FusionStage(config.heights_fuse_mb)
-            if config.heights and config.heights_fuse_mb > 0
+            FusionStage(config.dense.fuse_mb)
+            if config.dense.enabled and config.dense.fuse_mb > 0
             else None
         )
 
@@ -184,7 +184,7 @@ class Pipeline:
     @property
     def interpolation_flag(self) -> int:
         """OpenCV interpolation flag of the configured interpolation."""
-        return interpolation_flag(self.config)
+        return interpolation_flag(self.config.output)
 
     # ---- inputs -------------------------------------------------------------------------
     def add_navigation(self, sample: NavSample) -> Outputs:
@@ -314,7 +314,7 @@ class Pipeline:
             Level.WARN,
             f"{scene.view}/{scene.scene_id}",
             f"{jump} lines missing after line {scene.lines - 1} (more than max_gap_lines, "
-            f"{self.config.max_gap_lines}): scene split; it ends there, with {scene.lines} "
+            f"{self.config.scenes.max_gap_lines}): scene split; it ends there, with {scene.lines} "
             f"lines, and the strips after the hole make a new scene{rest}",
         )
 
@@ -362,7 +362,10 @@ class Pipeline:
                 continue
             period_ns = self.views[name].camera.line_period * 1e9
             after_last = opened.first_line_ns + opened.lines * period_ns
-            if newest is not None and newest <= after_last + self.config.max_gap_lines * period_ns:
+            if (
+                newest is not None
+                and newest <= after_last + self.config.scenes.max_gap_lines * period_ns
+            ):
                 continue
             for scene in asm.flush():
                 out.extend(self._closed(scene))
@@ -372,7 +375,7 @@ class Pipeline:
         """End of data: close open scenes, process what can be, report what cannot."""
         out = self._close_all()
         for scene in self.ledger.waiting:
-            if self.gcps.for_scene(scene)[0].shape[0] >= self.config.min_gcp:
+            if self.gcps.for_scene(scene)[0].shape[0] >= self.config.orientation.min_gcp:
                 out.extend(self._process_scene(scene))  # navigation ended early: GCP only
                 continue
             self.pairing.done_with(scene, "skipped")
@@ -402,10 +405,11 @@ class Pipeline:
                 Issue(
                     Level.WARN,
                     f"{scene.view}/{scene.scene_id}",
-                    f"{scene.gaps} missing lines filled with no-data ({self.config.nodata})",
+                    f"{scene.gaps} missing lines filled with no-data "
+                    f"({self.config.output.nodata})",
                 )
             )
-        has_gcp = self.gcps.for_scene(scene)[0].shape[0] >= self.config.min_gcp
+        has_gcp = self.gcps.for_scene(scene)[0].shape[0] >= self.config.orientation.min_gcp
         if not self.nav.covers(scene.first_line_ns, scene.last_line_ns):
             last = self.nav.last_ns
             if has_gcp and (last is None or last >= scene.last_line_ns):
@@ -433,7 +437,7 @@ class Pipeline:
         out = Outputs()
         # 2. orient: parameters from GCP (paper 1 Eq 8) or navigation (Eqs 9-13); a first
         #    scene that may have begun before navigation was received is not oriented.
-        unseen = start_unseen(scene, self.feed.first_ns, self.config.start_margin_s)
+        unseen = start_unseen(scene, self.feed.first_ns, self.config.navigation.start_margin_s)
         if unseen is not None:
             out.issues.append(unseen)
             return out
@@ -478,23 +482,23 @@ class Pipeline:
         stamp = max(left.scene.last_line_ns, right.scene.last_line_ns)
         # 5. refine: tie points correct the right normalization (its rows).
         tie: TieRefinement | None = None
-        if self.config.tie_points:
+        if self.config.ties.enabled:
             refined = refine_with_tie_points(
                 geo,
                 img_l,
                 img_r,
-                nodata=self.config.nodata,
+                nodata=self.config.output.nodata,
                 pixel=left.camera.pixel_size,
-                threshold_px=self.config.tie_threshold_px,
+                threshold_px=self.config.ties.threshold_px,
             )
             if isinstance(refined, str):
                 out.issues.append(Issue(Level.WARN, f"pair {geo.pair_id}", refined))
             else:
                 tie = refined
                 geo = tie.geometry
-                img_r = resample_scene(right, geo.right_geom, geo.right_grid, self.config)
+                img_r = resample_scene(right, geo.right_geom, geo.right_grid, self.config.output)
                 out.issues.append(Issue(Level.OK, f"pair {geo.pair_id}", tie.summary))
-                if self.config.terrain == "tie_points":
+                if self.config.ties.terrain == "tie_points":
                     # The full-resolution tie points measure the terrain more finely than the
                     # reduced pair the extent was chosen on.
                     terrain = terrain_from_heights(
@@ -518,7 +522,7 @@ class Pipeline:
             pair = replace(
                 pair, y_parallax_px=tie.residual_px, y_parallax_source=YParallaxSource.TIE_POINTS
             )
-        nodata = self.config.nodata
+        nodata = self.config.output.nodata
         shared = float(np.mean((img_l != nodata) & (img_r != nodata))) if img_l.size else 0.0
         pair = replace(pair, shared_share=shared)
         if pair.unusable:

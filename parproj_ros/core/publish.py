@@ -36,10 +36,10 @@ def finish_pair(
     ``terrain``: the pair's terrain when measured; else that of its GCP or the prior
     (:func:`~parproj_ros.core.normalization.pair_terrain`), taken before the GCP are forgotten.
     """
-    ypar, source = y_parallax(left, right, geo.left_geom, geo.right_geom, gcps, config)
+    ypar, source = y_parallax(left, right, geo.left_geom, geo.right_geom, gcps, config.orientation)
     k = geo.normalization.parallax_per_height
     if terrain is None:
-        terrain = pair_terrain(left, right, config, gcps)
+        terrain = pair_terrain(left, right, config.orientation, gcps)
     ids = (left.scene.scene_id, right.scene.scene_id)
     gcps.forget(ids, keep=ledger.selected_scene_ids())
     ledger.pair_made(left.scene.index)

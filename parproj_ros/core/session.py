@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from .config import PipelineConfig
 from .pipeline import Pipeline
+from .render_process import RenderProcess
 from .results import Issue, Level, Outputs
 
 
@@ -81,6 +82,8 @@ class Session:
 
     def __init__(self, config: PipelineConfig) -> None:
         self.pipeline = Pipeline(config)
+        #: The process rendering streamed blocks (:meth:`start_renderer`), or None.
+        self.renderer: RenderProcess | None = None
 
     def feed(self, kind: InputKind, payload: Any) -> Outputs:
         """Run one input through the pipeline; what it produced.
@@ -101,6 +104,35 @@ class Session:
         if kind == InputKind.CLOSE_VIEW:
             return p.close_view(payload)
         return p.flush()
+
+    def start_renderer(self) -> list[Issue]:
+        """Render streamed blocks in a child process (two views, ``scene_lines`` set).
+
+        Call before the first strip. A WARN when the process cannot start (no /dev/shm, no
+        process): the blocks are then rendered in the calling thread.
+        """
+        config = self.pipeline.config
+        if self.renderer is not None or config.scenes.lines <= 0 or len(config.views) != 2:
+            return []
+        try:
+            self.renderer = RenderProcess()
+            self.pipeline.use_render_process(self.renderer)
+        except Exception as err:  # no /dev/shm, no process: render in the worker
+            return [
+                Issue(
+                    Level.WARN,
+                    "render_process",
+                    f"cannot start the render process ({type(err).__name__}: {err}): "
+                    "streamed blocks are rendered in the worker thread",
+                )
+            ]
+        return []
+
+    def close(self) -> None:
+        """Stop the render process, if any (no input may be fed after)."""
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
 
     def open_at_stop(self) -> list[Issue]:
         """A WARN per scene still open when a node stops: the flush publishes it as it is."""

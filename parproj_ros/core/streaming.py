@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from ..geometry import GeometryError, PushbroomModel, parameters_from_navigation
 from ..geometry.navigation import virtual_points
 from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd
+from ..imaging.kernels import max_support_lines
 from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles, render_block
 from .config import PipelineConfig
 from .gcp_store import GcpStore
@@ -57,8 +58,9 @@ TILE_ROWS = 512
 #: reliable writer resending lost fragments; ``python -m tools.bench``), which half a scene,
 #: the former bound, took for a stop.
 STALE_MIN_S = 2.0
-#: Lines of margin around the lines a tile's affine map reaches (bicubic needs 2).
-LINE_MARGIN = 3
+#: Lines of margin around the lines a tile's affine map reaches: the widest kernel's support
+#: (imaging/kernels.py; bicubic: 2) and one more, whatever kernel is configured.
+LINE_MARGIN = 1 + max_support_lines()
 
 
 def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[Block]:
@@ -127,7 +129,7 @@ class Streamer:
         self.block_sink: Callable[[BlockResult], None] | None = None
 
     def _start_seen(self, first_line_ns: int) -> bool:
-        return start_seen(first_line_ns, self.feed.first_ns, self.config.start_margin_s)
+        return start_seen(first_line_ns, self.feed.first_ns, self.config.navigation.start_margin_s)
 
     def undecided(self, scene: Scene) -> bool:
         """Whether ``scene``'s pair waits for navigation to decide streaming (held).
@@ -150,7 +152,7 @@ class Streamer:
     def can_stream(self) -> bool:
         """Whether streaming applies: enabled, two views, a configured scene length."""
         c = self.config
-        return c.streaming and not c.single_camera and c.scene_lines > 0
+        return c.stream.enabled and not c.single_camera and c.scenes.lines > 0
 
     def scene_closed(self, scene: Scene) -> Outputs | None:
         """A scene is complete: the end of its stream; None: not streamed, to process whole."""
@@ -209,7 +211,7 @@ class Streamer:
                     # this one's start: the decision waits for navigation (see above).
                     ledger.hold(k, max(opens))
                 continue
-            short = [sc for sc in held.values() if sc.lines != self.config.scene_lines]
+            short = [sc for sc in held.values() if sc.lines != self.config.scenes.lines]
             if short:
                 self.ledger.not_stream(k)
                 out.issues.append(
@@ -218,7 +220,7 @@ class Streamer:
                         f"pair {k}",
                         "not streamed: navigation lagged behind the strips until "
                         + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
-                        + f" ended short ({short[0].lines} of {self.config.scene_lines} "
+                        + f" ended short ({short[0].lines} of {self.config.scenes.lines} "
                         "lines): processed whole",
                     )
                 )
@@ -238,7 +240,7 @@ class Streamer:
                 if o is not None
             }
             newest = max(ends.values(), default=0)
-            duration = self.config.scene_lines * max(
+            duration = self.config.scenes.lines * max(
                 v.camera.line_period for v in self.config.views
             )
             stale_ns = max(STALE_MIN_S, duration) * 1e9
@@ -329,11 +331,11 @@ class Streamer:
         as an on-time decision would have been. None: not (yet) possible.
         """
         sid, k, t0, _ = opened
-        if self.gcps.count(sid) >= self.config.min_gcp:
+        if self.gcps.count(sid) >= self.config.orientation.min_gcp:
             self.ledger.not_stream(k)  # GCP-based parameters need the whole scene
             return None
         view = self.views[name]
-        lines = self.config.scene_lines
+        lines = self.config.scenes.lines
         until = self.ledger.held_until.get(k)
         last = self.nav.last_ns
         if until is not None and (last is None or last < until):
@@ -358,10 +360,10 @@ class Streamer:
             nav = parameters_from_navigation(
                 model,
                 line_mid=(lines - 1) / 2.0,
-                z_avg=self.config.z_avg,
+                z_avg=self.config.orientation.z_avg,
                 scene_lines=lines,
-                height_range=self.config.height_range,
-                crab_tolerance_px=self.config.crab_tolerance_px,
+                height_range=self.config.orientation.height_range,
+                crab_tolerance_px=self.config.orientation.crab_tolerance_px,
             )
         except GeometryError as err:
             self.ledger.not_stream(k)
@@ -452,12 +454,13 @@ class Streamer:
             ready.append(b)
         if not ready:
             return out
-        interp = interpolation_flag(self.config)
+        interp = interpolation_flag(self.config.output)
+        nodata = self.config.output.nodata
         sink = self.block_sink
         rendered: Generator[tuple[Block, NDArray[np.generic] | None], None, None]
         if self.renderer is not None:
             rendered = self.renderer.render_blocks(
-                ready, data, first, side.grid.height, nodata=self.config.nodata,
+                ready, data, first, side.grid.height, nodata=nodata,
                 interpolation=interp,
             )  # fmt: skip
         else:
@@ -466,7 +469,12 @@ class Streamer:
             for b, img in rendered:
                 if img is None:
                     img = render_block(
-                        b, data, first, side.grid, nodata=self.config.nodata, interpolation=interp
+                        b,
+                        data,
+                        first,
+                        side.grid,
+                        nodata=nodata,
+                        interpolation=interp,
                     )
                 elif sink is None:
                     img = img.copy()  # a view of the render process's output buffer
@@ -585,8 +593,8 @@ class Streamer:
             res.model,
             (0.0, sc.lines - 1.0),
             [
-                self.config.z_avg - self.config.height_range,
-                self.config.z_avg + self.config.height_range,
+                self.config.orientation.z_avg - self.config.orientation.height_range,
+                self.config.orientation.z_avg + self.config.orientation.height_range,
             ],
             grid=5,
         )

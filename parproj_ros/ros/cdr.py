@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -243,3 +244,26 @@ def serialize_block(
     w.u32(int(px.shape[1] * px.itemsize))
     w.u32(int(px.nbytes))
     return b"".join((w.buf, px.reshape(-1).view(np.uint8).data))
+
+
+def read_image(raw: Any) -> Any:
+    """A received Image, read from its CDR bytes (:func:`parse_image`): an :class:`ImageView`.
+
+    Bytes that are not plain CDR are deserialized by rclpy; an Image already deserialized is
+    returned as it is.
+
+    Raises:
+        CdrError: the bytes are not a well-formed Image.
+    """
+    if not isinstance(raw, bytes | bytearray | memoryview):
+        return raw
+    view = parse_image(raw)
+    if view is not None:
+        return view
+    from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import Image
+
+    try:
+        return deserialize_message(bytes(raw), Image)
+    except Exception as err:  # rclpy raises assorted exception types for bad CDR
+        raise CdrError(f"rclpy could not deserialize it: {type(err).__name__}: {err}") from None

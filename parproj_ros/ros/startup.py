@@ -1,23 +1,33 @@
-"""The node's start: its parameters' descriptors and checks, its command line, rclpy's init.
+"""The node's process: its command line, rclpy's init, its parameters, the spin and the stop.
 
 What can go wrong before ``parproj_node`` runs becomes one line on stderr and exit code 2
-(:class:`StartupError`); nothing here needs a node.
+(:class:`StartupError`); :func:`run` spins a node until a signal, then flushes and stops it.
 """
 
 from __future__ import annotations
 
 import array
+import contextlib
 import math
 import os
 import re
 import sys
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import (
+    InvalidParameterTypeException,
+    InvalidParameterValueException,
+    NameValidationException,
+    ParameterException,
+)
+from rclpy.node import Node
 
-from ..core.config import Param
+from ..core.config import PARAMS, VIEW_PARAMS, Param
+from ..core.results import Issue, Level
 
 #: Exit codes of parproj_node (README, "Exit codes").
 EXIT_OK, EXIT_NOT_FLUSHED, EXIT_BAD_START = 0, 1, 2
@@ -189,3 +199,162 @@ def init_rclpy(argv: list[str]) -> None:
         text = held.read().decode(errors="replace")
     if text:
         to_stderr(text.rstrip("\n"))
+
+
+def declare(node: Node, name: str, p: Param, issues: list[Issue]) -> Any:
+    """Declare one parameter of ``node``; a bad value is replaced by the default and reported.
+
+    Out of range or not among the choices: the node keeps running with the default, an ERROR is
+    added to ``issues`` and the 1 Hz summary stays at ERROR naming the parameter. A parameter
+    with no safe default (``p.strict``: ``views``, ``<view>.mounting_rpy_deg``) is checked by
+    its caller instead; rclpy refusing it raises :class:`StartupError`.
+    """
+    desc = descriptor(p)
+    try:
+        value = node.declare_parameter(name, p.default, desc).value
+    except (InvalidParameterValueException, InvalidParameterTypeException) as err:
+        if p.strict:
+            raise StartupError(f"parameter {name}: {err}") from err
+        issues.append(
+            Issue(Level.ERROR, f"parameter {name}", f"{err}; the default {p.default!r} is used")
+        )
+        return node.declare_parameter(name, p.default, desc, ignore_override=True).value
+    if p.choices and value not in p.choices:
+        issues.append(
+            Issue(
+                Level.ERROR,
+                f"parameter {name}",
+                f"{value!r} is not one of {list(p.choices)}; the default {p.default!r} is used",
+            )
+        )
+        return p.default
+    return value
+
+
+def declare_all(node: Node, issues: list[Issue]) -> dict[str, Any]:
+    """Declare every parameter of the table (and of each view): name -> value.
+
+    Raises:
+        StartupError: ``views`` or a ``<view>.mounting_rpy_deg`` is invalid.
+    """
+    vals = {p.name: declare(node, p.name, p, issues) for p in PARAMS}
+    vals["views"] = check_views(vals["views"])
+    for view in vals["views"]:
+        for p in VIEW_PARAMS:
+            vals[f"{view}.{p.name}"] = declare(node, f"{view}.{p.name}", p, issues)
+        key = f"{view}.mounting_rpy_deg"
+        vals[key] = check_mounting(key, vals[key])
+    return vals
+
+
+def unknown_parameters(node: Node) -> list[Issue]:
+    """An ERROR per parameter given (``--params-file``, ``-p``) that the node does not have.
+
+    A misspelt name, or a view not in ``views``: its value would be ignored silently.
+    ``qos_overrides.*`` are left to rclpy (those of topics the node does not have are ignored).
+    """
+    given = node._parameter_overrides  # rclpy: every override for this node
+    return [
+        Issue(
+            Level.ERROR,
+            f"parameter {name}",
+            f"{shown(given[name].value)} given, but parproj_node has no such parameter "
+            "(misspelt, or a view not in views?): ignored",
+        )
+        for name in sorted(given)
+        if not name.startswith("qos_overrides.") and not node.has_parameter(name)
+    ]
+
+
+def run(make_node: Callable[[], Any], args: list[str] | None = None) -> int:
+    """Start a node (``make_node()``), spin until SIGINT/SIGTERM, then flush and stop it.
+
+    The node has ``internal_error``, ``log``, ``flush``, ``wait_delivered``, ``stop`` and
+    ``stop_timeout_s`` (:class:`~parproj_ros.ros.node.ParprojNode`).
+
+    Exit codes: 0 after a clean stop; 1 when the open scenes could not be flushed at the stop
+    (the worker was dead, or did not finish within ``stop_timeout_s``, or a second signal came);
+    2 when the node could not start: the ROS arguments or a parameters file do not parse, or a
+    parameter without a safe default is invalid (one line on stderr, no traceback).
+    """
+    import signal
+
+    argv = list(sys.argv if args is None else args)
+    try:
+        init_rclpy(argv)
+        node = make_node()
+    except (StartupError, ParameterException, NameValidationException) as err:
+        # No rclpy shutdown: the caller leaves by os._exit (exit_with); tearing down a node
+        # that has just joined DDS was seen to crash (ParprojNode.__init__).
+        to_stderr(f"parproj_node: cannot start: {one_line(str(err))}")
+        return EXIT_BAD_START
+    except KeyboardInterrupt:
+        to_stderr("parproj_node: interrupted while starting")
+        rclpy.try_shutdown()
+        return 130
+    signals: list[int] = []
+
+    def on_signal(signum: int, frame: Any) -> None:
+        signals.append(signum)
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    executor = rclpy.executors.SingleThreadedExecutor()
+    executor.add_node(node)
+    code = EXIT_OK
+    try:
+        while not signals and rclpy.ok():
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except Exception as err:  # a callback or timer raised: report, keep spinning
+                node.internal_error("a callback", err)
+        node.log("info", f"stopping: flushing open scenes ({node.stop_timeout_s:g} s at most)")
+        if not node.flush(abort=lambda: len(signals) > 1):
+            code = EXIT_NOT_FLUSHED
+        node.wait_delivered(5.0)
+    finally:
+        # A worker that did not flush is stuck or gone: do not wait for it.
+        node.stop(5.0 if code == EXIT_OK else 0.5)
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+def exit_with(code: int) -> None:
+    """Leave the process with ``code``.
+
+    A node that could not start leaves at once (``os._exit`` once stdout and stderr are
+    flushed): nothing is in flight, and the interpreter's teardown of rclpy and Fast DDS after a
+    node was created and destroyed was seen to die of SIGSEGV (-11) after the one-line error,
+    instead of exiting 2, in 2 of about 1,800 invalid starts (CI 2026-11-25 and 2026-11-27,
+    ``test_invalid_start_exits_2_with_one_line``).
+    """
+    if code == EXIT_BAD_START:
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(Exception):
+                stream.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
+def wait_acked(pubs: Sequence[Any], timeout_s: float, log: Callable[[str, str], None]) -> bool:
+    """Wait until every subscriber has acknowledged what ``pubs`` published (``timeout_s``).
+
+    So that the outputs of the flush at shutdown are not lost when the process exits; a WARN
+    (``log``) names each topic not acknowledged in time.
+    """
+    from rclpy.duration import Duration
+
+    deadline = time.monotonic() + timeout_s
+    done = True
+    for pub in pubs:
+        left = max(0.0, deadline - time.monotonic())
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            done = False
+            log(
+                "warn",
+                f"{pub.topic_name}: not acknowledged by every subscriber within {timeout_s} s "
+                "of stopping",
+            )
+    return done

@@ -110,9 +110,8 @@ def test_ventoux_overlap_sizes(tmp_path: Path) -> None:
         assert c.min() >= 0 and c.max() <= sp.width - 1
 
 
-@pytest.mark.ros
 def test_output_extent_parameter_is_declared() -> None:
-    from parproj_ros.ros.node import PARAMS
+    from parproj_ros.core.params import PARAMS
 
     (p,) = [p for p in PARAMS if p.name == "output_extent"]
     assert p.default == "overlap" and p.choices == ("overlap", "union")

@@ -223,9 +223,9 @@ def test_settings_docstrings_list_the_table() -> None:
 
 @pytest.mark.ros
 def test_node_declares_the_table() -> None:
-    from parproj_ros.ros import node, startup
+    from parproj_ros.ros import startup
 
-    assert node.PARAMS is config.PARAMS and node.VIEW_PARAMS is config.VIEW_PARAMS
+    assert startup.PARAMS is config.PARAMS and startup.VIEW_PARAMS is config.VIEW_PARAMS
     d = startup.descriptor(next(p for p in PARAMS if p.name == "z_avg"))
     assert d.description.endswith("[m]") and d.read_only
     assert (d.floating_point_range[0].from_value, d.floating_point_range[0].to_value) == (
