@@ -36,6 +36,7 @@ from .startup import (
     declare_all,
     exit_with,
     run,
+    start_line,
     unknown_parameters,
     wait_acked,
 )
@@ -123,6 +124,7 @@ class ParprojNode(Node):
         if vals["gcp_file"]:
             self._load_gcp_file(str(vals["gcp_file"]), issues)
         issues += unknown_parameters(self)
+        self.log("info", start_line(vals))
         self._report(issues)
         self.worker.start()
 

@@ -26,6 +26,7 @@ from rclpy.exceptions import (
 )
 from rclpy.node import Node
 
+from ..core import contract
 from ..core.config import PARAMS, VIEW_PARAMS, Param
 from ..core.results import Issue, Level
 
@@ -266,6 +267,75 @@ def unknown_parameters(node: Node) -> list[Issue]:
     ]
 
 
+def wants_help(argv: Sequence[str]) -> bool:
+    """Whether the command line asks for the usage (``-h``/``--help`` before ``--ros-args``)."""
+    own = list(argv[1:])
+    if "--ros-args" in own:
+        own = own[: own.index("--ros-args")]
+    return any(a in ("-h", "--help") for a in own)
+
+
+def usage() -> str:
+    """``parproj_node --help``: how to run it, its topics, its parameters (from the tables)."""
+    from .. import __version__
+
+    lines = [
+        f"parproj_node {__version__}: parallel-projection parameters and epipolar-normalized "
+        "stereo pairs of pushbroom scanners",
+        "",
+        "usage: parproj_node [--ros-args [-p NAME:=VALUE ...] [--params-file FILE] "
+        "[-r FROM:=TO ...]]",
+        "       (or: ros2 run parproj_ros parproj_node --ros-args ...)",
+        "",
+        "subscribes: " + ", ".join(t.name for t in contract.INPUTS if t.subscribed),
+        "publishes:  " + ", ".join(t.name for t in contract.OUTPUTS),
+        "",
+        "parameters (name, type, default; every one in docs/node.md and "
+        "config/parproj_node.yaml):",
+    ]
+    for p in PARAMS:
+        lines.append(f"  {p.name} ({p.type}, default {p.default!r})")
+    lines.append("per view (<view>.NAME, for each name in views):")
+    for p in VIEW_PARAMS:
+        lines.append(f"  <view>.{p.name} ({p.type}, default {p.default!r})")
+    lines.append("")
+    lines.append("exit codes: 0 clean stop, 1 open scenes not flushed at the stop, 2 cannot start")
+    return "\n".join(lines)
+
+
+def start_line(vals: dict[str, Any]) -> str:
+    """The INFO line at start: views, topics, and the parameters that differ from defaults."""
+    views = list(vals["views"])
+    changed = [
+        f"{p.name}={vals[p.name]!r}"
+        for p in PARAMS
+        if p.name != "views" and p.name in vals and vals[p.name] != p.default
+    ]
+    for v in views:
+        for p in VIEW_PARAMS:
+            key = f"{v}.{p.name}"
+            value = vals.get(key, p.default)
+            if _differs(value, p.default):
+                changed.append(f"{key}={shown(value)}")
+    subs = [contract.NAVIGATION, *(contract.strip_topic(v) for v in views)]
+    subs += [contract.GCP, contract.PAIRS]
+    return (
+        f"starting: views {', '.join(views)}; subscribed {', '.join(subs)}; publishing "
+        f"{len(contract.OUTPUTS)} topics ({', '.join(t.name for t in contract.OUTPUTS)}); "
+        + (
+            "parameters not at their default: " + ", ".join(changed)
+            if changed
+            else "every parameter at its default"
+        )
+    )
+
+
+def _differs(value: Any, default: Any) -> bool:
+    if isinstance(value, list | tuple | array.array):
+        return list(value) != list(default)
+    return bool(value != default)
+
+
 def run(make_node: Callable[[], Any], args: list[str] | None = None) -> int:
     """Start a node (``make_node()``), spin until SIGINT/SIGTERM, then flush and stop it.
 
@@ -280,6 +350,9 @@ def run(make_node: Callable[[], Any], args: list[str] | None = None) -> int:
     import signal
 
     argv = list(sys.argv if args is None else args)
+    if wants_help(argv):
+        print(usage())
+        return EXIT_OK
     try:
         init_rclpy(argv)
         node = make_node()

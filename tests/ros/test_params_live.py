@@ -183,3 +183,35 @@ raise RuntimeError("the caller fails before stop()")
     assert r.returncode == 1 and "the caller fails" in r.stderr, r.stderr
     pid = int(pid_file.read_text())
     assert not os.path.exists(f"/proc/{pid}"), f"node process {pid} still running"
+
+
+def test_start_line_and_hardware_id(started: dict[str, Any]) -> None:
+    """One INFO line at start names the views, the topics, and the parameters that differ from
+    the defaults (none: the node runs on config/parproj_node.yaml); every status, the summary
+    included, names what it is about (hardware_id: the outputs' object frame)."""
+    log = started["log"]
+    (line,) = [ln for ln in log.splitlines() if "starting: views" in ln]
+    assert "views left, right; subscribed navigation, left/image_strip, right/image_strip" in line
+    assert "every parameter at its default" in line, line
+    assert started["summaries"] and all(s.hardware_id == "map" for s in started["summaries"])
+
+
+def test_help_is_usage_and_exit_0_without_a_node(tmp_path: Any) -> None:
+    """``parproj_node --help``: the usage, every parameter of the table, exit 0; no node
+    started (nothing is logged, the ROS log folder stays empty)."""
+    import subprocess
+    import sys
+
+    env = ros_environment(log_dir=tmp_path / "ros_log")
+    r = subprocess.run(
+        [sys.executable, "-m", "parproj_ros.ros.node", "--help"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    assert r.stdout.startswith("parproj_node ") and "usage: parproj_node" in r.stdout
+    for p in params.PARAMS:
+        assert f"  {p.name} (" in r.stdout, p.name
+    assert not list((tmp_path / "ros_log").glob("**/*.log"))
