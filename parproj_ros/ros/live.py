@@ -379,6 +379,7 @@ def run_through_node(
     progress: bool = False,
     log: Callable[[str], None] = print,
     also: Sequence[str] = (),
+    program: Sequence[str] | None = None,
 ) -> LiveRun:
     """Replay ``bag`` into parproj_node (its own process) and record the outputs.
 
@@ -387,7 +388,9 @@ def run_through_node(
     in its own Context, records ``contract.OUTPUT_TOPICS`` into ``workdir/output``,
     waits for the outputs to be discovered, replays, waits until ``pairs`` pairs have come
     with all their images and one message on each ``also`` topic (or ``timeout_s``, or the
-    node died), and stops the node (SIGINT).
+    node died), and stops the node (SIGINT). ``program``: the command before ``--ros-args``
+    (:class:`NodeProcess`; e.g. the node of a colcon install tree started from a shell that
+    sourced its setup script).
     """
     import rclpy
     from rclpy.context import Context
@@ -400,7 +403,7 @@ def run_through_node(
     views = views_from_bag(BagReader(bag))
     inputs = [contract.fully_qualified(t) for t in contract.stream_topics(v.name for v in views)]
     pfile = node_params_yaml(params, workdir / "node_params.yaml", reliable_inputs=inputs)
-    proc = NodeProcess(pfile, env, workdir / "node.log")
+    proc = NodeProcess(pfile, env, workdir / "node.log", program)
     ctx = Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("parproj_recorder", context=ctx)
