@@ -301,7 +301,11 @@ def process_bag(
 
         def emit(out: Outputs, stamp_ns: int) -> None:
             for topic, msg, _ in conv.outputs_to_messages(
-                out, frame_id=frame_id, stamp_ns=stamp_ns, raw_blocks=True
+                out,
+                frame_id=frame_id,
+                stamp_ns=stamp_ns,
+                raw_blocks=True,
+                dsm_cloud_step=cfg.dense.cloud_step,
             ):
                 writer.write(topic, msg, stamp_ns)  # log time: the input that produced it
             if any(p.left_image is not None for p in out.pairs):

@@ -160,6 +160,15 @@ OUTPUT_QOS = Qos(
     10,
     "reliable, so that every scene's parameters and every pair reach recorders",
 )
+#: The node's publishers of per-scene and per-pair results a late subscriber still needs
+#: (parameters, pairs, DSMs): transient local, the last ``latched_depth`` kept.
+LATCHED_OUTPUT_QOS = Qos(
+    "reliable",
+    "transient_local",
+    10,
+    "reliable and transient local, so that a subscriber started after the pass (a map server, "
+    "a viewer) still gets the last results; depth: the latched_depth parameter",
+)
 
 #: Offered profiles a bag records for a topic (``BagWriter.add_topic``'s ``qos``): the rclpy
 #: defaults ``QoSProfile(depth=10)``, ``qos_profile_sensor_data``, and a latched depth-1 topic.
@@ -342,8 +351,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         PARALLEL_PROJECTION,
         "parproj_msgs/msg/ParallelProjection",
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "per scene: L M N, omega phi kappa, s, dx dy, A1..A8, roll, scene frame, method, "
         "sigma0, residuals, covariance",
         "`Outputs.scenes` (`SceneResult`)",
@@ -351,8 +360,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         STEREO_PAIR,
         "parproj_msgs/msg/StereoPair",
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "both normalized images and parameters, the 2x3 normalization affines, output grids, "
         "x-parallax -> height, y-parallax statistics",
         "`Outputs.pairs` (`PairResult`)",
@@ -416,8 +425,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         DSM,
         _GRID,
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "`heights` on: the DSM on a north-up grid of the object frame (origin, cell size, "
         "heights 32FC1 with NaN holes) and the ortho-image on the same grid; a message of our "
         'own (see "Heights"); it names the terrain searched and where it came from '
@@ -427,8 +436,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         DSM_CLOUD,
         _CLOUD,
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "`heights` on and `dsm_cloud_step` not 0: the same DSM for viewers (RViz, Foxglove): one "
         "point per DSM cell with a height, every `dsm_cloud_step`-th row and column (-1: the "
         "least step giving at most 2 M points), fields x y z intensity (float32; x y z the "
@@ -439,8 +448,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         DSM_FUSED,
         _GRID,
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "`heights` on and `heights_fuse_mb` > 0: each time a pair's DSM overlaps the kept DSMs "
         "of earlier pairs (three views of one place, repeated passes), their fusion on one grid "
         "(`pair_id` `fused:<pair>,<pair>,...`; heights only: per cell the weighted mean of the "
@@ -451,8 +460,8 @@ OUTPUTS: tuple[Topic, ...] = (
     Topic(
         DSM_FUSED_CLOUD,
         _CLOUD,
-        OUTPUT_QOS,
-        "reliable",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
         "`dsm_fused` as `dsm_cloud` is `dsm`: fields x y z (no ortho-image), same decimation",
         "`Outputs.fused` (`FusedResult`)",
     ),

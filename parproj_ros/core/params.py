@@ -678,6 +678,18 @@ PARAMS: tuple[Param, ...] = (
         high=3600.0,
         concern="runtime",
     ),
+    Param(
+        "latched_depth",
+        "integer",
+        10,
+        "messages each latched output (transient local: parallel_projection, stereo_pair, "
+        "dsm, dsm_fused and their clouds) keeps for subscribers that join late: a map server or "
+        "a viewer started after the pass still gets the last ones; each kept DSM holds its "
+        "pixels, so keep it small for IKONOS-size pairs",
+        low=1.0,
+        high=1000.0,
+        concern="runtime",
+    ),
 )
 
 #: Per-view parameters, declared as ``<view>.<name>`` for each view in ``views``.

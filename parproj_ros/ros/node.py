@@ -13,11 +13,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
-from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 
 from ..core import contract
@@ -28,11 +28,10 @@ from ..core.results import BlockResult, Issue, Level, Outputs
 from ..core.session import InputKind, Session, Strip, Worker
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
-from .bag import get_message_class
 from .cdr import CdrError, read_image
 from .diagnostics import Reporter
+from .endpoints import advertise, subscribe
 from .startup import (
-    StartupError,
     declare_all,
     exit_with,
     run,
@@ -43,18 +42,6 @@ from .startup import (
 
 #: Navigation samples the navigation callback takes besides its own (those already waiting).
 NAV_DRAIN_MAX = 100
-
-
-def _message_class(msgtype: str) -> Any:
-    """The message class of ``msgtype`` (``pkg/msg/Name``).
-
-    Raises:
-        StartupError: not installed (the message packages are built by ``./dev setup``).
-    """
-    cls = get_message_class(msgtype)
-    if cls is None:
-        raise StartupError(f"message type {msgtype} is not installed (run ./dev setup)")
-    return cls
 
 
 class ParprojNode(Node):
@@ -100,6 +87,7 @@ class ParprojNode(Node):
         self.stop_timeout_s = float(vals["stop_timeout_s"])
         self.stereo_pair_images = bool(vals["stereo_pair_images"])
         self.anaglyph = bool(vals["anaglyph"])
+        self.dsm_cloud_step = config.dense.cloud_step
         self.admission = PairAdmission(
             vals["views"],
             float(vals["memory_budget_mb"]),
@@ -108,15 +96,13 @@ class ParprojNode(Node):
             *working_set_floor(config),
         )
         self.worker = Worker(self._handle, self.internal_error)
-        self._subscribe([v.name for v in config.views])
+        inputs: dict[str, Callable[[Any], None]] = {contract.NAVIGATION: self._on_nav}
+        for v in config.views:
+            inputs[contract.strip_topic(v.name)] = partial(self._on_strip, v.name)
+        inputs |= {contract.GCP: self._on_gcp, contract.PAIRS: self._on_pairs}
+        self._nav_sub = subscribe(self, inputs)[contract.NAVIGATION]
         # Outputs: every topic of the contract's table (the offline process writes the same).
-        rows = [t for t in contract.OUTPUTS if t.name != contract.DIAGNOSTICS]
-        self.pubs: dict[str, Any] = {
-            t.name: self.create_publisher(
-                _message_class(t.msgtype), t.name, conv.qos_profile(t.qos)
-            )
-            for t in rows
-        }
+        self.pubs = advertise(self, int(vals["latched_depth"]))
         self.create_timer(1.0, self._summary)
         self.scene_timeout = float(vals["scene_timeout"])
         self._last_strip = time.monotonic()
@@ -127,34 +113,6 @@ class ParprojNode(Node):
         self.log("info", start_line(vals))
         self._report(issues)
         self.worker.start()
-
-    def _subscribe(self, views: list[str]) -> None:
-        """Subscribe to the contract's inputs: navigation, strips, GCP, pairs.
-
-        Navigation and strips: sensor data, QoS overridable; strips taken as CDR bytes and
-        read by cdr.parse_image, the pixels a view on them (rclpy's deserialization costs
-        8.7 ms per full-size strip, GIL held).
-        """
-        overrides = QoSOverridingOptions.with_default_policies()
-        streams: list[tuple[str, Any]] = [(contract.NAVIGATION, self._on_nav)]
-        for v in views:
-            streams.append((contract.strip_topic(v), lambda m, v=v: self._on_strip(v, m)))
-        for name, callback in streams:
-            row = contract.topic(name)
-            cls = _message_class(row.msgtype)
-            qos, raw = conv.qos_profile(row.qos), cls is Image
-            try:
-                sub = self.create_subscription(
-                    cls, name, callback, qos, qos_overriding_options=overrides, raw=raw
-                )
-            except Exception as err:  # rclpy: RuntimeError or a parameter exception
-                raise StartupError(f"QoS override of {name}: {type(err).__name__}: {err}") from err
-            if name == contract.NAVIGATION:
-                self._nav_sub = sub
-        for name, callback in ((contract.GCP, self._on_gcp), (contract.PAIRS, self._on_pairs)):
-            row = contract.topic(name)
-            cls = _message_class(row.msgtype)
-            self.create_subscription(cls, name, callback, conv.qos_profile(row.qos))
 
     def _load_gcp_file(self, path: str, issues: list[Issue]) -> None:
         """Queue the points of the ``gcp_file`` parameter; an ERROR in ``issues`` if unreadable."""
@@ -304,6 +262,7 @@ class ParprojNode(Node):
             stamp_ns=now,
             stereo_pair_images=self.stereo_pair_images,
             anaglyph=self.anaglyph,
+            dsm_cloud_step=self.dsm_cloud_step,
             raw_blocks=True,  # blocks published as CDR bytes: one copy instead of three
         ):
             if topic in self.pubs:

@@ -26,8 +26,15 @@ def test_output_table_is_the_published_topics_in_order() -> None:
         ("dsm_fused_cloud", "sensor_msgs/msg/PointCloud2"),
         ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
     ]
-    assert {t.recorded for t in contract.OUTPUTS} == {"reliable"}
-    assert {t.qos for t in contract.OUTPUTS} == {contract.OUTPUT_QOS}
+    # Per-scene and per-pair results a late subscriber needs are latched (and recorded so, for
+    # a replay to offer them latched); the rest reliable and volatile.
+    latched = {"parallel_projection", "stereo_pair", "dsm", "dsm_cloud", "dsm_fused"}
+    latched |= {"dsm_fused_cloud"}
+    for t in contract.OUTPUTS:
+        want = t.name in latched
+        assert (t.qos == contract.LATCHED_OUTPUT_QOS) == want, t.name
+        assert (t.qos == contract.OUTPUT_QOS) != want, t.name
+        assert t.recorded == ("transient_local" if want else "reliable"), t.name
     assert all(t.carries and t.description for t in contract.OUTPUTS)
     assert contract.PAIR_IMAGE_TOPICS == (
         "left/image_normalized",
