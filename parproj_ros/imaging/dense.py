@@ -27,6 +27,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from .threads import row_parts, run_parts, workers
+
 __all__ = [
     "DenseStatus",
     "DisparityResult",
@@ -298,7 +300,12 @@ def _stretch_table(dtype: np.dtype[Any], low: float, high: float) -> UInt8Array:
 
 
 def _average_with_partner(
-    dl: Float32Array, xr: Float32Array, raw_r: NDArray[Any], ok: BoolArray, invalid: int
+    dl: Float32Array,
+    xr: Float32Array,
+    raw_r: NDArray[Any],
+    ok: BoolArray,
+    invalid: int,
+    row0: int = 0,
 ) -> Float32Array:
     """The mean of each left disparity and its partner's right disparity, where both agree.
 
@@ -311,9 +318,10 @@ def _average_with_partner(
         dl: left disparities (rows, cols), pixels.
         xr: the partners' columns ``x - dl`` in the right window, pixels (same shape).
         raw_r: OpenCV's right disparities of the mirrored pass (16 x pixels) over the right
-            window (rows, window columns).
+            window (window rows, window columns).
         ok: the left pixels whose partner passed the left-right check.
         invalid: OpenCV's code of a right pixel without disparity.
+        row0: the window row of ``dl``'s first row.
     """
     width = raw_r.shape[1]
     f0 = np.floor(xr)
@@ -321,7 +329,7 @@ def _average_with_partner(
     w = xr - f0
     np.clip(w, 0.0, 1.0, out=w)
     idx = f0.astype(np.int32)
-    idx += (np.arange(dl.shape[0], dtype=np.int32) * width)[:, None]
+    idx += (np.arange(row0, row0 + dl.shape[0], dtype=np.int32) * width)[:, None]
     flat = raw_r.ravel()
     r0 = flat.take(idx)
     idx += 1
@@ -345,8 +353,9 @@ def _match_tile(
 
     Both images are cut to the same extended column window (the tile plus ``pad`` on each
     side, no data outside the image), so that every searched partner is inside it. The
-    checks run on the tile's own columns only; a partner is looked up in the right window
-    with ``cv2.remap`` (nearest: the same pixel as ``rint``; outside the window: no data).
+    checks run on the tile's own columns only, by row parts on a few threads
+    (:mod:`.threads`); a partner is looked up in the right window with ``cv2.remap``
+    (nearest: the same pixel as ``rint``; outside the window: no data).
     """
     a, b = cols
     ext = (a - prep.pad, b + prep.pad)
@@ -355,9 +364,12 @@ def _match_tile(
     invalid = (prep.dmin - 1) * 16
     s = slice(prep.pad, prep.pad + (b - a))
     raw_l = matcher.compute(lwin, rwin)
-    dl = raw_l[:, s].astype(np.float32)
-    dl *= np.float32(1.0 / 16.0)
-    n_rows = lwin.shape[0]
+    raw_r = right_d = var = None
+    if params.lr_check == "flip":
+        # disparity of each right pixel u: its left partner is u + d
+        raw_r = cv2.flip(matcher.compute(cv2.flip(rwin, 1), cv2.flip(lwin, 1)), 1)
+    elif params.lr_check == "reduced":
+        right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
     half = params.block_size // 2
     # No data, or a block that reaches into no data.
     lbad = (~lok).view(np.uint8)
@@ -366,50 +378,59 @@ def _match_tile(
         kernel = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
         lbad = cast("UInt8Array", cv2.dilate(lbad, kernel))
         rbad = cast("UInt8Array", cv2.dilate(rbad, kernel))
-    # The partner (the right pixel nearest to x - d) must have data and, with the "flip"
-    # check, point back within tolerance.
-    xr = np.arange(s.start, s.stop, dtype=np.float32)[None, :] - dl
-    yr = np.broadcast_to(np.arange(n_rows, dtype=np.float32)[:, None], xr.shape)
-    yr = np.ascontiguousarray(yr)
-
-    def partner(image: NDArray[Any], outside: float) -> NDArray[Any]:
-        return cast(
-            "NDArray[Any]",
-            cv2.remap(
-                image,
-                xr,
-                yr,
-                cv2.INTER_NEAREST,
-                borderMode=cv2.BORDER_CONSTANT,
-                borderValue=outside,
-            ),
-        )
-
-    lr_ok = partner(rbad, 1) == 0
-    if params.lr_check == "flip":
-        # disparity of each right pixel u: its left partner is u + d
-        raw_r = cv2.flip(matcher.compute(cv2.flip(rwin, 1), cv2.flip(lwin, 1)), 1)
-        back = partner(raw_r, invalid)
-        diff = back.astype(np.float32)
-        diff *= np.float32(1.0 / 16.0)
-        diff -= dl
-        lr_ok &= (back != invalid) & (np.abs(diff) <= params.lr_tolerance_px)
-        dl = _average_with_partner(dl, xr, raw_r, lr_ok, invalid)
-    elif params.lr_check == "reduced":
-        right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
-        diff = partner(right_d, math.nan)  # NaN outside the window and where it has none
-        diff -= dl
-        lr_ok &= np.abs(diff) <= params.lr_tolerance_px  # False for NaN
-    code = np.full(dl.shape, _VALID, dtype=np.uint8)
-    code[~lr_ok] = _LR
-    code[raw_l[:, s] == invalid] = _NO_MATCH
     if params.min_texture_dn > 0:
-        var = _texture(lwin, 2 * params.block_size + 1)[:, s]
-        code[var < params.min_texture_dn**2] = _LOW_TEXTURE
-    code[lbad[:, s] != 0] = _NODATA
-    dl += np.float32(prep.shift)
-    dl[code != _VALID] = np.nan
-    return dl, code
+        var = _texture(lwin, 2 * params.block_size + 1)
+    disp = np.empty((lwin.shape[0], b - a), dtype=np.float32)
+    code = np.empty(disp.shape, dtype=np.uint8)
+
+    def checks(part: tuple[int, int]) -> None:
+        r0, r1 = part
+        dl = raw_l[r0:r1, s].astype(np.float32)
+        dl *= np.float32(1.0 / 16.0)
+        # The partner (the right pixel nearest to x - d) must have data and, with a check,
+        # point back within tolerance.
+        xr = np.arange(s.start, s.stop, dtype=np.float32)[None, :] - dl
+        yr = np.broadcast_to(np.arange(r0, r1, dtype=np.float32)[:, None], xr.shape)
+        yr = np.ascontiguousarray(yr)
+
+        def partner(image: NDArray[Any], outside: float) -> NDArray[Any]:
+            return cast(
+                "NDArray[Any]",
+                cv2.remap(
+                    image,
+                    xr,
+                    yr,
+                    cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=outside,
+                ),
+            )
+
+        lr_ok = partner(rbad, 1) == 0
+        if raw_r is not None:
+            back = partner(raw_r, invalid)
+            diff = back.astype(np.float32)
+            diff *= np.float32(1.0 / 16.0)
+            diff -= dl
+            lr_ok &= (back != invalid) & (np.abs(diff) <= params.lr_tolerance_px)
+            dl = _average_with_partner(dl, xr, raw_r, lr_ok, invalid, r0)
+        elif right_d is not None:
+            diff = partner(right_d, math.nan)  # NaN outside the window and where it has none
+            diff -= dl
+            lr_ok &= np.abs(diff) <= params.lr_tolerance_px  # False for NaN
+        c = code[r0:r1]
+        c[...] = _VALID
+        c[~lr_ok] = _LR
+        c[raw_l[r0:r1, s] == invalid] = _NO_MATCH
+        if var is not None:
+            c[var[r0:r1, s] < params.min_texture_dn**2] = _LOW_TEXTURE
+        c[lbad[r0:r1, s] != 0] = _NODATA
+        dl += np.float32(prep.shift)
+        dl[c != _VALID] = np.nan
+        disp[r0:r1] = dl
+
+    run_parts(checks, row_parts(disp.shape[0], workers()))
+    return disp, code
 
 
 def _reduced_right_pass(

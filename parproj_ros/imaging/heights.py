@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..geometry.epipolar import Normalization, invert_affine_2x3
 from ..geometry.parallel import AffineModel
 from .resample import OutputGrid, SceneGeometry
+from .threads import row_parts, run_parts, workers
 
 __all__ = [
     "Dsm",
@@ -339,6 +340,17 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
     return out
 
 
+@dataclass(frozen=True)
+class _Binned:
+    """The points of one block of rows binned into DSM cells lo .. lo + len(sums) - 1."""
+
+    lo: int
+    sums: FloatArray
+    count: NDArray[np.int64]
+    idx: NDArray[np.int64] | None
+    z: Float32Array
+
+
 def make_dsm(
     disparity: NDArray[np.floating[Any]],
     height_per_disparity_px: float,
@@ -399,7 +411,7 @@ def make_dsm(
             grid = DsmGrid.covering(x.min(), x.max(), y.min(), y.max(), size)
     n_cells = grid.width * grid.height
     sums = np.zeros(n_cells, dtype=np.float64)
-    count = np.zeros(n_cells, dtype=np.int64)
+    count = np.zeros(n_cells, dtype=np.float64)  # whole numbers (float: a quick mean)
     keys: list[NDArray[np.int64]] = []
     vals: list[Float32Array] = []
     # The cell of pixel (c, r) at height z: floor(k . (c, r, z) + k0), k per cell axis (the
@@ -408,7 +420,9 @@ def make_dsm(
     kc = np.array([m[0, 0], m[0, 1], v[0], m[0, 2] - grid.x0]) / grid.cell
     kr = np.array([m[1, 0], m[1, 1], v[1], m[1, 2] - grid.y0]) / -grid.cell
     pix_cols = np.arange(disparity.shape[1], dtype=float)
-    for r0, r1 in _spans(h, max(1, block_px // max(1, disparity.shape[1]))):
+
+    def grid_block(rows: tuple[int, int]) -> _Binned | None:
+        r0, r1 = rows
         z = heights_from_disparity(disparity[r0:r1], a, b)  # NaN where no disparity
         pix_rows = np.arange(r0, r1, dtype=float)[:, None]
         fc = kc[0] * pix_cols + (kc[1] * pix_rows + (kc[3] + 0.5))
@@ -423,18 +437,33 @@ def make_dsm(
         fr += fc
         idx = fr[inside].astype(np.int64)
         if idx.size == 0:
-            continue
+            return None
         zin = z[inside]
-        if reducer == "median":
-            keys.append(idx)
-            vals.append(zin)
         lo = int(idx.min())
         n = int(idx.max()) - lo + 1
         rel = idx - lo
-        sums[lo : lo + n] += np.bincount(rel, weights=zin, minlength=n)
-        count[lo : lo + n] += np.bincount(rel, minlength=n)
+        sums = cast("FloatArray", np.bincount(rel, weights=zin, minlength=n))
+        count = np.bincount(rel, minlength=n)
+        return _Binned(lo, sums, count, idx if reducer == "median" else None, zin)
+
+    # Blocks of about block_px pixels, at least one per thread, binned a wave of one block per
+    # thread at a time (bounded memory) and summed in order (the same sums on any threads).
+    n_threads = workers()
+    parts = max(n_threads, math.ceil(h * disparity.shape[1] / max(1, block_px)))
+    blocks = row_parts(h, parts, min_rows=1)
+    for i in range(0, len(blocks), n_threads):
+        for binned in run_parts(grid_block, blocks[i : i + n_threads]):
+            if binned is None:
+                continue
+            lo, n = binned.lo, binned.sums.size
+            sums[lo : lo + n] += binned.sums
+            count[lo : lo + n] += binned.count
+            if binned.idx is not None:
+                keys.append(binned.idx)
+                vals.append(binned.z)
+    out = np.empty(n_cells, dtype=np.float32)
     with np.errstate(invalid="ignore"):  # 0 / 0: NaN, a cell without points
-        out = (sums / count).astype(np.float32)
+        np.divide(sums, count, out=out, casting="same_kind")
     if reducer == "median" and keys:
         k = np.concatenate(keys)
         v = np.concatenate(vals)
@@ -493,7 +522,9 @@ def orthoimage(
         # pixel = K (X, Y, Z, 1) (affine): the terms of X and Y broadcast over each block
         pix = _ground_to_pixel_matrix(mapping)
         xs = g.x0 + g.cell * np.arange(g.width, dtype=float)
-    for r0, r1 in _spans(g.height, block_rows):
+
+    def remap_rows(rows: tuple[int, int]) -> None:
+        r0, r1 = rows
         z = dsm.heights[r0:r1]
         ok = np.isfinite(z)
         if scene is None:
@@ -518,6 +549,8 @@ def orthoimage(
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=float(nodata),
         )
+
+    run_parts(remap_rows, _spans(g.height, block_rows))
     return out
 
 

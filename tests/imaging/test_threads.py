@@ -1,0 +1,83 @@
+"""Row parts on threads (imaging/threads.py): the heights step's results do not depend on them.
+
+The checks of the matcher, the DSM gridding and the ortho-image run by row parts on OpenCV's
+thread count; with one thread or two, in small blocks or one, the disparity map, the DSM (its
+sums are added block by block in row order) and the ortho-image are the same to the bit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import cv2
+import numpy as np
+import pytest
+
+from parproj_ros.geometry import AffineModel
+from parproj_ros.imaging.dense import SgbmParams, match_pair
+from parproj_ros.imaging.heights import GroundMapping, make_dsm, orthoimage
+from parproj_ros.imaging.resample import OutputGrid
+from parproj_ros.imaging.threads import row_parts, run_parts
+
+
+@pytest.fixture
+def cv2_threads() -> Iterator[None]:
+    """Restore OpenCV's thread count after the test."""
+    n = cv2.getNumThreads()
+    yield
+    cv2.setNumThreads(n)
+
+
+@pytest.mark.parametrize(("rows", "parts", "min_rows"), [(1083, 2, 64), (100, 4, 64), (7, 3, 1)])
+def test_row_parts_cover_the_rows_once(rows: int, parts: int, min_rows: int) -> None:
+    spans = row_parts(rows, parts, min_rows)
+    assert spans[0][0] == 0 and spans[-1][1] == rows
+    assert all(a < b for a, b in spans)
+    assert all(spans[i][1] == spans[i + 1][0] for i in range(len(spans) - 1))
+    assert len(spans) == max(1, min(parts, rows // min_rows))
+    sizes = [b - a for a, b in spans]
+    assert max(sizes) - min(sizes) <= 1  # equal parts
+
+
+def test_run_parts_keeps_the_order(cv2_threads: None) -> None:
+    cv2.setNumThreads(2)
+    spans = row_parts(1000, 8, 1)
+    assert run_parts(lambda p: p[1] - p[0], spans) == [b - a for a, b in spans]
+
+
+def _pair(size: int = 256, shift: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(5)
+    tex = cv2.GaussianBlur(rng.uniform(0, 2047, (size, size + 32)).astype(np.float32), (0, 0), 1)
+    left = tex[:, 16 : 16 + size]
+    cols = np.arange(size, dtype=np.float32)[None, :] + 16 + shift
+    rows = np.broadcast_to(np.arange(size, dtype=np.float32)[:, None], (size, size))
+    right = cv2.remap(tex, np.ascontiguousarray(cols + 0 * rows), np.ascontiguousarray(rows), 1)
+    return (np.clip(left, 1, 2047).astype(np.uint16), np.clip(right, 1, 2047).astype(np.uint16))
+
+
+@pytest.mark.parametrize("lr_check", ["flip", "reduced"])
+def test_heights_are_the_same_on_one_thread_or_two(cv2_threads: None, lr_check: str) -> None:
+    left, right = _pair()
+    grid = OutputGrid(0.5, 0.0, 0.0, left.shape[1], left.shape[0])
+    mapping = GroundMapping(
+        grid,
+        np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+        AffineModel.from_array([1, 0.1, 0.3, 0, -0.1, 1, 0.05, 0]),
+    )
+    out = []
+    for threads, block_px in ((1, 1 << 22), (2, 1 << 22), (2, 5000)):
+        cv2.setNumThreads(threads)
+        res = match_pair(
+            left,
+            right,
+            d_range=(0, 16),
+            params=SgbmParams(lr_check=lr_check),  # type: ignore[arg-type]
+        )
+        dsm = make_dsm(res.disparity, 0.8, 100.0, mapping, fill="nearest", block_px=block_px)
+        med = make_dsm(res.disparity, 0.8, 100.0, mapping, reducer="median", block_px=block_px)
+        ortho = orthoimage(left, dsm, mapping, block_rows=37)
+        out.append((res.disparity, dsm.heights, dsm.count, med.heights, ortho))
+    assert np.isfinite(out[0][0]).mean() > 0.8  # it matched
+    for other in out[1:]:
+        for a, b in zip(out[0], other, strict=True):
+            assert np.array_equal(a, b, equal_nan=True)
