@@ -1,7 +1,7 @@
 """From a clean workspace: colcon builds both packages and the node runs from the install tree.
 
 As a ROS user does it (docs/ros.md): the package's sources (``git ls-files``, untracked files
-included: the working tree without build products) copied to ``<ws>/src/parproj_ros``, the real
+included: the working tree without build products) copied to ``<ws>/src/parproj``, the real
 colcon (requirements/dev.txt) builds parproj_msgs (msg_defs/, ament_cmake) and parproj_ros
 (ament_python) with the ROS 2 wheels of this venv as the underlay; then a bash that sourced
 ``install/setup.bash`` finds the node through the ament index (what ``ros2 run`` does, it has
@@ -39,7 +39,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]  # a colcon build, then the nod
 VENV = Path(sys.prefix)
 COLCON = Path(sys.executable).parent / "colcon"
 BAG = BAGS / "ikonos_agile"  # the default bag (./dev demo)
-BASE_PATHS = ["src", "src/parproj_ros/msg_defs"]  # docs/ros.md: colcon stops at a package root
+BASE_PATHS = ["src", "src/parproj/msg_defs"]  # docs/ros.md: colcon stops at a package root
 
 
 def copy_sources(dest: Path) -> int:
@@ -77,7 +77,7 @@ def listed(out: str) -> set[tuple[str, ...]]:
 def workspace(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """A workspace with this repository under src/, built by colcon; its environment."""
     ws = tmp_path_factory.mktemp("ws")
-    pkg = ws / "src" / "parproj_ros"
+    pkg = ws / "src" / "parproj"  # any folder name: colcon reads package.xml
     assert copy_sources(pkg) > 100
     env = ros_environment(log_dir=ws / "ros_log")
     # The underlay: the venv's ROS 2 wheels (no setup script of their own; rosidl needs
@@ -136,16 +136,16 @@ def test_colcon_lists_both_packages(workspace: dict) -> None:
         ("parproj_ros", ".", "(ros.ament_python)"),
     }
     assert listed(lists["workspace"]) == {
-        ("parproj_msgs", "src/parproj_ros/msg_defs", "(ros.ament_cmake)"),
-        ("parproj_ros", "src/parproj_ros", "(ros.ament_python)"),
+        ("parproj_msgs", "src/parproj/msg_defs", "(ros.ament_cmake)"),
+        ("parproj_ros", "src/parproj", "(ros.ament_python)"),
     }
     # Why the base paths: colcon does not descend into a package (msg_defs/ is inside one).
-    assert listed(lists["plain"]) == {("parproj_ros", "src/parproj_ros", "(ros.ament_python)")}
+    assert listed(lists["plain"]) == {("parproj_ros", "src/parproj", "(ros.ament_python)")}
 
 
 def test_install_tree_layout(workspace: dict) -> None:
     inst = workspace["ws"] / "install"
-    src = workspace["ws"] / "src" / "parproj_ros"
+    src = workspace["ws"] / "src" / "parproj"
     ros = inst / "parproj_ros"
     for script in ("parproj_node", "parproj"):
         path = ros / "lib" / "parproj_ros" / script  # where ros2 run looks
