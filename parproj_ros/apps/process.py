@@ -17,6 +17,7 @@ from ..core.config import PipelineConfig
 from ..core.memory import raw_pair_bytes, tune_malloc
 from ..core.results import Issue, Level, Outputs
 from ..core.session import InputKind, Session, Strip
+from ..io.earth import earth_transform
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
 from ..ros.inputs import config_from_bag, frame_from_bag
@@ -283,6 +284,9 @@ def process_bag(
     cfg = config or config_from_bag(reader, **(overrides or {}))
     frame, frame_issues = frame_from_bag(reader, frame_id)
     frame_id = frame.frame_id
+    on_earth = earth_transform(frame_id)  # recorded with the first outputs (object_frame)
+    if on_earth is not None:
+        frame_issues.append(Issue(Level.OK, "object frame", f"{frame_id}: {on_earth.definition}"))
     # Freed strips, blocks and images reused, not given back and faulted in again: up to two
     # raw pairs of free heap kept (a pair's blocks freed at once; core/memory.py)
     tune_malloc(2 * raw_pair_bytes(cfg))
@@ -344,6 +348,10 @@ def process_bag(
                 if frame_issues:  # inputs in another frame: with the first outputs
                     out.issues[:0] = frame_issues
                     frame_issues = []
+                if on_earth is not None:
+                    msg = conv.earth_transform_to_msg(on_earth, stamp_ns=item.log_time_ns)
+                    writer.write(contract.OBJECT_FRAME, msg, item.log_time_ns)
+                    on_earth = None
                 emit(out, item.log_time_ns)
             emit(_bag_issues(reader, Path(src).name), last)
             emit(session.feed(InputKind.FLUSH, None), last)

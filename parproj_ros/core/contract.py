@@ -59,6 +59,7 @@ __all__ = [
     "INPUTS",
     "INPUT_TYPES",
     "NAVIGATION",
+    "OBJECT_FRAME",
     "OUTPUTS",
     "OUTPUT_TOPICS",
     "PAIRS",
@@ -207,6 +208,7 @@ DSM = "dsm"
 DSM_CLOUD = "dsm_cloud"
 DSM_FUSED = "dsm_fused"
 DSM_FUSED_CLOUD = "dsm_fused_cloud"
+OBJECT_FRAME = "object_frame"
 DIAGNOSTICS = "/diagnostics"
 
 #: The child (body) frame of navigation.
@@ -464,6 +466,17 @@ OUTPUTS: tuple[Topic, ...] = (
         "transient_local",
         "`dsm_fused` as `dsm_cloud` is `dsm`: fields x y z (no ortho-image), same decimation",
         "`Outputs.fused` (`FusedResult`)",
+    ),
+    Topic(
+        OBJECT_FRAME,
+        "geometry_msgs/msg/TransformStamped",
+        LATCHED_OUTPUT_QOS,
+        "transient_local",
+        "where the outputs' object frame lies on Earth, once it is known and only when it has a "
+        "place on Earth (an imported pair's `enu_wgs84:...` plane): the transform from `earth` "
+        "(ECEF, REP 105) to it; its definition in words on `/diagnostics` (tf2_msgs has no wheel "
+        "here, so it is not on `/tf_static`)",
+        "`io/earth.EarthTransform`",
     ),
     Topic(
         DIAGNOSTICS,

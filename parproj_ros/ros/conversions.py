@@ -21,6 +21,7 @@ from ..core.results import METHODS, BlockResult, GroundPoint, Level, PairResult,
 from ..core.trajectory import NavSample, make_sample
 from ..geometry.rotation import rotation_to_quaternion
 from ..imaging.encodings import DTYPE_ENCODINGS, ENCODING_DTYPES
+from ..io.earth import EarthTransform
 
 
 class ConversionError(ValueError):
@@ -728,3 +729,22 @@ def elevation_grid_from_msg(msg: Any) -> tuple[Any, Any, Any]:
             f"ElevationGrid ortho {ortho.shape[:2]} and heights {heights.shape[:2]} differ"
         )
     return heights, grid, ortho
+
+
+def earth_transform_to_msg(t: EarthTransform, *, stamp_ns: int) -> Any:
+    """An object frame's place on Earth -> geometry_msgs/TransformStamped (``earth`` parent).
+
+    ``header.frame_id`` the Earth-fixed frame, ``child_frame_id`` the object frame; the
+    translation (m) and rotation (x, y, z, w) map object-frame points into ECEF.
+    """
+    from geometry_msgs.msg import TransformStamped
+
+    msg = TransformStamped()
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    msg.header.frame_id = t.parent
+    msg.child_frame_id = t.child
+    tr = msg.transform.translation
+    tr.x, tr.y, tr.z = t.translation
+    rot = msg.transform.rotation
+    rot.x, rot.y, rot.z, rot.w = t.rotation
+    return msg

@@ -26,6 +26,7 @@ from ..core.config import config_from_values
 from ..core.frames import ObjectFrame
 from ..core.results import BlockResult, Issue, Level, Outputs
 from ..core.session import InputKind, Session, Strip, Worker
+from ..io.earth import earth_transform
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
 from .cdr import CdrError, read_image
@@ -111,6 +112,8 @@ class ParprojNode(Node):
             self._load_gcp_file(str(vals["gcp_file"]), issues)
         issues += unknown_parameters(self)
         self.log("info", start_line(vals))
+        self._announced = ""
+        self._observe("frame_id", "")  # a frame_id parameter given: its place on Earth now
         self._report(issues)
         self.worker.start()
 
@@ -123,6 +126,18 @@ class ParprojNode(Node):
             why = f"{type(err).__name__}: {err}"
             where = why if path in str(err) else f"{path}: {why}"
             issues.append(Issue(Level.ERROR, "gcp_file", f"{where}; continuing without it"))
+
+    def _observe(self, where: str, frame_id: str) -> None:
+        """Note an input's frame; once the outputs' frame is known, say where it is on Earth."""
+        self._report(self._frame.observe(where, frame_id))
+        frame = self.frame_id
+        if frame == self._announced or not (self._frame.given or self._frame.seen):
+            return
+        self._announced = frame
+        if (t := earth_transform(frame)) is not None:
+            now = self.get_clock().now().nanoseconds
+            self.pubs[contract.OBJECT_FRAME].publish(conv.earth_transform_to_msg(t, stamp_ns=now))
+            self._report([Issue(Level.OK, "object frame", f"{frame}: {t.definition}")])
 
     @property
     def frame_id(self) -> str:
@@ -159,7 +174,7 @@ class ParprojNode(Node):
         except Exception as err:
             self.internal_error("a navigation message (callback)", err)
             return
-        self._report(self._frame.observe(contract.NAVIGATION, msg.header.frame_id))
+        self._observe(contract.NAVIGATION, msg.header.frame_id)
         self._enqueue((InputKind.NAV, sample))
         self._count("nav")
 
@@ -211,7 +226,7 @@ class ParprojNode(Node):
 
     def _on_gcp(self, msg: Any) -> None:
         try:
-            self._report(self._frame.observe(contract.GCP, msg.header.frame_id))
+            self._observe(contract.GCP, msg.header.frame_id)
             points = conv.gcp_from_msg(msg)
         except Exception as err:
             self.internal_error("a GCP message (callback)", err)

@@ -277,7 +277,12 @@ def wants_help(argv: Sequence[str]) -> bool:
 
 def usage() -> str:
     """``parproj_node --help``: how to run it, its topics, its parameters (from the tables)."""
-    from .. import __version__
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        __version__ = version("parproj_ros")
+    except PackageNotFoundError:  # a source tree not installed
+        __version__ = "(not installed)"
 
     lines = [
         f"parproj_node {__version__}: parallel-projection parameters and epipolar-normalized "

@@ -24,12 +24,13 @@ def test_output_table_is_the_published_topics_in_order() -> None:
         ("dsm_cloud", "sensor_msgs/msg/PointCloud2"),
         ("dsm_fused", "parproj_msgs/msg/ElevationGrid"),
         ("dsm_fused_cloud", "sensor_msgs/msg/PointCloud2"),
+        ("object_frame", "geometry_msgs/msg/TransformStamped"),
         ("/diagnostics", "diagnostic_msgs/msg/DiagnosticArray"),
     ]
     # Per-scene and per-pair results a late subscriber needs are latched (and recorded so, for
     # a replay to offer them latched); the rest reliable and volatile.
     latched = {"parallel_projection", "stereo_pair", "dsm", "dsm_cloud", "dsm_fused"}
-    latched |= {"dsm_fused_cloud"}
+    latched |= {"dsm_fused_cloud", "object_frame"}
     for t in contract.OUTPUTS:
         want = t.name in latched
         assert (t.qos == contract.LATCHED_OUTPUT_QOS) == want, t.name

@@ -382,6 +382,7 @@ ROS = {
     "nav_msgs",
     "diagnostic_msgs",
     "stereo_msgs",
+    "geometry_msgs",
     "parproj_msgs",
 }
 

@@ -269,3 +269,41 @@ def test_offline_heights_equal_live(live: dict, tmp_path: Path) -> None:
     assert np.array_equal(
         image_to_array(off["dsm"].heights), image_to_array(on["dsm"].heights), equal_nan=True
     )
+
+
+def test_object_frame_on_earth_live_and_offline(live: dict, tmp_path: Path) -> None:
+    """An imported pair's object frame is placed on Earth: one latched TransformStamped from
+    ``earth`` (ECEF) on ``object_frame``, live and in ``parproj process``'s bag, decoded by the
+    independent reader and checked against the geodesy within 1 mm; a simulated bag's ``map``
+    frame has no place on Earth: nothing is published (issue 25, item 4)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from parproj_ros.geometry.geodesy import ecef_from_geodetic
+    from parproj_ros.io.scene_import import frame_from_id
+
+    offline = tmp_path / "offline"
+    process_bag(live["bag"], offline, progress=False)
+    for bag in (live["out"], offline):
+        (mcap,) = sorted(Path(bag).glob("*.mcap"))
+        with open(mcap, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            got = [m for _, _, _, m in reader.iter_decoded_messages(topics=["object_frame"])]
+        if live["name"] != "ventoux":
+            assert got == [], bag
+            continue
+        (t,) = got
+        plane = frame_from_id(t.child_frame_id)
+        assert t.header.frame_id == "earth"
+        tr, q = t.transform.translation, t.transform.rotation
+        x, y, z = ecef_from_geodetic(plane.lon0, plane.lat0, plane.h0)
+        assert max(abs(tr.x - x), abs(tr.y - y), abs(tr.z - z)) < 1e-3, bag
+        up = plane.rotation[2]  # the local up axis in ECEF = R(q) (0, 0, 1)
+        r_up = np.array(
+            [
+                2 * (q.x * q.z + q.w * q.y),
+                2 * (q.y * q.z - q.w * q.x),
+                1 - 2 * (q.x**2 + q.y**2),
+            ]
+        )
+        assert np.abs(r_up - up).max() < 1e-9, bag
