@@ -20,7 +20,7 @@ import sys
 import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Any, ClassVar, Generic, Literal, TypeVar, overload
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 from .params import PARAMS, VIEW_PARAMS, Param, ParamType
 from .params import default as _default
@@ -232,30 +232,6 @@ GROUPS: dict[str, type[_Settings]] = {
 #: The flat keywords :class:`PipelineConfig` accepts (the parameter names) -> (group, setting).
 FLAT_NAMES: dict[str, tuple[str, str]] = {p.name: p.target for p in PARAMS if p.target is not None}
 
-_T = TypeVar("_T")
-
-
-class _Flat(Generic[_T]):
-    """A read-only flat name of :class:`PipelineConfig` during the migration.
-
-    ``config.heights_cell_m`` reads ``config.dense.cell_m``: the setting its row fills.
-    """
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.group, self.setting = FLAT_NAMES[name]
-
-    @overload
-    def __get__(self, obj: None, owner: type) -> _Flat[_T]: ...
-
-    @overload
-    def __get__(self, obj: object, owner: type) -> _T: ...
-
-    def __get__(self, obj: object, owner: type) -> _T | _Flat[_T]:
-        if obj is None:
-            return self
-        value: _T = getattr(getattr(obj, self.group), self.setting)
-        return value
-
 
 @dataclass(frozen=True, init=False)
 class PipelineConfig:
@@ -269,8 +245,7 @@ class PipelineConfig:
     Construction: ``PipelineConfig(views, dense=DenseSettings(enabled=True))``, or with the
     flat parameter names as keywords (``PipelineConfig(views, heights=True, scene_lines=0)``,
     ``dataclasses.replace(config, heights=True)``): each sets its group's setting, over the
-    group given or its defaults. The flat names also read (``config.heights_cell_m``), during
-    the migration to the groups.
+    group given or its defaults. Settings are read by group only (``config.dense.cell_m``).
 
     Attributes:
         views: the cameras, in ``views`` order.
@@ -337,39 +312,6 @@ class PipelineConfig:
     def single_camera(self) -> bool:
         """Whether consecutive scenes of the one view form the pairs."""
         return len(self.views) == 1
-
-    # The flat names, read-only, during the migration to the groups (see FLAT_NAMES).
-    scene_lines = _Flat[int]()
-    max_gap_lines = _Flat[int]()
-    z_avg = _Flat[float]()
-    height_range = _Flat[float]()
-    crab_tolerance_px = _Flat[float]()
-    gcp_roll = _Flat[GcpRoll]()
-    min_gcp = _Flat[int]()
-    nodata = _Flat[float]()
-    interpolation = _Flat[str]()
-    output_pixel = _Flat[float]()
-    output_extent = _Flat[OutputExtent]()
-    max_output_pixels = _Flat[int]()
-    streaming = _Flat[bool]()
-    terrain = _Flat[TerrainChoice]()
-    tie_points = _Flat[bool]()
-    tie_threshold_px = _Flat[float]()
-    heights = _Flat[bool]()
-    heights_margin_px = _Flat[float]()
-    heights_cell_m = _Flat[float]()
-    heights_fill = _Flat[HeightsFill]()
-    heights_max_fill_cells = _Flat[float]()
-    heights_tile_px = _Flat[int]()
-    heights_fuse_mb = _Flat[float]()
-    heights_matcher = _Flat[HeightsMatcher]()
-    dsm_cloud_step = _Flat[int]()
-    nav_jump_s = _Flat[float]()
-    nav_position_tolerance_m = _Flat[float]()
-    segment_max_error_px = _Flat[float]()
-    segment_overlap = _Flat[float]()
-    start_margin_s = _Flat[float]()
-    nav_history_s = _Flat[float]()
 
 
 def _attributes_doc(concern: str) -> str:
@@ -495,9 +437,6 @@ def _check_table() -> None:
     have = {(concern, f.name) for concern, cls in GROUPS.items() for f in fields(cls)}  # type: ignore[arg-type]
     if have != set(_ROWS):
         raise AssertionError(f"config: settings {sorted(have ^ set(_ROWS))} not in step")
-    flat = {n for n, v in vars(PipelineConfig).items() if isinstance(v, _Flat)}
-    if flat != set(FLAT_NAMES):
-        raise AssertionError(f"config: flat names {sorted(flat ^ set(FLAT_NAMES))} not in step")
     for cls in GROUPS.values():
         cls()  # every default passes its group's checks
 

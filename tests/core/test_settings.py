@@ -54,7 +54,6 @@ def test_group_defaults_are_the_table_defaults() -> None:
     for p in PARAMS:
         if p.target is not None:
             assert getattr(getattr(cfg, p.target[0]), p.target[1]) == p.default, p.name
-            assert getattr(cfg, p.name) == p.default, p.name  # the flat reader
 
 
 def test_flat_and_grouped_construction_agree() -> None:
@@ -66,7 +65,7 @@ def test_flat_and_grouped_construction_agree() -> None:
         ties=config.TiePointSettings(enabled=False),
     )
     assert flat == grouped
-    assert (flat.dense.cell_m, flat.heights_cell_m, flat.scene_lines) == (2.5, 2.5, 7)
+    assert (flat.dense.cell_m, flat.scenes.lines) == (2.5, 7)
     # A flat name over a group given: the group, with that setting changed.
     both = PipelineConfig(VIEWS, output=OutputSettings(nodata=-1.0), output_pixel=0.5)
     assert (both.output.nodata, both.output.pixel_m) == (-1.0, 0.5)
@@ -77,15 +76,19 @@ def test_replace_takes_flat_names_and_groups() -> None:
     on = replace(cfg, heights=True)
     assert on.dense.enabled and on.scenes.lines == 100 and not cfg.dense.enabled
     off = replace(cfg, stream=replace(cfg.stream, enabled=False))
-    assert off.streaming is False and off.scenes == cfg.scenes
+    assert off.stream.enabled is False and off.scenes == cfg.scenes
     one = replace(cfg, views=cfg.views[:1])
     assert one.single_camera and one.scenes.lines == 100
 
 
-def test_flat_names_read_only_and_unknown_refused() -> None:
-    cfg = PipelineConfig(VIEWS)
+def test_flat_names_not_read_and_unknown_refused() -> None:
+    """A flat name builds a config but is not an attribute: settings are read by group."""
+    cfg = PipelineConfig(VIEWS, heights=True)
+    assert cfg.dense.enabled
+    for name in config.FLAT_NAMES:
+        assert not hasattr(cfg, name) or name in config.GROUPS, name
     with pytest.raises(AttributeError):
-        cfg.heights = True  # type: ignore[misc]
+        cfg.dense = DenseSettings()  # type: ignore[misc]
     with pytest.raises(TypeError, match="heights_cellm"):
         PipelineConfig(VIEWS, heights_cellm=1.0)
 
@@ -106,7 +109,7 @@ def test_config_survives_pickling() -> None:
     """The render child process gets the config pickled."""
     cfg = PipelineConfig(VIEWS, heights=True, output_extent="union")
     back = pickle.loads(pickle.dumps(cfg))
-    assert back.dense == cfg.dense and back.output == cfg.output and back.heights
+    assert back.dense == cfg.dense and back.output == cfg.output and back.dense.enabled
 
 
 def test_group_field_types_are_the_row_types() -> None:

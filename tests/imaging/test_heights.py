@@ -285,8 +285,7 @@ def test_full_size_pair_as_the_pipeline_would_call_it() -> None:
     (p,) = feed(pipe, nav_events(scn) + strip_events(scn, scenes)).pairs
     assert p.left_image is not None and p.right_image is not None
     a, b = p.height_per_disparity_px, p.height_offset_m
-    c = pipe.config
-    wide = disparity_range(a, b, (c.z_avg - c.height_range, c.z_avg + c.height_range))
+    wide = disparity_range(a, b, pipe.config.orientation.prior_heights)
     rng = refine_range(p.left_image, p.right_image, d_range=wide)
     assert rng is not None and rng[1] - rng[0] < 0.5 * (wide[1] - wide[0]), (wide, rng)
     res = match_pair(p.left_image, p.right_image, d_range=rng)
