@@ -169,3 +169,129 @@ def test_report_keeps_the_hand_written_part(tmp_path) -> None:  # type: ignore[n
     text = path.read_text()
     assert text.startswith("# second\n") and "# first" not in text
     assert text.endswith(f"{HAND_WRITTEN}\n\n## by hand\nkept\n")
+
+
+#: The heights keys of `python -m tools.bench --json` (issue 26): each a number, or None with
+#: a string under ``<key>_reason``.
+HEIGHTS_KEYS = (
+    "sgbm_bare_mpx_s",
+    "heights_full_mpx_s",
+    "heights_quicklook_realtime_factor",
+    "heights_tile_latency_max_s",
+)
+
+
+def _number_or_reason(doc: dict, key: str) -> bool:
+    v = doc[key]
+    if v is None:
+        why = doc.get(f"{key}_reason")
+        return isinstance(why, str) and len(why) > 10
+    return isinstance(v, float) and math.isfinite(v) and v > 0
+
+
+def test_heights_keys_numbers_or_null_with_reason() -> None:
+    """The heights step and one bare SGBM pass on the benchmark's own normalized pair (a small
+    form): both Mpx/s figures are numbers, the step costs at least the bare pass (it runs two
+    passes and more on the same pixels and disparities), and the quick-look keys, which need the
+    live node, are None with their reason."""
+    from dataclasses import replace
+
+    small = replace(TINY, lines=1024, detectors=512, strip_lines=128, heights_repeats=1)
+    res = run_bench(small, live=False, offline=False, scaling=False, log=lambda s: None)
+    doc = json.loads(json.dumps(res, allow_nan=False))
+    for key in HEIGHTS_KEYS:
+        assert key in doc and f"{key}_reason" in doc, key
+        assert _number_or_reason(doc, key), (key, doc[key], doc.get(f"{key}_reason"))
+    hs = doc["heights_step"]
+    assert hs["error"] is None, hs["error"]
+    assert doc["sgbm_bare_mpx_s"] is not None and doc["heights_full_mpx_s"] is not None
+    # One bare pass is a lower bound of the step (two passes of the left-right check).
+    assert doc["heights_full_over_sgbm_bare"] > 1.0
+    assert doc["heights_full_mpx_s"] == pytest.approx(hs["mpx"] / hs["heights_s"])
+    assert hs["mpx"] == pytest.approx(hs["pair_size"][0] * hs["pair_size"][1] / 1e6)
+    assert hs["matched_share"] > 0.9  # the same random texture in both views, flat ground
+    # The sensor's left pixels per second: 6500 lines/s x 512 detectors.
+    assert doc["heights_needed_mpx_s"] == pytest.approx(6500 * 512 / 1e6)
+    assert doc["heights_quicklook_realtime_factor"] is None
+    assert "live part was not run" in doc["heights_quicklook_realtime_factor_reason"]
+    # Without the heights part, the same keys say why.
+    res = run_bench(TINY, live=False, offline=False, scaling=False, heights=False,
+                    log=lambda s: None)  # fmt: skip
+    for key in HEIGHTS_KEYS:
+        assert res[key] is None and res[f"{key}_reason"], key
+
+
+def test_quicklook_detection_follows_the_contract() -> None:
+    """The quick-look run needs the node's streamed tiles (topic dsm_tile) and a quick-look
+    parameter: until both exist, the reason names what is missing."""
+    from parproj_ros.core import contract, params
+    from tools.bench.dsm import quicklook_keys, quicklook_setup
+
+    setup = quicklook_setup(4)
+    has_tiles = "dsm_tile" in [t.name for t in contract.OUTPUTS]
+    has_param = any("quick" in p.name and "look" in p.name for p in params.PARAMS)
+    if has_tiles and has_param:
+        assert not isinstance(setup, str)
+        node_params, topics = setup
+        assert node_params["heights"] is True and "dsm_tile" in topics
+    else:
+        assert isinstance(setup, str) and setup.startswith("not measured yet")
+        keys = quicklook_keys({"available": False, "reason": setup, "factor": 4})
+        assert keys["heights_quicklook_realtime_factor"] is None
+        assert keys["heights_tile_latency_max_s_reason"] == setup
+
+
+def test_tile_latency_from_the_strip_that_completes_its_ground() -> None:
+    """A tile's last strip is found from its ground through the acquisition's geometry (the aft
+    view images a ground one scene after the fore view); its latency and the tiles' real-time
+    factor follow from the times given (no clock read)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from parproj_ros.sim.synthetic import make_platform
+    from tools.bench.dds import tile_extent, tile_figures, tile_last_strip
+    from tools.bench.dsm import quicklook_keys
+
+    plat = make_platform(512, 96)
+    strip = 128
+    aft = plat.model(1, 0)
+
+    def ground(line: float, sample: float) -> np.ndarray:
+        return np.asarray(aft.locate(line, sample, 0.0), dtype=float)
+
+    # The ground the aft view images between lines 200 and 300 of its scene 0.
+    a, b = ground(200.0, 20.0), ground(300.0, 70.0)
+    extent = (min(a[0], b[0]), max(a[0], b[0]), min(a[1], b[1]), max(a[1], b[1]))
+    assert tile_last_strip(plat, strip, extent) == (1, 0, 256)
+    # A 3 x 4 cell tile message: cells with a height span that ground; NaN cells do not count.
+    cell = (extent[1] - extent[0]) / 2
+    z = np.full((3, 4), np.nan, np.float32)
+    z[0:2, 1:4] = 5.0
+    msg = SimpleNamespace(
+        x0=extent[0] - cell, y0=extent[3], cell_size=cell, pair_id="p#0/2@4",
+        heights=SimpleNamespace(height=3, width=4, step=16, encoding="32FC1", data=z.tobytes()),
+    )  # fmt: skip
+    got = tile_extent(msg)
+    assert got is not None
+    assert got[0] == pytest.approx(extent[0]) and got[1] == pytest.approx(extent[1])
+    assert got[3] == pytest.approx(extent[3]) and got[2] == pytest.approx(extent[3] - cell)
+    # Two tiles: the first completed by strip (1, 0, 256) sent at 10.0 s, received at 10.3 s;
+    # the second by (1, 1, 0) sent at 10.5 s, received at 10.7 s; one tile without a ground.
+    later = (extent[0] + 300.0, extent[1] + 300.0, extent[2], extent[3])  # ~370 lines on
+    key2 = tile_last_strip(plat, strip, later)
+    sent = {(1, 0, 256): 10.0, key2: 10.5}
+    tiles = [(10.3, "p#0/2@4", extent), (10.7, "p#1/2@4", later), (10.8, "p#1/2@4", None)]
+    fig = tile_figures(tiles, plat, strip, sent, all_sent=10.75)
+    assert key2 != (1, 0, 256)
+    assert fig["tiles"] == 3 and fig["unplaced"] == 1 and fig["pairs"] == 1
+    assert fig["tiles_announced"] == 2 and fig["during_pass"] == 2
+    assert fig["latency_s"]["max"] == pytest.approx(0.3)
+    assert fig["realtime_factor"] == pytest.approx(0.5 / 0.4)
+    keys = quicklook_keys(
+        {"available": True, "factor": 4,
+         "live": {"tiles": {"dsm_tile": fig, "dsm_tile@4": fig}, "cpu_per_sensor_s": {}}}
+    )  # fmt: skip
+    assert keys["heights_quicklook_realtime_factor"] == pytest.approx(1.25)
+    assert keys["heights_tile_latency_max_s"] == pytest.approx(0.3)
+    assert keys["heights_quicklook_realtime_factor_reason"] is None

@@ -66,6 +66,8 @@ class BenchConfig:
             images"); "zstd" or "lz4" to measure what reading them costs.
         direct_output: the offline output bag (and the I/O bound's) written past the page
             cache (``process_bag``'s ``direct``, its default); False: through it.
+        heights_repeats: timed runs of the heights step and of the bare SGBM pass on the
+            benchmark's normalized pair (the fastest kept; :mod:`tools.bench.dsm`).
     """
 
     name: str
@@ -96,6 +98,7 @@ class BenchConfig:
     input_compression: str = "none"
     live_rate: float = 1.0
     direct_output: bool = True
+    heights_repeats: int = 2
 
 
 FULL = BenchConfig(
@@ -106,6 +109,7 @@ FULL = BenchConfig(
     offline_pairs=3,
     strip_lines=500,
     min_sustained=0.995,
+    heights_repeats=1,
     map_coordinates_rows=512,
     repeats=3,
     scaling=(

@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,6 +25,7 @@ from parproj_ros.sim.synthetic import (
     LINE_RATE_HZ,
     VIEWS,
     Event,
+    Platform,
     StripMessages,
     acquisition,
     make_platform,
@@ -36,6 +37,7 @@ from tools.harness import (
     fast_dds,
     join_ros_domain,
     mem_available_mb,
+    proc_cpu_s,
     proc_status,
 )
 
@@ -146,9 +148,16 @@ def bench_live(
     domain_id: int | None = None,
     py_spy: str | None = None,
     node_params: dict[str, Any] | None = None,
+    tile_topics: Sequence[str] = (),
     log: Log = log_stderr,
 ) -> dict[str, Any]:
     """Part 2: strips at 6500 lines/s per view into parproj_node over DDS (see module doc).
+
+    ``tile_topics``: output topics of DSM tiles (a grid message with ``x0``, ``y0``,
+    ``cell_size`` and ``heights``) to receive too: per topic, each tile's latency from the
+    strip that completes its ground (:func:`tile_last_strip`) to its reception (``tiles``).
+    The CPU seconds of the node, its render process and this process (the simulated sensor
+    and the observer) per sensor second are ``cpu_per_sensor_s``.
 
     ``node_params`` are extra node parameters (e.g. ``{"streaming": False}``). Returns
     real-time factors, latencies (s), strips dropped, the node's memory (MB) and the
@@ -164,6 +173,7 @@ def bench_live(
     from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
 
+    from parproj_ros.ros.bag import get_message_class
     from parproj_ros.ros.inputs import node_parameters
     from parproj_ros.ros.live import NodeProcess, node_params_yaml
 
@@ -250,6 +260,17 @@ def bench_live(
         QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE),
     )
     rnode.create_subscription(DiagnosticArray, contract.DIAGNOSTICS, obs.on_diag, 100)
+    tiles = _TileObserver()
+    for name in tile_topics:
+        cls = get_message_class(contract.topic(name).msgtype)
+        if cls is None:
+            raise BenchAbortError(f"no message class for {contract.topic(name).msgtype}")
+        rnode.create_subscription(
+            cls,
+            name,
+            lambda m, name=name: tiles.on_tile(name, m),
+            QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE),
+        )
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(rnode)
     spinning = threading.Event()
@@ -262,6 +283,10 @@ def bench_live(
     spin = threading.Thread(target=spin_loop, name="bench_spin", daemon=True)
     spin.start()
     sent_strips = 0
+    strip_sent: dict[tuple[int, int, int], float] = {}  # (view, scene, row0) -> sent, s
+    render_pid: int | None = None
+    cpu0: dict[str, float | None] = {}
+    cpu1: dict[str, float | None] = {}
     publish_errors = 0
     sent_nav = 0
     ack_wait = 0.0
@@ -305,6 +330,12 @@ def bench_live(
             raise BenchAbortError("node not discovered within 60 s")
         time.sleep(1.0)
         res["node_base_rss_mb"] = mon.rss_mb
+        render_pid = child_render_pid(node.proc.pid)
+        cpu0 = {
+            "node": proc_cpu_s(node.proc.pid),
+            "render": proc_cpu_s(render_pid) if render_pid else None,
+            "bench": time.process_time(),
+        }
         if py_spy:
             spy = subprocess.Popen(
                 [
@@ -400,6 +431,7 @@ def bench_live(
                         raise BenchAbortError(f"strips not acknowledged in {cfg.stall_s:.0f} s")
                     ack_wait += time.time() - t_ack
                     unacked[ev.view] = 0
+                strip_sent[(ev.view, ev.scene, ev.row0)] = time.time()
                 if ev.last_of_pair:
                     last_sent[ev.scene] = time.time()
         t_sent = time.time()
@@ -448,6 +480,11 @@ def bench_live(
                 break
             time.sleep(0.05)
         res["node_peak_rss_mb"] = max(mon.hwm_mb, proc_status(node.proc.pid).get("VmHWM", 0.0))
+        cpu1 = {
+            "node": proc_cpu_s(node.proc.pid),
+            "render": proc_cpu_s(render_pid) if render_pid else None,
+            "bench": time.process_time(),
+        }
         if spy is not None:
             spy.send_signal(signal.SIGINT)
             try:
@@ -520,6 +557,27 @@ def bench_live(
     )
     res["latency_s"] = latency_stats(lat)
     res["latency_published_s"] = latency_stats(lat_pub)
+    # CPU per sensor second, each process, from before the first strip to the node idle.
+    res["render_process_found"] = render_pid is not None
+    res["cpu_s"] = {
+        k: (cpu1[k] or 0.0) - (cpu0[k] or 0.0)
+        if cpu0.get(k) is not None and cpu1.get(k) is not None
+        else None
+        for k in ("node", "render", "bench")
+    }
+    res["cpu_per_sensor_s"] = {
+        k: v / sensor_s if v is not None else None for k, v in res["cpu_s"].items()
+    }
+    # Per topic, and per quick-look level of a topic whose tiles say theirs ("...@4").
+    res["tiles"] = {}
+    for name in tile_topics:
+        came = tiles.of(name)
+        res["tiles"][name] = tile_figures(came, plat, cfg.strip_lines, strip_sent, t_sent)
+        for level in sorted({p[p.index("@") :] for _, p, _ in came if "@" in p}):
+            mine = [g for g in came if g[1].endswith(level)]
+            res["tiles"][name + level] = tile_figures(
+                mine, plat, cfg.strip_lines, strip_sent, t_sent
+            )
     # Memory per pair: the peak between consecutive pairs' receptions.
     peaks: list[float] = []
     prev = start
@@ -544,6 +602,145 @@ def bench_live(
     if py_spy and (workdir / "node_py_spy.txt").exists():
         res["py_spy"] = summarize_collapsed(workdir / "node_py_spy.txt")
     return res
+
+
+def child_render_pid(pid: int) -> int | None:
+    """The node's render process, or None (``streaming`` off, or not started yet).
+
+    Its child started by multiprocessing's spawn (not the resource tracker).
+    """
+    kids: list[int] = []
+    try:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            kids += [int(c) for c in (task / "children").read_text().split()]
+    except OSError:
+        return None
+    for kid in kids:
+        try:
+            cmd = Path(f"/proc/{kid}/cmdline").read_bytes()
+        except OSError:
+            continue
+        if b"spawn_main" in cmd:
+            return kid
+    return None
+
+
+#: A DSM tile's ground: (x_min, x_max, y_min, y_max), metres in the object frame.
+Extent = tuple[float, float, float, float]
+
+
+def tile_extent(msg: Any) -> Extent | None:
+    """The ground of a DSM tile message's cells with a height (all its cells if none has).
+
+    Cell (row, col) is centred at (x0 + col cell_size, y0 - row cell_size) (ElevationGrid);
+    None for a message without ``x0``, ``y0``, ``cell_size`` and a 32FC1 ``heights`` image.
+    """
+    try:
+        x0, y0, cell = float(msg.x0), float(msg.y0), float(msg.cell_size)
+        img = msg.heights
+        h, w, step = int(img.height), int(img.width), int(img.step)
+    except AttributeError:
+        return None
+    if h == 0 or w == 0 or img.encoding != "32FC1" or step % 4:
+        return None
+    z = np.frombuffer(bytes(img.data), dtype=np.float32).reshape(h, step // 4)[:, :w]
+    has = np.isfinite(z)
+    rows, cols = np.nonzero(has.any(axis=1))[0], np.nonzero(has.any(axis=0))[0]
+    r0, r1 = (int(rows[0]), int(rows[-1])) if rows.size else (0, h - 1)
+    c0, c1 = (int(cols[0]), int(cols[-1])) if cols.size else (0, w - 1)
+    return (x0 + c0 * cell, x0 + c1 * cell, y0 - r1 * cell, y0 - r0 * cell)
+
+
+def tile_last_strip(plat: Platform, strip_lines: int, extent: Extent) -> tuple[int, int, int]:
+    """The strip (view, scene, first row) that completes a tile's ground, of the acquisition.
+
+    The ground (flat, Z = 0: the benchmark's) of the extent's corners is imaged last by one
+    view at some line; the strip holding that line is the last one the tile can need (its
+    disparity margin aside: a few lines more at most, one strip in the worst case).
+    """
+    x_lo, x_hi, y_lo, y_hi = extent
+    pts = np.array([[x, y, 0.0] for x in (x_lo, x_hi) for y in (y_lo, y_hi)])
+    best: tuple[float, int, int, int] | None = None
+    lp = plat.camera.line_period
+    for view in (0, 1):
+        line = max(0, math.ceil(float(plat.model(view, 0).project(pts)[:, 0].max())))
+        scene, row = divmod(line, plat.lines)
+        row0 = row // strip_lines * strip_lines
+        due = plat.scene_start_s(view, scene) + min(row0 + strip_lines, plat.lines) * lp
+        if best is None or due > best[0]:
+            best = (due, view, scene, row0)
+    assert best is not None
+    return best[1], best[2], best[3]
+
+
+@dataclass
+class _TileObserver:
+    """DSM tiles the bench process receives: (topic, time received, pair id, ground)."""
+
+    got: list[tuple[str, float, str, Extent | None]] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def on_tile(self, topic: str, msg: Any) -> None:
+        now = time.time()
+        extent = tile_extent(msg)
+        with self.lock:
+            self.got.append((topic, now, str(getattr(msg, "pair_id", "")), extent))
+
+    def of(self, topic: str) -> list[tuple[float, str, Extent | None]]:
+        with self.lock:
+            return [(t, p, e) for name, t, p, e in self.got if name == topic]
+
+
+def tile_figures(
+    got: list[tuple[float, str, Extent | None]],
+    plat: Platform,
+    strip_lines: int,
+    strip_sent: dict[tuple[int, int, int], float],
+    all_sent: float,
+) -> dict[str, Any]:
+    """Latency and real-time factor of the DSM tiles of one topic.
+
+    Each tile's latency: from the publication of the strip that completes its ground
+    (:func:`tile_last_strip`) to its reception. The real-time factor: the sensor time between
+    the first and the last of those strips over the time between the first and the last tile
+    received (as the node's real-time factor: a node that keeps up scores 1 whatever its
+    constant latency). ``during_pass``: tiles received before the last strip was sent.
+    ``unplaced``: tiles without a ground or whose strip was never sent.
+    """
+    lat: list[float] = []
+    spans: list[tuple[float, float]] = []
+    unplaced = 0
+    for rx, _, extent in got:
+        sent = None
+        if extent is not None:
+            sent = strip_sent.get(tile_last_strip(plat, strip_lines, extent))
+        if sent is None:
+            unplaced += 1
+            continue
+        lat.append(rx - sent)
+        spans.append((sent, rx))
+    s = [a for a, _ in spans]
+    r = [b for _, b in spans]
+    factor = (
+        (max(s) - min(s)) / (max(r) - min(r))
+        if len(spans) >= 2 and max(r) > min(r) and max(s) > min(s)
+        else None
+    )
+    # pair_id "<pair>#<index>/<count>[@<factor>]" (core/results.HeightTile.name).
+    counts: dict[str, int] = {}
+    for _, name, _ in got:
+        m = re.fullmatch(r"(.*)#\d+/(\d+)(@\d+)?", name)
+        if m:
+            counts[m.group(1)] = int(m.group(2))
+    return {
+        "tiles": len(got),
+        "pairs": len({name.split("#")[0] for _, name, _ in got}),
+        "tiles_announced": sum(counts.values()) if counts else None,
+        "unplaced": unplaced,
+        "during_pass": sum(1 for rx, _, _ in got if math.isfinite(all_sent) and rx < all_sent),
+        "latency_s": latency_stats(lat),
+        "realtime_factor": factor,
+    }
 
 
 #: Where the pass-through node republishes each view's strips.

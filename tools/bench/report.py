@@ -51,6 +51,49 @@ def summary_keys(res: dict[str, Any]) -> dict[str, Any]:
         "rss_slope_mb_per_pair": rss.get("slope_mb_per_pair"),
         "offline_realtime_factor": off.get("realtime_factor"),
         "offline_latency_s": (off.get("latency_s") or {}).get("median"),
+        **heights_keys(res),
+    }
+
+
+def heights_keys(res: dict[str, Any]) -> dict[str, Any]:
+    """The heights figures of a run (issue 26): each a number, or None and ``<key>_reason``.
+
+    ``sgbm_bare_mpx_s`` and ``heights_full_mpx_s`` (:mod:`tools.bench.dsm`, same pair, same
+    run), the left normalized pixels the sensor delivers per second at the live rate
+    (``heights_needed_mpx_s``: line rate x detectors) and how many times the heights step is
+    too slow for them (``heights_full_shortfall``); the CPU seconds per sensor second of each
+    process of the live run; the quick-look run's keys (:func:`tools.bench.dsm.quicklook_keys`).
+    """
+    from parproj_ros.sim.synthetic import LINE_RATE_HZ
+
+    from .dsm import quicklook_keys
+
+    hs = res.get("heights_step")
+    lv = res.get("live") or {}
+    cfg = res.get("config") or {}
+    why = None if hs is None else hs.get("error")
+    if hs is None:
+        why = "the heights part was not run (--no-heights)"
+    full = (hs or {}).get("heights_full_mpx_s")
+    need = (
+        LINE_RATE_HZ * cfg.get("live_rate", 1.0) * cfg["detectors"] / 1e6
+        if cfg.get("detectors")
+        else None
+    )
+    cpu = lv.get("cpu_per_sensor_s") or {}
+    return {
+        "sgbm_bare_mpx_s": (hs or {}).get("sgbm_bare_mpx_s"),
+        "sgbm_bare_mpx_s_reason": why if (hs or {}).get("sgbm_bare_mpx_s") is None else None,
+        "heights_full_mpx_s": full,
+        "heights_full_mpx_s_reason": why if full is None else None,
+        "heights_full_over_sgbm_bare": (hs or {}).get("heights_over_sgbm"),
+        "heights_cv2_threads": (hs or {}).get("cv2_threads"),
+        "heights_needed_mpx_s": need,
+        "heights_full_shortfall": need / full if need and full else None,
+        "node_cpu_per_sensor_s": cpu.get("node"),
+        "render_cpu_per_sensor_s": cpu.get("render"),
+        "bench_cpu_per_sensor_s": cpu.get("bench"),
+        **quicklook_keys(res.get("quicklook") if lv else None),
     }
 
 

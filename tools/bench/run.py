@@ -25,6 +25,7 @@ from tools.harness import (
 
 from .config import FULL, QUICK, BenchConfig, Log, log_stderr
 from .dds import bench_live, bench_transport
+from .dsm import bench_heights_step, bench_quicklook
 from .micro import bench_resample, bench_scaling
 from .offline import bench_offline
 from .report import format_markdown, format_text, summary_keys, targets
@@ -50,12 +51,18 @@ def run_bench(
     live: bool = True,
     offline: bool = True,
     scaling: bool = True,
+    heights: bool = True,
     domain_id: int | None = None,
     py_spy: str | None = None,
     node_params: dict[str, Any] | None = None,
     log: Log = log_stderr,
 ) -> dict[str, Any]:
-    """All parts of the benchmark; the flat summary keys first, then the details."""
+    """All parts of the benchmark; the flat summary keys first, then the details.
+
+    ``heights``: the heights step against a bare SGBM pass on the benchmark's normalized pair
+    and, with ``live``, the live run again with heights on and the quick-look
+    (:mod:`tools.bench.dsm`).
+    """
     t0 = time.perf_counter()
     busy0, own0 = cpu_busy_s(), own_cpu_s(children=True)
     res: dict[str, Any] = {
@@ -67,6 +74,9 @@ def run_bench(
     if scaling:
         res["scaling"] = bench_scaling(cfg, log)
     gc.collect()
+    if heights:
+        res["heights_step"] = bench_heights_step(cfg, log, repeats=cfg.heights_repeats)
+        gc.collect()
     tmp = None
     if workdir is None and (live or offline):
         tmp = tempfile.TemporaryDirectory(prefix="parproj_bench_")
@@ -83,6 +93,18 @@ def run_bench(
                 py_spy=py_spy,
                 node_params=node_params,
                 log=log,
+            )
+            gc.collect()
+            res["quicklook"] = (
+                bench_quicklook(
+                    cfg,
+                    workdir / "quicklook",
+                    domain_id=domain_id,
+                    node_params=node_params,
+                    log=log,
+                )
+                if heights
+                else {"available": False, "reason": "not run (--no-heights)"}
             )
             gc.collect()
         if offline and workdir is not None:
@@ -114,6 +136,7 @@ def run_and_report(
     workdir: Path | None = None,
     live: bool = True,
     offline: bool = True,
+    heights: bool = True,
     domain_id: int | None = None,
     py_spy: str | None = None,
     pairs: int | None = None,
@@ -150,6 +173,7 @@ def run_and_report(
         workdir=workdir,
         live=live,
         offline=offline,
+        heights=heights,
         domain_id=domain_id,
         py_spy=py_spy,
         node_params=node_params,
@@ -187,6 +211,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pairs", type=int, default=None, help="pairs through the live node")
     p.add_argument("--no-live", action="store_true", help="skip the live node over DDS")
     p.add_argument("--no-offline", action="store_true", help="skip the offline process")
+    p.add_argument(
+        "--no-heights",
+        action="store_true",
+        help="skip the heights step against bare SGBM and the live quick-look run",
+    )
     p.add_argument(
         "--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)"
     )
@@ -269,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         workdir=Path(args.workdir) if args.workdir else None,
         live=not args.no_live,
         offline=not args.no_offline,
+        heights=not args.no_heights,
         domain_id=args.domain_id,
         py_spy=args.py_spy,
         pairs=args.pairs,

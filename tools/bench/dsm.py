@@ -1,0 +1,315 @@
+"""Part 5: the heights step on a normalized pair of the benchmark, against a bare SGBM pass.
+
+The pair: the first fore/aft pair of the benchmark's acquisition (:mod:`parproj_ros.sim.synthetic`,
+``lines`` x ``detectors`` uint16 scenes, the live run's strips and navigation), normalized by
+the :class:`~parproj_ros.core.pipeline.Pipeline` in this process without DDS (whole images,
+every other setting the node's default, ``z_avg`` 0 and ``height_range`` 500 m as the live
+run). On it, in the same run and on the same OpenCV threads:
+
+* ``heights_full_mpx_s``: the whole heights step,
+  :func:`parproj_ros.core.heights.measure_heights` (disparity range, tiled SGBM with the
+  left-right check, heights, DSM, ortho-image) with the node's default options and the terrain
+  the node would search (:meth:`~parproj_ros.core.heights.HeightsStage.pair_terrain`, not
+  timed): left normalized megapixels per second;
+* ``sgbm_bare_mpx_s``: one bare ``cv2.StereoSGBM`` pass with the pipeline's own matcher
+  (:func:`parproj_ros.imaging.dense.sgbm_matcher`, default :class:`SgbmParams`) over the
+  disparity range the step searched, on the pair stretched to uint8 as the step stretches it
+  (percentiles of the pixels with data), the whole image in one call: the lower bound of the
+  matching.
+
+Each figure is the best of ``repeats`` runs (the machine is shared).
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from parproj_ros.core.config import PipelineConfig
+from parproj_ros.core.heights import MATCHER_MODES, HeightsStage, measure_heights, options_of
+from parproj_ros.core.pipeline import Pipeline
+from parproj_ros.core.results import PairResult
+from parproj_ros.core.trajectory import NavSample
+from parproj_ros.imaging.dense import SgbmParams, sgbm_matcher, to_uint8
+from parproj_ros.sim.synthetic import (
+    T0_NS,
+    VIEWS,
+    acquisition,
+    make_platform,
+    texture_blocks,
+)
+
+from .config import BenchConfig, Log, log_stderr
+
+#: The live run's prior heights (tools/bench/dds.py: ``z_avg`` 0, ``height_range`` 500 m).
+PRIOR: dict[str, Any] = {"z_avg": 0.0, "height_range": 500.0}
+
+
+def bench_pair(
+    cfg: BenchConfig,
+) -> tuple[PipelineConfig, PairResult, NDArray[np.generic], NDArray[np.generic]]:
+    """The benchmark's first pair, normalized whole in this process: (config, pair, L, R).
+
+    The strips and navigation of the live run (same platform, same random 11-bit blocks per
+    strip position), fed to a Pipeline with ``streaming`` off and no heights.
+    """
+    plat = make_platform(cfg.lines, cfg.detectors)
+    config = PipelineConfig(plat.views, scene_lines=cfg.lines, streaming=False, **PRIOR)
+    pipe = Pipeline(config)
+    dets = cfg.detectors
+    blocks: dict[int, NDArray[np.uint16]] = {}
+    pairs: list[PairResult] = []
+    for ev in acquisition(plat, 1, cfg.strip_lines, cfg.nav_rate_hz):
+        if ev.kind == "nav":
+            out = pipe.add_navigation(
+                NavSample(
+                    T0_NS + round(ev.t_s * 1e9), plat.position(ev.t_s), plat.body, plat.velocity
+                )
+            )
+        else:
+            if ev.row0 not in blocks:
+                (blocks[ev.row0],) = texture_blocks(1, ev.rows, dets, seed=10 + ev.row0)
+            out = pipe.add_strip(VIEWS[ev.view], ev.stamp_ns, ev.scene_id, blocks[ev.row0])
+        pairs += out.pairs
+        if pairs:
+            break
+    if not pairs:
+        pairs += pipe.flush().pairs
+    if not pairs or pairs[0].left_image is None or pairs[0].right_image is None:
+        raise RuntimeError("the benchmark's pair was not normalized (no pair out of the pipeline)")
+    pair = pairs[0]
+    assert pair.left_image is not None and pair.right_image is not None
+    return config, pair, pair.left_image, pair.right_image
+
+
+def _best(repeats: int, fn: Callable[[], object]) -> float:
+    """Shortest wall time of ``repeats`` calls, seconds."""
+    best = math.inf
+    for _ in range(max(1, repeats)):
+        gc.collect()
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _stretch(a: NDArray[Any], nodata: float) -> NDArray[np.uint8]:
+    """uint8 of ``a`` between the percentiles of its pixels with data (as the step stretches)."""
+    p = SgbmParams()
+    data = a[a != nodata] if np.any(a != nodata) else a
+    lo, hi = np.percentile(data, p.stretch_percentiles)
+    return to_uint8(a, float(lo), float(hi))
+
+
+def bench_heights_step(
+    cfg: BenchConfig, log: Log = log_stderr, repeats: int = 2
+) -> dict[str, Any]:
+    """The heights step and one bare SGBM pass on the benchmark's normalized pair (module doc).
+
+    Returns ``heights_full_mpx_s`` and ``sgbm_bare_mpx_s`` (left normalized Mpx per second,
+    best of ``repeats``), their seconds and ratio, the pair's size, the disparity range, the
+    matched share and the OpenCV thread count; ``error`` (and None figures) when the pair or
+    its heights could not be made.
+    """
+    res: dict[str, Any] = {
+        "heights_full_mpx_s": None,
+        "sgbm_bare_mpx_s": None,
+        "cv2_threads": int(cv2.getNumThreads()),
+        "error": None,
+    }
+    t0 = time.perf_counter()
+    try:
+        config, pair, left, right = bench_pair(cfg)
+    except (RuntimeError, ValueError) as err:
+        res["error"] = str(err)
+        return res
+    res["normalize_s"] = time.perf_counter() - t0
+    options = options_of(config)
+    terrain, _ = HeightsStage(options).pair_terrain(pair, left, right)
+    mpx = left.shape[0] * left.shape[1] / 1e6
+    last: list[Any] = []
+
+    def step() -> None:
+        last[:] = [measure_heights(pair, left, right, terrain, options)[0]]
+
+    t_step = _best(repeats, step)
+    hr = last[0]
+    res.update(
+        {
+            "pair_id": pair.pair_id,
+            "pair_size": [int(left.shape[1]), int(left.shape[0])],
+            "mpx": mpx,
+            "terrain": terrain.describe(),
+            "status": str(hr.status),
+            "d_range": [int(hr.d_range[0]), int(hr.d_range[1])],
+            "matched_share": float(hr.valid_share),
+            "heights_s": t_step,
+            "matcher": options.matcher,
+            "tile_px": options.tile_px,
+        }
+    )
+    if not hr.ok:
+        res["error"] = f"no heights on the benchmark's pair ({hr.status}): {hr.message}"
+        return res
+    p = SgbmParams(mode=MATCHER_MODES[options.matcher])  # the step's settings
+    l8, r8 = _stretch(left, options.nodata), _stretch(right, options.nodata)
+    dmin, dmax = hr.d_range
+    ndisp = int(np.ceil((dmax - dmin + 1) / 16)) * 16
+    sgbm = sgbm_matcher(p, dmin, ndisp)
+    t_bare = _best(repeats, lambda: sgbm.compute(l8, r8))
+    res.update(
+        {
+            "sgbm_s": t_bare,
+            "sgbm_disparities": ndisp,
+            "heights_full_mpx_s": mpx / t_step,
+            "sgbm_bare_mpx_s": mpx / t_bare,
+            "heights_over_sgbm": t_step / t_bare,
+        }
+    )
+    log(
+        f"heights step: pair {left.shape[1]} x {left.shape[0]} px, disparities {dmin}..{dmax}, "
+        f"{100 * hr.valid_share:.1f} % matched: step {t_step:.2f} s ({mpx / t_step:.2f} Mpx/s), "
+        f"bare SGBM {t_bare:.2f} s ({mpx / t_bare:.2f} Mpx/s), x{t_step / t_bare:.2f}, "
+        f"{res['cv2_threads']} OpenCV threads"
+    )
+    return res
+
+
+#: The quick-look reduction the benchmark runs the node with (issue 26: "of your choice"):
+#: 4 divides the pixels by 16 and the disparities by 4.
+QUICKLOOK_FACTOR = 4
+#: The streamed DSM tiles' topic (issue 26, item 1).
+TILE_TOPIC = "dsm_tile"
+
+
+def quicklook_setup(factor: int = QUICKLOOK_FACTOR) -> tuple[dict[str, Any], list[str]] | str:
+    """(node parameters, tile topics) of the quick-look run, or why it cannot run (yet).
+
+    Detects the streamed tiles by the contract (:data:`TILE_TOPIC` among the outputs; a
+    quick-look topic: an output with "quick" in its name) and the quick-look parameter (a
+    parameter with "quick" and "look" in its name, preferring one with "factor").
+    """
+    from parproj_ros.core import contract, params
+
+    outputs = [t.name for t in contract.OUTPUTS]
+    if TILE_TOPIC not in outputs:
+        return (
+            f"not measured yet: no topic {TILE_TOPIC} in parproj_ros/core/contract.py OUTPUTS "
+            "(streamed DSM tiles, issue 26 item 1, not built)"
+        )
+    found = [p for p in params.PARAMS if "quick" in p.name and "look" in p.name]
+    found.sort(key=lambda p: "factor" not in p.name)
+    if not found:
+        return (
+            "not measured yet: no quick-look parameter (a name with 'quick' and 'look') in "
+            "parproj_ros/core/params.py"
+        )
+    param = found[0]
+    value: Any = factor
+    if param.type == "string" or param.choices:
+        value = str(factor)
+        if param.choices and value not in param.choices:
+            return f"the quick-look parameter {param.name} has no choice {factor}: {param.choices}"
+    elif param.type == "double":
+        value = float(factor)
+    topics = [n for n in outputs if "quick" in n]
+    return {"heights": True, param.name: value}, [TILE_TOPIC, *topics]
+
+
+def bench_quicklook(
+    cfg: BenchConfig,
+    workdir: Any,
+    *,
+    domain_id: int | None = None,
+    node_params: dict[str, Any] | None = None,
+    factor: int = QUICKLOOK_FACTOR,
+    log: Log = log_stderr,
+) -> dict[str, Any]:
+    """The live run again with ``heights`` on and the quick-look at ``factor``: its tiles.
+
+    Every other parameter the node's default (plus ``node_params``). Returns the live run's
+    figures (:func:`~tools.bench.dds.bench_live`, tiles per topic) under ``live``, and
+    ``available`` False with ``reason`` when the node has no tiles yet.
+    """
+    setup = quicklook_setup(factor)
+    if isinstance(setup, str):
+        log(f"quick-look: {setup}")
+        return {"available": False, "reason": setup, "factor": factor}
+    params, topics = setup
+    from .dds import bench_live
+
+    log(f"quick-look: live run with {params}, tiles on {topics}")
+    live = bench_live(
+        cfg,
+        workdir,
+        domain_id=domain_id,
+        node_params={**(node_params or {}), **params},
+        tile_topics=topics,
+        log=log,
+    )
+    return {"available": True, "reason": None, "factor": factor, "params": params, "live": live}
+
+
+def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
+    """The quick-look's ``--json`` keys, each None with a ``<key>_reason`` when not measured.
+
+    ``heights_quicklook_realtime_factor``: of the quick-look tiles (the topic with "quick" in
+    its name, else the ``@<factor>`` tiles of ``dsm_tile``); ``heights_tile_latency_max_s``:
+    the longest latency of any DSM tile received (every tile topic); and the CPU seconds per
+    sensor second of the node and its render process in that run.
+    """
+    out: dict[str, Any] = {
+        "heights_quicklook_realtime_factor": None,
+        "heights_quicklook_realtime_factor_reason": None,
+        "heights_tile_latency_max_s": None,
+        "heights_tile_latency_max_s_reason": None,
+        "heights_quicklook_node_cpu_per_sensor_s": None,
+        "heights_quicklook_render_cpu_per_sensor_s": None,
+        "heights_quicklook_factor": None,
+    }
+    if not ql:
+        why = "the live part was not run (--no-live, or a test's form)"
+        out["heights_quicklook_realtime_factor_reason"] = why
+        out["heights_tile_latency_max_s_reason"] = why
+        return out
+    out["heights_quicklook_factor"] = ql.get("factor")
+    if not ql.get("available"):
+        out["heights_quicklook_realtime_factor_reason"] = ql.get("reason")
+        out["heights_tile_latency_max_s_reason"] = ql.get("reason")
+        return out
+    live = ql.get("live") or {}
+    cpu = live.get("cpu_per_sensor_s") or {}
+    out["heights_quicklook_node_cpu_per_sensor_s"] = cpu.get("node")
+    out["heights_quicklook_render_cpu_per_sensor_s"] = cpu.get("render")
+    tiles: dict[str, Any] = live.get("tiles") or {}
+    level = f"@{ql.get('factor')}"
+    quick = [k for k in tiles if "quick" in k and "@" not in k] or [
+        k for k in tiles if k.endswith(level)
+    ]
+    err = f" (live run: {live['error']})" if live.get("error") else ""
+    if not quick:
+        out["heights_quicklook_realtime_factor_reason"] = f"no quick-look tiles received{err}"
+    else:
+        f = (tiles[quick[0]] or {}).get("realtime_factor")
+        out["heights_quicklook_realtime_factor"] = f
+        if f is None:
+            out["heights_quicklook_realtime_factor_reason"] = (
+                f"fewer than 2 quick-look tiles placed on {quick[0]}{err}"
+            )
+    maxima = [
+        v["latency_s"]["max"]
+        for k, v in tiles.items()
+        if "@" not in k and v and v["latency_s"]["max"] is not None
+    ]
+    if maxima:
+        out["heights_tile_latency_max_s"] = max(maxima)
+    else:
+        out["heights_tile_latency_max_s_reason"] = f"no DSM tile placed on {list(tiles)}{err}"
+    return out
