@@ -204,6 +204,7 @@ class DenseSettings(_Settings):
     fuse_mb: float = _default("heights_fuse_mb")
     cloud_step: int = _default("dsm_cloud_step")
     tile_px: int = _default("heights_tile_px")
+    quicklook: int = _default("heights_quicklook")
 
 
 @dataclass(frozen=True)

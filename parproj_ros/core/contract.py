@@ -52,6 +52,8 @@ __all__ = [
     "DSM_CLOUD",
     "DSM_FUSED",
     "DSM_FUSED_CLOUD",
+    "DSM_QUICKLOOK_TILE",
+    "DSM_TILE",
     "FRAME_TOPICS",
     "GCP",
     "HEIGHT",
@@ -206,6 +208,8 @@ DISPARITY = "disparity"
 HEIGHT = "height"
 DSM = "dsm"
 DSM_CLOUD = "dsm_cloud"
+DSM_TILE = "dsm_tile"
+DSM_QUICKLOOK_TILE = "dsm_quicklook_tile"
 DSM_FUSED = "dsm_fused"
 DSM_FUSED_CLOUD = "dsm_fused_cloud"
 OBJECT_FRAME = "object_frame"
@@ -446,6 +450,30 @@ OUTPUTS: tuple[Topic, ...] = (
         "cell centre and its height, metres in the object frame; intensity the ortho-image's "
         "value); NaN cells left out (`is_dense`, one row)",
         "`HeightsResult.dsm`, `HeightsResult.ortho` (`Outputs.heights`)",
+    ),
+    Topic(
+        DSM_TILE,
+        _GRID,
+        OUTPUT_QOS,
+        "reliable",
+        "`heights` on, streaming (two views, `scene_lines`), `heights_quicklook` >= 0: the "
+        "streamed pair's DSM tile by tile while its blocks arrive, each final when published "
+        "(`pair_id` `<pair>#<index>/<count>`; a span of 256 left columns matched as soon as "
+        "both sides cover it plus the disparity margin; the cells it owns on the pair's one "
+        "grid, NaN elsewhere, so the tiles assembled are the pair's DSM without seams; "
+        "`parproj_ros/core/tiles.py`); a pair whose stream breaks ends with an ERROR on "
+        "`/diagnostics`",
+        "`Outputs.tiles` (`HeightTile`, factor 1)",
+    ),
+    Topic(
+        DSM_QUICKLOOK_TILE,
+        _GRID,
+        OUTPUT_QOS,
+        "reliable",
+        "`heights` on, streaming, `heights_quicklook` 2, 4, 8 (or -2, -4, -8: instead of "
+        "`dsm_tile`): the same tiles made on the normalized blocks reduced by that factor "
+        "(`pair_id` `<pair>#<index>/<count>@<factor>`; cells that factor times the DSM's)",
+        "`Outputs.tiles` (`HeightTile`, factor 2, 4 or 8)",
     ),
     Topic(
         DSM_FUSED,

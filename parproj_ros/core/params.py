@@ -497,6 +497,22 @@ PARAMS: tuple[Param, ...] = (
         offline=True,
     ),
     _p(
+        "dense",
+        "quicklook",
+        "heights_quicklook",
+        "integer",
+        0,
+        "streamed DSM tiles of a quick-look level (topic dsm_quicklook_tile) made on the "
+        "normalized blocks reduced by 2, 4 or 8 (block means), alongside the full-resolution "
+        "tiles (topic dsm_tile); -2, -4, -8: the quick-look tiles instead of the "
+        "full-resolution ones; 0 = none (with heights on, streamed pairs get full-resolution "
+        "tiles only)",
+        unit="factor",
+        low=-8,
+        high=8,
+        offline=True,
+    ),
+    _p(
         "segments",
         "max_error_px",
         "segment_max_error_px",

@@ -67,6 +67,7 @@ from .results import (
 from .streaming import Streamer
 from .terrain import terrain_from_heights
 from .tiepoints import TieRefinement, refine_with_tie_points
+from .tiles import TileStage
 from .trajectory import NavSample, TrajectoryBuffer
 
 #: The facade's names: the pipeline, its settings and what it returns.
@@ -107,6 +108,8 @@ class Pipeline:
         self.pairing = Pairing(config, self.ledger)
         self.streamer = Streamer(config, self.assemblers, self.feed, self.gcps, self.ledger)
         self.heights = HeightsStage(options_of(config)) if config.dense.enabled else None
+        #: Streamed DSM tiles while the blocks arrive (core/tiles.py), with heights on.
+        self.tiles = TileStage(config, self.ledger.streams) if TileStage.applies(config) else None
         self.fusion = (
             FusionStage(config.dense.fuse_mb)
             if config.dense.enabled and config.dense.fuse_mb > 0
@@ -135,12 +138,15 @@ class Pipeline:
         if sink is None or self.heights is None:
             self.streamer.block_sink = sink
             return
-        heights, to = self.heights, sink
+        heights, tiles, to = self.heights, self.tiles, sink
 
         def keep_and_sink(blk: BlockResult) -> None:
             to(blk)
             try:
-                heights.keep(replace(blk, image=blk.image.copy()))
+                kept = replace(blk, image=blk.image.copy())
+                heights.keep(kept)
+                if tiles is not None:
+                    tiles.keep(kept)
             except MemoryError:  # step 7 then finds the pair's images incomplete: a WARN
                 pass
 
@@ -153,6 +159,8 @@ class Pipeline:
         """
         if self.heights is None:
             return out
+        if self.tiles is not None:  # the tiles the blocks now cover (core/tiles.py)
+            out = self.tiles(out)
         out = self.heights(out)
         return out if self.fusion is None else self.fusion(out)
 

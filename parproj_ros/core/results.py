@@ -30,7 +30,7 @@ from ..geometry import (
 from ..imaging.assembly import Scene, SceneEnd
 from ..imaging.dense import DenseStatus
 from ..imaging.fusion import FusedDsm
-from ..imaging.heights import Dsm
+from ..imaging.heights import Dsm, DsmGrid
 from ..imaging.resample import OutputGrid, SceneGeometry
 from .terrain import Terrain
 
@@ -38,6 +38,7 @@ __all__ = [
     "METHODS",
     "BlockResult",
     "GroundPoint",
+    "HeightTile",
     "HeightsResult",
     "Issue",
     "Level",
@@ -353,6 +354,78 @@ class HeightsResult:
 
 
 @dataclass(frozen=True)
+class HeightTile:
+    """One streamed DSM tile of a pair: the heights of a span of left columns (core/tiles.py).
+
+    The pair's DSM grid (:attr:`pair_grid`) is chosen when its first tile is made; each of its
+    cells belongs to exactly one tile (the tile holding the left column its centre maps to at
+    the terrain's mid height), so the tiles assembled (:func:`~parproj_ros.core.tiles.
+    assemble_tiles`) are the pair's DSM, without seams. A tile is final when emitted.
+
+    Attributes:
+        pair_id: the pair.
+        index: tile number from 0 (left columns increasing).
+        count: tiles of the pair.
+        factor: reduction of the normalized images matched (1: full resolution; 2, 4, 8: the
+            quick-look level).
+        col0: first left column of the span, in the level's pixels.
+        cols: columns of the span, in the level's pixels.
+        status: the matching's outcome (``ok``, or why the tile has no DSM).
+        message: the outcome in words.
+        d_range: (dmin, dmax) searched, pixels of the level (the same for every tile of a pair).
+        valid_share: valid disparities / left pixels with data in the span.
+        disparity: float32 (rows, cols) of the span's own columns, pixels of the level, NaN
+            invalid.
+        dsm: the cells of ``pair_grid`` the tile owns, on the bounding sub-grid of those cells
+            (NaN: not owned or no height); None unless ``status`` is ok.
+        owned: bool, same shape as ``dsm.heights``: the cells this tile owns.
+        ortho: the left normalized image on ``dsm``'s grid (nodata where no height).
+        pair_grid: the pair's whole DSM grid (every tile of the pair has the same).
+        height_per_disparity_px: a in ``Z = a d + b``, metres per pixel of the level.
+        height_offset_m: b, metres.
+        terrain: the heights searched and where they come from (the pair's own, measured on
+            the first window's tie points, or the prior).
+        stretch: ((low, high) left, (low, high) right) DN mapped to 0 and 255 for the matcher,
+            taken from the pair's first window and kept for all its tiles.
+        stamp_ns: the pair's stamp, nanoseconds.
+        last: whether this is the pair's last tile.
+    """
+
+    pair_id: str
+    index: int
+    count: int
+    factor: int
+    col0: int
+    cols: int
+    status: DenseStatus
+    message: str
+    d_range: tuple[int, int]
+    valid_share: float
+    disparity: NDArray[np.float32]
+    dsm: Dsm | None
+    owned: NDArray[np.bool_] | None
+    ortho: NDArray[np.generic] | None
+    pair_grid: DsmGrid | None
+    height_per_disparity_px: float
+    height_offset_m: float
+    terrain: Terrain
+    stretch: tuple[tuple[float, float], tuple[float, float]]
+    stamp_ns: int
+    last: bool
+
+    @property
+    def ok(self) -> bool:
+        """Whether the tile has a DSM."""
+        return self.status == DenseStatus.OK and self.dsm is not None
+
+    @property
+    def name(self) -> str:
+        """The message's ``pair_id``: ``<pair>#<index>/<count>`` (quick-look: ``@<factor>``)."""
+        level = f"@{self.factor}" if self.factor > 1 else ""
+        return f"{self.pair_id}#{self.index}/{self.count}{level}"
+
+
+@dataclass(frozen=True)
 class FusedResult:
     """The DSMs of overlapping pairs fused into one (:mod:`~parproj_ros.core.fusion`).
 
@@ -382,6 +455,8 @@ class Outputs:
     blocks: list[BlockResult] = field(default_factory=list)
     heights: list[HeightsResult] = field(default_factory=list)
     fused: list[FusedResult] = field(default_factory=list)
+    #: Streamed DSM tiles (full resolution and quick-look), in the order made.
+    tiles: list[HeightTile] = field(default_factory=list)
 
     def extend(self, other: Outputs) -> None:
         """Append another call's outputs."""
@@ -391,3 +466,4 @@ class Outputs:
         self.blocks += other.blocks
         self.heights += other.heights
         self.fused += other.fused
+        self.tiles += other.tiles

@@ -431,6 +431,10 @@ def outputs_to_messages(
         msgs.append((contract.STEREO_PAIR, sp, pair.stamp_ns))
     for h in getattr(out, "heights", []):
         msgs += heights_to_msgs(h, frame_id=frame_id, dsm_cloud_step=dsm_cloud_step)
+    for t in getattr(out, "tiles", []):
+        if t.ok:
+            topic = contract.DSM_TILE if t.factor == 1 else contract.DSM_QUICKLOOK_TILE
+            msgs.append((topic, tile_to_msg(t, frame_id=frame_id), t.stamp_ns))
     for f in getattr(out, "fused", []):
         msgs.append((contract.DSM_FUSED, fused_to_msg(f, frame_id=frame_id), f.stamp_ns))
         step = cloud_step(f.fused.heights.shape, dsm_cloud_step)
@@ -552,6 +556,46 @@ def fused_to_msg(f: Any, *, frame_id: str) -> Any:
         stamp_ns=f.stamp_ns,
     )
     m.completeness = float(d.completeness)
+    return m
+
+
+def tile_to_msg(t: Any, *, frame_id: str) -> Any:
+    """A streamed :class:`~parproj_ros.core.results.HeightTile` -> parproj_msgs/ElevationGrid.
+
+    ``pair_id`` ``<pair>#<index>/<count>`` (``@<factor>`` at the quick-look level,
+    :attr:`HeightTile.name`); the grid is the bounding box of the cells the tile owns on the
+    pair's DSM grid (cells on multiples of ``cell_size``), ``heights`` NaN in the cells it does
+    not own; ``completeness`` the share of its owned cells with a height; the disparity range,
+    matched share, height relation and terrain as ``dsm`` has them (pixels of the tile's level).
+    """
+    from parproj_msgs.msg import ElevationGrid
+    from sensor_msgs.msg import Image
+
+    dsm = t.dsm
+    g = dsm.grid
+    m = ElevationGrid()
+    ns_to_stamp(t.stamp_ns, m.header.stamp)
+    m.header.frame_id = frame_id
+    m.pair_id = t.name
+    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
+    m.heights = array_to_image(
+        np.ascontiguousarray(dsm.heights, dtype=np.float32),
+        Image(),
+        frame_id=frame_id,
+        stamp_ns=t.stamp_ns,
+    )
+    if t.ortho is not None:
+        m.ortho = array_to_image(t.ortho, Image(), frame_id=frame_id, stamp_ns=t.stamp_ns)
+    m.filled_cells = int(dsm.filled.sum())
+    owned = int(t.owned.sum()) if t.owned is not None else 0
+    m.completeness = float(np.isfinite(dsm.heights).sum() / owned) if owned else 0.0
+    m.disparity_min, m.disparity_max = int(t.d_range[0]), int(t.d_range[1])
+    m.matched_share = float(t.valid_share)
+    m.height_per_disparity_px = float(t.height_per_disparity_px)
+    m.height_offset_m = float(t.height_offset_m)
+    m.terrain_min_m, m.terrain_max_m = (float(v) for v in t.terrain.range_m)
+    m.terrain_source = str(t.terrain.source)
+    m.terrain_points = int(t.terrain.points)
     return m
 
 

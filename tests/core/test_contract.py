@@ -22,6 +22,8 @@ def test_output_table_is_the_published_topics_in_order() -> None:
         ("height", "sensor_msgs/msg/Image"),
         ("dsm", "parproj_msgs/msg/ElevationGrid"),
         ("dsm_cloud", "sensor_msgs/msg/PointCloud2"),
+        ("dsm_tile", "parproj_msgs/msg/ElevationGrid"),
+        ("dsm_quicklook_tile", "parproj_msgs/msg/ElevationGrid"),
         ("dsm_fused", "parproj_msgs/msg/ElevationGrid"),
         ("dsm_fused_cloud", "sensor_msgs/msg/PointCloud2"),
         ("object_frame", "geometry_msgs/msg/TransformStamped"),

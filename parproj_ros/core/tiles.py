@@ -1,0 +1,561 @@
+"""Streamed heights: DSM tiles of a pair while its normalized column blocks arrive (issue 26).
+
+In along-track stereo the normalized columns run along track, so a span of left columns
+[c0, c1) can be matched as soon as both sides hold its columns plus the disparity margin
+(left column c meets right columns c - dmax .. c - dmin) and the matcher's overlap (SGM
+paths settle over :data:`TILE_OVERLAP` columns). :class:`TileStage` takes each pair's
+streamed blocks (:class:`~.results.BlockResult`, left and right, in order), keeps the columns
+a later tile still needs (older ones are dropped), and emits a :class:`~.results.HeightTile`
+for each span as soon as it is covered:
+
+- the disparity range is fixed once per pair: from the terrain measured on the pair's first
+  window (tie points, :func:`~.terrain.measure_terrain`, when ``terrain`` is ``tie_points``),
+  else the prior (``z_avg`` +- ``height_range``); the tile says which;
+- the stretch limits the matcher needs (percentiles of each image) come from the same first
+  window and are kept for every tile of the pair (the images are stretched with them before
+  :func:`~parproj_ros.imaging.dense.match_pair`, which then maps the window's own extremes,
+  0 and 255 where both clipped ends occur, onto 0..255);
+- each tile is matched on a window of both images (:func:`match_pair` over the span, its
+  overlap and the disparity margin) and keeps its own columns only;
+- the pair's DSM grid is fixed with the range (north-up, cells on multiples of the cell size,
+  covering the left image at the terrain's lowest and highest heights); every cell belongs to
+  the tile whose span holds the left column its centre maps to at the terrain's mid height,
+  and is gridded (:func:`~parproj_ros.imaging.heights.make_dsm`) from the tile's points plus
+  those of its overlap, so a cell on a border sees every point it would in the whole pair.
+
+The tiles assembled (:func:`assemble_tiles`) are the pair's DSM within the matcher's noise,
+without seams. The quick-look level (parameter ``heights_quicklook``) is the same on blocks
+reduced by 2, 4 or 8 (:func:`~.terrain.reduce_image`: block means, a reduced pixel touching
+no-data has none). A pair whose stream breaks (its blocks stop: a scene ended short) ends with
+the tiles made so far and an ERROR naming the pair, the tiles published and why.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..geometry import AffineModel, Normalization
+from ..imaging.dense import (
+    DenseStatus,
+    SgbmParams,
+    disparity_range,
+    match_pair,
+    to_uint8,
+)
+from ..imaging.heights import Dsm, DsmGrid, GroundMapping, make_dsm, orthoimage
+from ..imaging.resample import OutputGrid
+from .config import PipelineConfig
+from .heights import MATCHER_MODES, HeightsOptions, options_of
+from .ledger import StreamPair
+from .results import BlockResult, HeightTile, Issue, Level, Outputs, PairResult
+from .terrain import Terrain, TerrainSource, measure_terrain, reduce_image
+
+Float32Array = NDArray[np.float32]
+
+#: Columns of a tile's span, pixels of its level (one streamed block at full resolution).
+TILE_COLS = 256
+#: Columns matched on each side of a span and dropped: the SGM paths settle over them (the
+#: overlap of :func:`match_pair`'s own tiles).
+TILE_OVERLAP = 64
+#: Columns both sides must hold before the terrain is measured on them (the first window).
+FIRST_WINDOW_COLS = 256
+#: The quick-look reductions ``heights_quicklook`` accepts (and their negatives, 0 = off).
+QUICKLOOK_FACTORS = (2, 4, 8)
+
+
+@dataclass(frozen=True)
+class _Geometry:
+    """What a pair's tiles need of its geometry, fixed at stream start (level's grids)."""
+
+    pair_id: str
+    normalization: Normalization
+    left_affine: AffineModel
+    left_grid: OutputGrid
+    right_grid: OutputGrid
+    stamp_ns: int
+
+    @property
+    def height_relation(self) -> tuple[float, float]:
+        """(a, b) of ``Z = a d + b`` on these grids (as :func:`~.publish.finish_pair`)."""
+        n = self.normalization
+        k = n.parallax_per_height
+        a = self.left_grid.pixel / k
+        b = (self.left_grid.x_origin - self.right_grid.x_origin - n.parallax_offset) / k
+        return float(a), float(b)
+
+    def mapping(self, col0: int = 0, cols: int | None = None) -> GroundMapping:
+        """The left image's ground mapping, of columns col0 .. col0 + cols."""
+        g = self.left_grid
+        sub = OutputGrid(
+            g.pixel, g.x_origin + col0 * g.pixel, g.y_origin, g.width if cols is None else cols,
+            g.height,
+        )  # fmt: skip
+        return GroundMapping(sub, self.normalization.left, self.left_affine)
+
+
+def _reduced(grid: OutputGrid, factor: int) -> OutputGrid:
+    """``grid`` reduced by ``factor`` as :func:`reduce_image` reduces its image."""
+    if factor == 1:
+        return grid
+    half = 0.5 * (factor - 1) * grid.pixel
+    return OutputGrid(
+        grid.pixel * factor,
+        grid.x_origin + half,
+        grid.y_origin + half,
+        grid.width // factor,
+        grid.height // factor,
+    )
+
+
+@dataclass
+class _Side:
+    """The columns of one side received so far, from ``start`` (older ones dropped)."""
+
+    start: int = 0
+    parts: list[NDArray[np.generic]] = field(default_factory=list)
+    covered: int = 0
+    done: bool = False
+    blocks: int = 0
+
+    def add(self, image: NDArray[np.generic]) -> None:
+        self.parts.append(image)
+        self.covered += image.shape[1]
+        self.blocks += 1
+
+    def columns(self, c0: int, c1: int) -> NDArray[np.generic]:
+        """Columns c0 .. c1 (within start .. covered), as one array."""
+        if len(self.parts) > 1:
+            self.parts = [np.concatenate(self.parts, axis=1)]
+        return self.parts[0][:, c0 - self.start : c1 - self.start]
+
+    def drop_before(self, col: int) -> None:
+        """Forget the columns before ``col``."""
+        if col <= self.start or not self.parts:
+            return
+        whole = np.concatenate(self.parts, axis=1) if len(self.parts) > 1 else self.parts[0]
+        cut = min(col, self.covered) - self.start
+        self.parts = [np.ascontiguousarray(whole[:, cut:])]
+        self.start += cut
+
+
+@dataclass
+class _PairTiles:
+    """The tiling of one pair at one level."""
+
+    geo: _Geometry
+    spans: list[tuple[int, int]]
+    sides: dict[str, _Side]
+    terrain: Terrain | None = None
+    d_range: tuple[int, int] | None = None
+    stretch: tuple[tuple[float, float], tuple[float, float]] | None = None
+    dsm_grid: DsmGrid | None = None
+    next_tile: int = 0
+    published: int = 0
+    issues: list[Issue] = field(default_factory=list)
+
+    @property
+    def width(self) -> int:
+        return self.geo.left_grid.width
+
+    def window(self, i: int) -> tuple[int, int]:
+        """Columns of both images matched for tile ``i``: the span, overlap and margin."""
+        assert self.d_range is not None
+        c0, c1 = self.spans[i]
+        dmin, dmax = self.d_range
+        wa = max(0, c0 - TILE_OVERLAP - max(dmax, 0) - 1)
+        wb = min(self.width, c1 + TILE_OVERLAP + max(-dmin, 0) + 1)
+        return wa, wb
+
+    def covers(self, col: int) -> bool:
+        """Whether both sides hold every column before ``col`` (or all they will)."""
+        return all(s.covered >= min(col, self.width) or s.done for s in self.sides.values())
+
+
+class TileLevel:
+    """The tiles of streamed pairs at one level (full resolution, or reduced by ``factor``).
+
+    Args:
+        options: the heights options (margin, cell, fill, matcher, terrain measurement, prior).
+        factor: 1 (full resolution), or 2, 4, 8 (quick-look).
+        streams: the ledger's streams under way (:attr:`PairLedger.streams`, read live): a
+            pair's geometry at its stream start, and whether its stream is still under way.
+    """
+
+    def __init__(
+        self, options: HeightsOptions, factor: int, streams: Mapping[int, StreamPair]
+    ) -> None:
+        self.options = options
+        self.factor = factor
+        self.streams = streams
+        self.pairs: dict[str, _PairTiles] = {}
+        self.params = SgbmParams(mode=MATCHER_MODES[options.matcher], stretch_percentiles=(0, 100))
+
+    # ---- blocks in ----------------------------------------------------------------------
+    def keep(self, blk: BlockResult, geo: _Geometry | None) -> None:
+        """Hold a block's columns (reduced at the quick-look level); ``geo`` for a new pair."""
+        tiles = self.pairs.get(blk.pair_id)
+        if tiles is None:
+            if geo is None:
+                return
+            g = replace(
+                geo,
+                left_grid=_reduced(geo.left_grid, self.factor),
+                right_grid=_reduced(geo.right_grid, self.factor),
+            )
+            w = g.left_grid.width
+            spans = [(c, min(w, c + TILE_COLS)) for c in range(0, w, TILE_COLS)]
+            if len(spans) > 1 and spans[-1][1] - spans[-1][0] < TILE_COLS // 4:
+                spans[-2:] = [(spans[-2][0], w)]  # no sliver: it would cost a whole window
+            tiles = _PairTiles(g, spans, {"left": _Side(), "right": _Side()})
+            self.pairs[blk.pair_id] = tiles
+        side = tiles.sides[blk.side]
+        img = blk.image
+        if self.factor > 1:
+            img, _ = reduce_image(img, blk.grid, self.factor, self.options.nodata)
+        side.add(img)
+        side.done = side.done or blk.last
+
+    # ---- tiles out ----------------------------------------------------------------------
+    def emit(self, out: Outputs) -> None:
+        """Append to ``out`` the tiles now covered, and end the pairs complete or broken."""
+        live = {s.geometry.pair_id for s in self.streams.values()}
+        for pid in list(self.pairs):
+            tiles = self.pairs[pid]
+            while tiles.next_tile < len(tiles.spans):
+                tile = self._next(tiles)
+                if tile is None:
+                    break
+                out.tiles.append(tile)
+                tiles.published += tile.ok
+            out.issues += tiles.issues
+            tiles.issues = []
+            if tiles.next_tile == len(tiles.spans):
+                del self.pairs[pid]
+            elif pid not in live and not all(s.done for s in tiles.sides.values()):
+                out.issues.append(self._broken(tiles, out.issues))
+                del self.pairs[pid]
+
+    def _broken(self, tiles: _PairTiles, issues: list[Issue]) -> Issue:
+        """The ERROR of a pair whose stream stopped before its last block."""
+        pid = tiles.geo.pair_id
+        why = next(
+            (
+                f"{i.where}: {i.message}"
+                for i in issues
+                if i.level == Level.ERROR and pid in i.message and "DSM tiles" not in i.message
+            ),
+            "its stream ended before the last blocks",
+        )  # fmt: skip
+        done = tiles.spans[tiles.next_tile - 1][1] if tiles.next_tile else 0
+        got = ", ".join(f"{n} {s.blocks} blocks" for n, s in tiles.sides.items())
+        return Issue(
+            Level.ERROR,
+            f"pair {pid}",
+            f"{self.label} DSM tiles stopped after {tiles.next_tile} of {len(tiles.spans)} "
+            f"({tiles.published} with heights; left columns 0..{done} of {tiles.width}; "
+            f"received {got}): the stream broke ({why}). The tiles published stay valid; the "
+            "rest of the pair has no heights",
+        )
+
+    @property
+    def label(self) -> str:
+        """The level in words: full-resolution, or quick-look (1/f)."""
+        return "full-resolution" if self.factor == 1 else f"quick-look (1/{self.factor})"
+
+    def _next(self, tiles: _PairTiles) -> HeightTile | None:
+        """The pair's next tile if both sides now cover it, else None."""
+        if tiles.d_range is None and not self._fix_range(tiles):
+            return None
+        i = tiles.next_tile
+        wa, wb = tiles.window(i)
+        if not tiles.covers(wb):
+            return None
+        wb = min([wb] + [s.covered for s in tiles.sides.values()])
+        tile = self._match(tiles, i, wa, wb)
+        tiles.next_tile += 1
+        if tiles.next_tile < len(tiles.spans):
+            nxt = tiles.window(tiles.next_tile)[0]
+            for s in tiles.sides.values():
+                s.drop_before(nxt)
+        return tile
+
+    def _fix_range(self, tiles: _PairTiles) -> bool:
+        """Terrain, disparity range, stretch limits and DSM grid from the first window."""
+        opt = self.options
+        n = min(FIRST_WINDOW_COLS, tiles.width)
+        if not tiles.covers(n):
+            return False
+        n = min(s.covered for s in tiles.sides.values())
+        geo = tiles.geo
+        left = tiles.sides["left"].columns(0, n)
+        right = tiles.sides["right"].columns(0, n)
+        prior = Terrain(*opt.prior_m, TerrainSource.PRIOR)
+        terrain = prior
+        where = f"pair {geo.pair_id}"
+        if opt.measure_terrain:
+            sub = [replace(g, width=n) for g in (geo.left_grid, geo.right_grid)]
+            terrain = measure_terrain(
+                left, right, sub[0], sub[1], geo.normalization, prior, nodata=opt.nodata
+            )
+            if terrain.source != TerrainSource.TIE_POINTS:
+                tiles.issues.append(
+                    Issue(
+                        Level.WARN,
+                        where,
+                        f"{self.label} tiles: too few tie points agree on the first {n} "
+                        f"columns to measure the terrain: the heights searched are the prior, "
+                        f"{terrain.describe()}",
+                    )
+                )
+        a, b = geo.height_relation
+        margin = max(2.0, opt.margin_px / self.factor)
+        try:
+            rng = disparity_range(a, b, terrain.range_m, margin_px=margin)
+        except ValueError:
+            rng = (0, 0)
+        tiles.terrain, tiles.d_range = terrain, rng
+        limits = []
+        for img in (left, right):
+            ok = img != opt.nodata
+            vals = img[ok] if ok.any() else img.ravel()
+            lo, hi = (float(v) for v in np.percentile(vals, SgbmParams().stretch_percentiles))
+            limits.append((lo, hi))
+        tiles.stretch = (limits[0], limits[1])
+        # The pair's DSM grid: the left image's ground at the lowest and highest terrain.
+        mapping = geo.mapping()
+        cell = opt.cell_m * self.factor if opt.cell_m > 0 else mapping.ground_sample_distance
+        g = geo.left_grid
+        cc, rr, zz = np.meshgrid([0, g.width - 1], [0, g.height - 1], terrain.range_m)
+        x, y = mapping.pixel_to_ground(cc, rr, zz)
+        tiles.dsm_grid = DsmGrid.covering(x.min(), x.max(), y.min(), y.max(), cell)
+        return True
+
+    def _owner_col(
+        self, tiles: _PairTiles, grid: DsmGrid, r0: int, c0: int
+    ) -> NDArray[np.float64]:
+        """Left column (level pixels) of each cell centre of ``grid`` at the terrain's mid height.
+
+        ``grid`` is a sub-grid of the pair's, starting at its cell (r0, c0); computed from the
+        pair grid's indices, so that every tile gets the same figure for a cell.
+        """
+        pg = tiles.dsm_grid
+        assert pg is not None and tiles.terrain is not None
+        rows = (r0 + np.arange(grid.height, dtype=float))[:, None]
+        cols = (c0 + np.arange(grid.width, dtype=float))[None, :]
+        x = pg.x0 + pg.cell * cols
+        y = pg.y0 - pg.cell * rows
+        zmid = 0.5 * sum(tiles.terrain.range_m)
+        col, _ = tiles.geo.mapping().ground_to_pixel(x, y, np.full(np.broadcast(x, y).shape, zmid))
+        return col
+
+    def _match(self, tiles: _PairTiles, i: int, wa: int, wb: int) -> HeightTile:
+        """Tile ``i``: match the window wa .. wb, keep the span, grid the cells it owns."""
+        opt = self.options
+        geo = tiles.geo
+        c0, c1 = tiles.spans[i]
+        assert tiles.d_range is not None and tiles.stretch is not None
+        assert tiles.terrain is not None and tiles.dsm_grid is not None
+        a, b = geo.height_relation
+        left = tiles.sides["left"].columns(wa, wb)
+        right = tiles.sides["right"].columns(wa, wb)
+        masks = [(img != opt.nodata) for img in (left, right)]
+        u8 = [to_uint8(img, *lim) for img, lim in zip((left, right), tiles.stretch, strict=True)]
+        res = match_pair(
+            u8[0],
+            u8[1],
+            d_range=tiles.d_range,
+            nodata=None,
+            left_mask=masks[0],
+            right_mask=masks[1],
+            tile_rows=opt.tile_px,
+            tile_cols=max(16, wb - wa),
+            overlap=TILE_OVERLAP,
+            params=self.params,
+        )
+        own = res.disparity[:, c0 - wa : c1 - wa]
+        has = masks[0][:, c0 - wa : c1 - wa]
+        share = float(np.isfinite(own).sum() / max(1, int(has.sum())))
+        base = HeightTile(
+            geo.pair_id, i, len(tiles.spans), self.factor, c0, c1 - c0, res.status, res.message,
+            res.d_range, share, np.ascontiguousarray(own), None, None, None, tiles.dsm_grid, a, b,
+            tiles.terrain, tiles.stretch, geo.stamp_ns, i == len(tiles.spans) - 1,
+        )  # fmt: skip
+        if res.status not in (DenseStatus.OK, DenseStatus.NO_MATCH, DenseStatus.TEXTURELESS):
+            tiles.issues.append(
+                Issue(Level.WARN, f"pair {geo.pair_id}", f"{self.label} tile {i}: {res.message}")
+            )
+            return base
+        if not np.isfinite(own).any():
+            return replace(base, status=DenseStatus.NO_MATCH)
+        # The points gridded: the span and its overlap (a border cell sees all its points).
+        ga, gb = max(wa, c0 - TILE_OVERLAP), min(wb, c1 + TILE_OVERLAP)
+        disp = res.disparity[:, ga - wa : gb - wa]
+        dsm, owned = self._grid(tiles, i, disp, ga)
+        if dsm is None or owned is None:
+            return replace(base, status=DenseStatus.NO_MATCH, message="no cell owned")
+        ortho = orthoimage(
+            left[:, ga - wa : gb - wa], dsm, geo.mapping(ga, gb - ga), nodata=opt.nodata
+        )
+        return replace(base, status=DenseStatus.OK, dsm=dsm, owned=owned, ortho=ortho)
+
+    def _grid(
+        self, tiles: _PairTiles, i: int, disp: Float32Array, col0: int
+    ) -> tuple[Dsm | None, NDArray[np.bool_] | None]:
+        """The cells tile ``i`` owns, gridded from ``disp`` (left columns from ``col0``)."""
+        opt = self.options
+        geo = tiles.geo
+        pg = tiles.dsm_grid
+        assert pg is not None and tiles.terrain is not None
+        c0, c1 = tiles.spans[i]
+        last = len(tiles.spans) - 1
+        lo = -math.inf if i == 0 else c0
+        hi = math.inf if i == last else c1
+        # The cells the tile may own: the ground of its columns (with its overlap, and to the
+        # image's end for the first and last tile) at the terrain's extreme heights.
+        g = geo.left_grid
+        e = TILE_OVERLAP
+        ca = -e if i == 0 else c0 - 2
+        cb = g.width - 1 + e if i == last else c1 + 1
+        mapping = geo.mapping()
+        cc, rr, zz = np.meshgrid([ca, cb], [-e, g.height - 1 + e], tiles.terrain.range_m)
+        x, y = mapping.pixel_to_ground(cc, rr, zz)
+        pad = math.ceil(opt.max_fill_cells) + 2
+        r_a, c_a = pg.index(np.array([x.max()]), np.array([y.max()]))
+        r_b, c_b = pg.index(np.array([x.min()]), np.array([y.min()]))
+        col_a, col_b = int(c_b[0]) - pad, int(c_a[0]) + pad
+        row_a, row_b = int(r_a[0]) - pad, int(r_b[0]) + pad
+        col_a, row_a = max(0, col_a), max(0, row_a)
+        col_b, row_b = min(pg.width - 1, col_b), min(pg.height - 1, row_b)
+        if col_b < col_a or row_b < row_a:
+            return None, None
+        box = DsmGrid(
+            pg.x0 + col_a * pg.cell, pg.y0 - row_a * pg.cell, pg.cell,
+            col_b - col_a + 1, row_b - row_a + 1,
+        )  # fmt: skip
+        a, b = geo.height_relation
+        dsm = make_dsm(
+            disp,
+            a,
+            b,
+            geo.mapping(col0, disp.shape[1]),
+            grid=box,
+            fill=opt.fill,
+            max_fill_cells=opt.max_fill_cells,
+        )
+        col = self._owner_col(tiles, box, row_a, col_a)
+        owned = (col >= lo) & (col < hi)
+        if not owned.any():
+            return None, None
+        rows = np.flatnonzero(owned.any(axis=1))
+        cols = np.flatnonzero(owned.any(axis=0))
+        rs = slice(int(rows[0]), int(rows[-1]) + 1)
+        cs = slice(int(cols[0]), int(cols[-1]) + 1)
+        own = owned[rs, cs]
+        heights = np.where(own, dsm.heights[rs, cs], np.float32(np.nan)).astype(np.float32)
+        sub = DsmGrid(
+            box.x0 + cs.start * box.cell, box.y0 - rs.start * box.cell, box.cell,
+            own.shape[1], own.shape[0],
+        )  # fmt: skip
+        return (
+            Dsm(heights, sub, np.where(own, dsm.count[rs, cs], 0), dsm.filled[rs, cs] & own),
+            own,
+        )
+
+
+class TileStage:
+    """Streamed DSM tiles of every streamed pair: full resolution and/or the quick-look.
+
+    ``heights`` on and streaming: full-resolution tiles, plus quick-look tiles when
+    ``heights_quicklook`` is 2, 4 or 8; -2, -4 or -8: the quick-look tiles only (no
+    full-resolution tiles). Feed it every streamed block (:meth:`keep`, a copy of a borrowed
+    view) and call it on each of the pipeline's outputs (:meth:`__call__`): the tiles now
+    covered come in :attr:`Outputs.tiles`.
+
+    Args:
+        config: the pipeline's settings.
+        streams: the ledger's streams under way (:attr:`PairLedger.streams`, read live).
+    """
+
+    def __init__(self, config: PipelineConfig, streams: Mapping[int, StreamPair]) -> None:
+        opt = options_of(config)
+        q = int(config.dense.quicklook)
+        if abs(q) not in (0, *QUICKLOOK_FACTORS):
+            raise ValueError(
+                f"heights_quicklook = {q}: must be 0 (off), 2, 4 or 8 (quick-look tiles alongside "
+                "the full-resolution ones), or -2, -4, -8 (quick-look tiles instead)"
+            )
+        factors = ([] if q < 0 else [1]) + ([abs(q)] if q else [])
+        self.streams = streams
+        self.levels = [TileLevel(opt, f, streams) for f in factors]
+
+    @staticmethod
+    def applies(config: PipelineConfig) -> bool:
+        """Whether streamed pairs get tiles: heights on, and streaming possible."""
+        return (
+            config.dense.enabled
+            and config.stream.enabled
+            and not config.single_camera
+            and config.scenes.lines > 0
+        )
+
+    def _geometry(self, pair_id: str, pairs: list[PairResult]) -> _Geometry | None:
+        for s in self.streams.values():
+            if s.geometry.pair_id == pair_id:
+                geo = s.geometry
+                return _Geometry(
+                    pair_id,
+                    geo.normalization,
+                    s.sides["left"].result.affine,
+                    geo.left_grid,
+                    geo.right_grid,
+                    s.stamp_ns,
+                )
+        for p in pairs:  # the stream began and ended within one call
+            if p.pair_id == pair_id:
+                return _Geometry(
+                    pair_id, p.normalization, p.left.affine, p.left_grid, p.right_grid, p.stamp_ns
+                )
+        return None
+
+    def keep(self, blk: BlockResult, pairs: list[PairResult] | None = None) -> None:
+        """Hold a streamed block (its pixels as they are: pass a copy of a borrowed view)."""
+        geo: _Geometry | None = None
+        for level in self.levels:
+            if blk.pair_id not in level.pairs and geo is None:
+                geo = self._geometry(blk.pair_id, pairs or [])
+            level.keep(blk, geo)
+
+    def __call__(self, out: Outputs, *, blocks: bool = True) -> Outputs:
+        """Add to ``out`` the tiles now covered (``blocks``: hold ``out.blocks`` first)."""
+        if blocks:
+            for blk in out.blocks:
+                self.keep(blk, out.pairs)
+        for level in self.levels:
+            level.emit(out)
+        return out
+
+
+def assemble_tiles(tiles: list[HeightTile]) -> Dsm | None:
+    """The DSM of one pair's tiles on the pair's grid (cells of tiles not given: NaN)."""
+    ok = [t for t in tiles if t.ok and t.dsm is not None and t.owned is not None]
+    if not ok or ok[0].pair_grid is None:
+        return None
+    pg = ok[0].pair_grid
+    heights = np.full((pg.height, pg.width), np.nan, dtype=np.float32)
+    count = np.zeros(heights.shape, dtype=np.int32)
+    filled = np.zeros(heights.shape, dtype=bool)
+    for t in ok:
+        assert t.dsm is not None and t.owned is not None
+        g = t.dsm.grid
+        r0 = round((pg.y0 - g.y0) / pg.cell)
+        c0 = round((g.x0 - pg.x0) / pg.cell)
+        rs, cs = slice(r0, r0 + g.height), slice(c0, c0 + g.width)
+        np.copyto(heights[rs, cs], t.dsm.heights, where=t.owned)
+        np.copyto(count[rs, cs], t.dsm.count, where=t.owned)
+        np.copyto(filled[rs, cs], t.dsm.filled, where=t.owned)
+    return Dsm(heights, pg, count, filled)
