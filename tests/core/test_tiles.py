@@ -1,0 +1,242 @@
+"""Streamed DSM tiles (core/tiles.py, issue 26): made while the pass arrives, equal to the DSM
+of the whole pair, a broken stream ended with its tiles and a status.
+
+The fore/aft bag streams one pair of 768 x 791 normalized pixels: the left scene is complete
+before the right one starts (it sees the ground first), so the left blocks come at once and the
+right ones at right strips 5, 9 and 12 of 12. Tile 0 (left columns 0..256) needs the right
+columns up to 256 + 64 (overlap) + |dmin| + 1, i.e. the right block 1: it must come with right
+strip 9, before the pass ends.
+
+Tolerances. The tiles and the whole pair are the same matcher on the same pixels; they differ
+only in the SGM paths' context beyond a window (TILE_OVERLAP columns kept), the stretch limits
+(the first window's, against the whole image's) and the disparity range (measured on the first
+window against the whole pair). That is the matcher's sub-pixel noise: a quarter of a pixel of
+parallax, |a| / 4 metres (the disparities come in 1/16 px steps; the left-right check accepts
+1 px), bounds the NMAD of the difference and a tenth of a pixel its median; the cells measured
+in one and not the other are those where the left-right check or the speckle filter decided
+differently, a few per cent. A seam would show as a larger difference along the tile borders:
+the same bounds hold on the cells next to a border.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from testkit.paths import BAGS
+
+from parproj_ros.core.pipeline import Pipeline
+from parproj_ros.core.results import Level, Outputs
+from parproj_ros.core.tiles import TILE_COLS, TileStage, assemble_tiles
+from parproj_ros.imaging.heights import Dsm, DsmGrid
+from parproj_ros.ros import conversions as conv
+from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.inputs import config_from_bag
+
+pytestmark = pytest.mark.ros  # reads a bag
+
+BAG = BAGS / "airborne_foreaft"
+LINES = 768
+STRIPS = {"left/image_strip": "left", "right/image_strip": "right"}
+
+
+def _run(
+    quicklook: int = 0, drop_last_right: int = 0
+) -> tuple[list[tuple[str, Outputs]], Outputs]:
+    """The bag fed message by message: [(input kind, outputs)], and the flush's outputs."""
+    reader = BagReader(BAG)
+    cfg = config_from_bag(
+        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=quicklook
+    )
+    pipe = Pipeline(cfg)
+    items = [i for i in reader.messages() if i.topic == "navigation" or i.topic in STRIPS]
+    rights = [k for k, i in enumerate(items) if i.topic == "right/image_strip"]
+    skip = set(rights[len(rights) - drop_last_right :]) if drop_last_right else set()
+    calls: list[tuple[str, Outputs]] = []
+    for k, item in enumerate(items):
+        if k in skip:
+            continue
+        if item.topic == "navigation":
+            calls.append(("navigation", pipe.add_navigation(conv.odometry_to_sample(item.msg))))
+            continue
+        strip = conv.image_to_array(item.msg)
+        out = pipe.add_strip(
+            STRIPS[item.topic],
+            conv.stamp_to_ns(item.msg.header.stamp),
+            item.msg.header.frame_id,
+            strip,
+        )
+        calls.append((item.topic, out))
+    return calls, pipe.flush()
+
+
+@pytest.fixture(scope="module")
+def streamed() -> dict[str, Any]:
+    calls, flushed = _run(quicklook=4)
+    out = Outputs()
+    for _, o in calls:
+        out.extend(o)
+    out.extend(flushed)
+    return {"calls": calls, "flushed": flushed, "out": out}
+
+
+def _on_grid(dsm: Dsm, grid: DsmGrid) -> np.ndarray:
+    """``dsm``'s heights at the cell centres of ``grid`` (cells on multiples of one size)."""
+    step = round(grid.cell / dsm.grid.cell)
+    assert abs(grid.cell - step * dsm.grid.cell) < 1e-9 * grid.cell
+    rows = np.rint((dsm.grid.y0 - (grid.y0 - grid.cell * np.arange(grid.height))) / dsm.grid.cell)
+    cols = np.rint(((grid.x0 + grid.cell * np.arange(grid.width)) - dsm.grid.x0) / dsm.grid.cell)
+    r, c = rows.astype(int), cols.astype(int)
+    out = np.full((grid.height, grid.width), np.nan, dtype=np.float32)
+    rv = (r >= 0) & (r < dsm.grid.height)
+    cv = (c >= 0) & (c < dsm.grid.width)
+    out[np.ix_(rv, cv)] = dsm.heights[np.ix_(r[rv], c[cv])]
+    return out
+
+
+def _nmad(d: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(d - np.median(d))))
+
+
+def test_tiles_come_while_the_pass_arrives(streamed: dict[str, Any]) -> None:
+    calls, flushed = streamed["calls"], streamed["flushed"]
+    full = [(k, t) for k, (_, o) in enumerate(calls) for t in o.tiles if t.factor == 1]
+    assert not flushed.tiles
+    tiles = [t for _, t in full]
+    width = streamed["out"].heights[0].disparity.shape[1]
+    n = -(-width // TILE_COLS)
+    assert [t.index for t in tiles] == list(range(n)) and n == 3
+    assert [t.last for t in tiles] == [False] * (n - 1) + [True]
+    assert all(t.ok and t.count == n for t in tiles), [t.message for t in tiles]
+    assert [t.col0 for t in tiles] == [i * TILE_COLS for i in range(n)]
+    # The first tile comes in the outputs of a right strip before the last one: the pass has
+    # not ended (right strip 9 of 12 completes the right block its window needs).
+    rights = [k for k, (kind, _) in enumerate(calls) if kind == "right/image_strip"]
+    first = full[0][0]
+    assert calls[first][0] == "right/image_strip"
+    assert rights.index(first) < len(rights) - 1
+    assert rights.index(first) == 8  # right strip 9: its window reaches right column 370
+    # Every tile of the pair searched the same range, terrain and stretch, measured once.
+    assert len({(t.d_range, t.terrain, t.stretch) for t in tiles}) == 1
+    assert tiles[0].terrain.source == "tie_points"
+
+
+def test_assembled_tiles_equal_the_whole_pair_dsm(streamed: dict[str, Any]) -> None:
+    out = streamed["out"]
+    (whole,) = out.heights
+    assert whole.ok
+    tiles = [t for t in out.tiles if t.factor == 1]
+    # Each cell of the pair's grid belongs to one tile at most.
+    pg = tiles[0].pair_grid
+    owners = np.zeros((pg.height, pg.width), dtype=int)
+    for t in tiles:
+        g = t.dsm.grid
+        r0, c0 = round((pg.y0 - g.y0) / pg.cell), round((g.x0 - pg.x0) / pg.cell)
+        owners[r0 : r0 + g.height, c0 : c0 + g.width] += t.owned
+    assert owners.max() == 1
+    dsm = assemble_tiles(tiles)
+    assert dsm is not None
+    ref = _on_grid(whole.dsm, dsm.grid)
+    a = abs(whole.height_per_disparity_px)
+    both = np.isfinite(ref) & np.isfinite(dsm.heights)
+    diff = (dsm.heights - ref)[both]
+    print(
+        f"|a| {a:.3f} m/px: NMAD {_nmad(diff):.4f} m, median {np.median(diff):.4f} m, "
+        f"whole {np.isfinite(whole.dsm.heights).sum()} cells, tiles "
+        f"{np.isfinite(dsm.heights).sum()}, both {both.sum()}"
+    )
+    assert _nmad(diff) <= a / 4
+    assert abs(float(np.median(diff))) <= a / 10
+    n_whole = int(np.isfinite(whole.dsm.heights).sum())
+    assert both.sum() >= 0.97 * n_whole
+    assert np.isfinite(dsm.heights).sum() <= 1.03 * n_whole
+    # No seam: the cells next to an ownership border agree as well as the others.
+    border = np.zeros_like(owners, dtype=bool)
+    for t in tiles[1:]:
+        g = t.dsm.grid
+        r0, c0 = round((pg.y0 - g.y0) / pg.cell), round((g.x0 - pg.x0) / pg.cell)
+        own = np.zeros_like(border)
+        own[r0 : r0 + g.height, c0 : c0 + g.width] = t.owned
+        edge = own ^ np.roll(own, 1, axis=1) | own ^ np.roll(own, -1, axis=1)
+        for s in range(-3, 4):
+            border |= np.roll(edge, s, axis=1)
+    near = border & both
+    assert near.sum() > 500
+    d_near = (dsm.heights - ref)[near]
+    print(f"border cells {near.sum()}: NMAD {_nmad(d_near):.4f} m")
+    assert _nmad(d_near) <= a / 4
+    assert abs(float(np.median(d_near))) <= a / 10
+
+
+def test_quicklook_tiles_follow_the_dsm(streamed: dict[str, Any]) -> None:
+    out = streamed["out"]
+    (whole,) = out.heights
+    quick = [t for t in out.tiles if t.factor == 4]
+    assert quick and all(t.ok for t in quick) and quick[-1].last
+    dsm = assemble_tiles(quick)
+    assert dsm is not None
+    assert dsm.grid.cell == pytest.approx(4 * whole.dsm.grid.cell, rel=1e-9)
+    ref = _on_grid(whole.dsm, dsm.grid)
+    both = np.isfinite(ref) & np.isfinite(dsm.heights)
+    diff = (dsm.heights - ref)[both]
+    a4 = abs(quick[0].height_per_disparity_px)
+    assert a4 == pytest.approx(4 * abs(whole.height_per_disparity_px), rel=1e-9)
+    print(f"quick-look |a| {a4:.3f} m/px: NMAD {_nmad(diff):.4f} m over {both.sum()} cells")
+    # One reduced pixel of parallax: the reduced images cannot resolve finer, and a reduced
+    # cell averages 4 x 4 full-resolution cells of the relief.
+    assert _nmad(diff) <= a4 / 4
+    assert abs(float(np.median(diff))) <= a4 / 4
+    assert both.sum() >= 0.95 * np.isfinite(ref).sum()
+
+
+def test_tile_messages_carry_the_owned_cells(streamed: dict[str, Any]) -> None:
+    out = streamed["out"]
+    msgs = conv.outputs_to_messages(out, frame_id="map", stamp_ns=0)
+    tiles = [m for topic, m, _ in msgs if topic == "dsm_tile"]
+    quick = [m for topic, m, _ in msgs if topic == "dsm_quicklook_tile"]
+    full = [t for t in out.tiles if t.factor == 1]
+    assert [m.pair_id for m in tiles] == [t.name for t in full]
+    assert tiles[0].pair_id == f"{full[0].pair_id}#0/3" and quick[0].pair_id.endswith("@4")
+    for m, t in zip(tiles, full, strict=True):
+        heights, grid, ortho = conv.elevation_grid_from_msg(m)
+        np.testing.assert_array_equal(heights, t.dsm.heights)
+        assert grid == t.dsm.grid and ortho.shape == heights.shape
+        assert m.terrain_source == "tie_points" and (m.disparity_min, m.disparity_max) == t.d_range
+
+
+def test_a_broken_stream_ends_with_its_tiles_and_a_status() -> None:
+    # The last two right strips lost: the right scene ends short at the flush, the streamer
+    # abandons the pair; the tile its blocks covered stays, an ERROR says the rest.
+    calls, flushed = _run(drop_last_right=2)
+    tiles = [t for _, o in calls for t in o.tiles] + flushed.tiles
+    assert [t.index for t in tiles] == [0] and tiles[0].ok and not tiles[0].last
+    errors = [i for i in flushed.issues if i.level == Level.ERROR and "DSM tiles" in i.message]
+    assert len(errors) == 1, flushed.issues
+    e = errors[0]
+    assert e.where == f"pair {tiles[0].pair_id}"
+    assert "stopped after 1 of 3" in e.message and "left columns 0..256 of 768" in e.message
+    assert "abandoned" in e.message  # the streamer's reason, quoted
+    assert not flushed.pairs and not flushed.heights
+
+
+def test_quicklook_factor_sign_and_range() -> None:
+    reader = BagReader(BAG)
+
+    def stage(q: int) -> TileStage:
+        cfg = config_from_bag(reader, scene_lines=LINES, heights=True, heights_quicklook=q)
+        return TileStage(cfg, {})
+
+    assert {q: [lv.factor for lv in stage(q).levels] for q in (0, 4, -4)} == {
+        0: [1],
+        4: [1, 4],
+        -4: [4],
+    }
+    with pytest.raises(ValueError, match=r"heights_quicklook = 3: must be 0 \(off\), 2, 4 or 8"):
+        stage(3)
+
+
+def test_no_tiles_without_streaming() -> None:
+    cfg = config_from_bag(BagReader(BAG), heights=True)  # no scene_lines: no streaming
+    assert not TileStage.applies(cfg)
+    assert Pipeline(cfg).tiles is None
