@@ -454,7 +454,14 @@ def _reduced_right_pass(
     lo = math.floor(dmin / 2) - 1
     hi = math.ceil((dmin + ndisp - 1) / 2) + 1
     nd = max(16, math.ceil((hi - lo + 1) / 16) * 16)
-    raw = sgbm_matcher(params, lo, nd).compute(small[0], small[1])
+    # OpenCV leaves max(lo + nd, 0) columns on the left and max(-lo, 0) on the right without
+    # a disparity: no-data columns on both sides keep them off the window
+    left_pad, right_pad = max(lo + nd, 0), max(-lo, 0)
+    small = [
+        cv2.copyMakeBorder(im, 0, 0, left_pad, right_pad, cv2.BORDER_CONSTANT, value=0)
+        for im in small
+    ]
+    raw = sgbm_matcher(params, lo, nd).compute(small[0], small[1])[:, left_pad : left_pad + hc]
     d = raw.astype(np.float32)
     d *= np.float32(2.0 / 16.0)
     d[raw == (lo - 1) * 16] = np.nan
