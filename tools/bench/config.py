@@ -68,6 +68,8 @@ class BenchConfig:
             cache (``process_bag``'s ``direct``, its default); False: through it.
         heights_repeats: timed runs of the heights step and of the bare SGBM pass on the
             benchmark's normalized pair (the fastest kept; :mod:`tools.bench.dsm`).
+        quicklook_factor: the node's ``heights_quicklook`` in the quick-look live run (-4:
+            quick-look tiles at 1/4 instead of the full-resolution tiles; 4: alongside them).
     """
 
     name: str
@@ -99,6 +101,7 @@ class BenchConfig:
     live_rate: float = 1.0
     direct_output: bool = True
     heights_repeats: int = 2
+    quicklook_factor: int = -4
 
 
 FULL = BenchConfig(

@@ -101,6 +101,7 @@ def run_bench(
                     workdir / "quicklook",
                     domain_id=domain_id,
                     node_params=node_params,
+                    factor=cfg.quicklook_factor,
                     log=log,
                 )
                 if heights
@@ -150,6 +151,7 @@ def run_and_report(
     live_rate: float = 1.0,
     fast_repair: bool = True,
     direct_output: bool = True,
+    quicklook_factor: int | None = None,
 ) -> dict[str, Any]:
     """What ``python -m tools.bench`` does: run, print (JSON or tables), write BENCHMARKS.md."""
     cfg = QUICK if quick else FULL
@@ -168,6 +170,8 @@ def run_and_report(
         live_rate=live_rate,
         direct_output=direct_output,
     )
+    if quicklook_factor is not None:
+        cfg = replace(cfg, quicklook_factor=quicklook_factor)
     res = run_bench(
         cfg,
         workdir=workdir,
@@ -280,6 +284,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="write the offline output bag (and the I/O bound's) through the page cache "
         "(default: past it, as parproj process does)",
     )
+    p.add_argument(
+        "--quicklook-factor",
+        type=int,
+        default=None,
+        help="the node's heights_quicklook in the quick-look live run (default -4: tiles at 1/4 "
+        "instead of the full-resolution ones; 4: alongside them)",
+    )
     p.add_argument("--py-spy", help="py-spy executable: sample the node during the live run")
     return p
 
@@ -312,5 +323,6 @@ def main(argv: list[str] | None = None) -> int:
         input_compression=args.input_compression,
         live_rate=args.live_rate,
         direct_output=not args.no_direct_output,
+        quicklook_factor=args.quicklook_factor,
     )
     return 1 if (res.get("live") or {}).get("error") else 0
