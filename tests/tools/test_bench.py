@@ -295,3 +295,36 @@ def test_tile_latency_from_the_strip_that_completes_its_ground() -> None:
     assert keys["heights_quicklook_realtime_factor"] == pytest.approx(1.25)
     assert keys["heights_tile_latency_max_s"] == pytest.approx(0.3)
     assert keys["heights_quicklook_realtime_factor_reason"] is None
+
+
+def test_central_band_keeps_the_heights_where_the_whole_pair_puts_them() -> None:
+    """The full form measures the heights step on a band of the normalized pair (memory): the
+    band's DSM lies inside the whole pair's, holds its share of the cells with a height (the
+    share of the rows, within 20 %), with the same heights (median within a quarter of a pixel
+    of parallax)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from parproj_ros.core.heights import HeightsStage, measure_heights, options_of
+    from tools.bench.dsm import bench_pair, central_band
+
+    small = replace(TINY, lines=1024, detectors=512, strip_lines=128)
+    config, pair, left, right = bench_pair(small)
+    opt = options_of(config)
+    terrain, _ = HeightsStage(opt).pair_terrain(pair, left, right)
+    whole, _ = measure_heights(pair, left, right, terrain, opt)
+    cut, lb, rb = central_band(pair, left, right, 256)
+    assert lb.shape == (256, left.shape[1]) and cut.left_image is None
+    band, _ = measure_heights(cut, lb, rb, terrain, opt)
+    assert whole.ok and band.ok
+    a = abs(pair.height_per_disparity_px)
+    assert abs(np.nanmedian(band.dsm.heights) - np.nanmedian(whole.dsm.heights)) < a / 4
+    gw, gb = whole.dsm.grid, band.dsm.grid
+    x = (gb.x0, gb.x0 + gb.cell * (gb.width - 1))
+    assert gw.x0 - gw.cell <= x[0] and x[1] <= gw.x0 + gw.cell * gw.width
+    y = (gb.y0 - gb.cell * (gb.height - 1), gb.y0)
+    assert gw.y0 - gw.cell * gw.height <= y[0] and y[1] <= gw.y0 + gw.cell
+    n_band, n_whole = np.isfinite(band.dsm.heights).sum(), np.isfinite(whole.dsm.heights).sum()
+    share = 256 / left.shape[0]  # of the rows
+    assert 0.8 * share * n_whole < n_band < 1.2 * share * n_whole

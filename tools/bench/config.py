@@ -68,6 +68,9 @@ class BenchConfig:
             cache (``process_bag``'s ``direct``, its default); False: through it.
         heights_repeats: timed runs of the heights step and of the bare SGBM pass on the
             benchmark's normalized pair (the fastest kept; :mod:`tools.bench.dsm`).
+        heights_rows: the heights step and the bare pass on the central band of this many rows
+            of the normalized pair (its full width; 0: the whole pair). The whole IKONOS-size
+            pair (195 Mpx) took a peak RSS of 21.5 GB in the step.
         quicklook_factor: the node's ``heights_quicklook`` in the quick-look live run (-4:
             quick-look tiles at 1/4 instead of the full-resolution tiles; 4: alongside them).
     """
@@ -102,6 +105,7 @@ class BenchConfig:
     direct_output: bool = True
     heights_repeats: int = 2
     quicklook_factor: int = -4
+    heights_rows: int = 0
 
 
 FULL = BenchConfig(
@@ -113,6 +117,7 @@ FULL = BenchConfig(
     strip_lines=500,
     min_sustained=0.995,
     heights_repeats=1,
+    heights_rows=4096,
     map_coordinates_rows=512,
     repeats=3,
     scaling=(
