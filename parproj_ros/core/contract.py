@@ -470,8 +470,8 @@ OUTPUTS: tuple[Topic, ...] = (
         _GRID,
         OUTPUT_QOS,
         "reliable",
-        "`heights` on, streaming, `heights_quicklook` 2, 4, 8 (or -2, -4, -8: instead of "
-        "`dsm_tile`): the same tiles made on the normalized blocks reduced by that factor "
+        "`heights` on, streaming, `heights_quicklook` 1, 2, 3 (or -1, -2, -3: instead of "
+        "`dsm_tile`): the same tiles made on the normalized blocks reduced by 2, 4, 8 "
         "(`pair_id` `<pair>#<index>/<count>@<factor>`; cells that factor times the DSM's)",
         "`Outputs.tiles` (`HeightTile`, factor 2, 4 or 8)",
     ),

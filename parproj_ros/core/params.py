@@ -502,14 +502,13 @@ PARAMS: tuple[Param, ...] = (
         "heights_quicklook",
         "integer",
         0,
-        "streamed DSM tiles of a quick-look level (topic dsm_quicklook_tile) made on the "
-        "normalized blocks reduced by 2, 4 or 8 (block means), alongside the full-resolution "
-        "tiles (topic dsm_tile); -2, -4, -8: the quick-look tiles instead of the "
-        "full-resolution ones; 0 = none (with heights on, streamed pairs get full-resolution "
-        "tiles only)",
-        unit="factor",
-        low=-8,
-        high=8,
+        "streamed DSM tiles of a quick-look level (topic dsm_quicklook_tile), made on the "
+        "normalized blocks reduced by 2^|level| (block means: 1 -> 2, 2 -> 4, 3 -> 8); positive: "
+        "alongside the full-resolution tiles (topic dsm_tile), negative: instead of them; 0 = "
+        "none (with heights on, streamed pairs get full-resolution tiles only)",
+        unit="level",
+        low=-3,
+        high=3,
         offline=True,
     ),
     _p(

@@ -367,7 +367,7 @@ class HeightTile:
         index: tile number from 0 (left columns increasing).
         count: tiles of the pair.
         factor: reduction of the normalized images matched (1: full resolution; 2, 4, 8: the
-            quick-look level).
+            quick-look, ``heights_quicklook`` 1, 2, 3).
         col0: first left column of the span, in the level's pixels.
         cols: columns of the span, in the level's pixels.
         status: the matching's outcome (``ok``, or why the tile has no DSM).

@@ -24,8 +24,8 @@ for each span as soon as it is covered:
   those of its overlap, so a cell on a border sees every point it would in the whole pair.
 
 The tiles assembled (:func:`assemble_tiles`) are the pair's DSM within the matcher's noise,
-without seams. The quick-look level (parameter ``heights_quicklook``) is the same on blocks
-reduced by 2, 4 or 8 (:func:`~.terrain.reduce_image`: block means, a reduced pixel touching
+without seams. The quick-look level (parameter ``heights_quicklook``: 1, 2, 3) is the same on
+blocks reduced by 2, 4 or 8 (:func:`~.terrain.reduce_image`: block means, a reduced pixel touching
 no-data has none). A pair whose stream breaks (its blocks stop: a scene ended short) ends with
 the tiles made so far and an ERROR naming the pair, the tiles published and why.
 """
@@ -64,7 +64,8 @@ TILE_COLS = 256
 TILE_OVERLAP = 64
 #: Columns both sides must hold before the terrain is measured on them (the first window).
 FIRST_WINDOW_COLS = 256
-#: The quick-look reductions ``heights_quicklook`` accepts (and their negatives, 0 = off).
+#: The quick-look reductions of ``heights_quicklook`` levels 1, 2, 3 (-1, -2, -3: instead of
+#: the full resolution; 0: off).
 QUICKLOOK_FACTORS = (2, 4, 8)
 
 
@@ -78,6 +79,9 @@ class _Geometry:
     left_grid: OutputGrid
     right_grid: OutputGrid
     stamp_ns: int
+    #: From a stream under way (then its end before the last blocks is a break); False: from
+    #: a finished pair's result.
+    streamed: bool = True
 
     @property
     def height_relation(self) -> tuple[float, float]:
@@ -156,6 +160,7 @@ class _PairTiles:
     dsm_grid: DsmGrid | None = None
     next_tile: int = 0
     published: int = 0
+    first_cols: int = 0
     issues: list[Issue] = field(default_factory=list)
 
     @property
@@ -235,10 +240,29 @@ class TileLevel:
             out.issues += tiles.issues
             tiles.issues = []
             if tiles.next_tile == len(tiles.spans):
+                out.issues.append(self._summary(tiles))
                 del self.pairs[pid]
-            elif pid not in live and not all(s.done for s in tiles.sides.values()):
+            elif (
+                tiles.geo.streamed
+                and pid not in live
+                and not all(s.done for s in tiles.sides.values())
+            ):
                 out.issues.append(self._broken(tiles, out.issues))
                 del self.pairs[pid]
+
+    def _summary(self, tiles: _PairTiles) -> Issue:
+        """The OK line of a pair whose tiles are all out."""
+        assert tiles.terrain is not None and tiles.d_range is not None
+        assert tiles.stretch is not None
+        (l0, l1), (r0, r1) = tiles.stretch
+        return Issue(
+            Level.OK,
+            f"pair {tiles.geo.pair_id}",
+            f"{self.label} DSM tiles: {len(tiles.spans)} of {TILE_COLS} columns "
+            f"({tiles.published} with heights); {tiles.terrain.describe()} on the first "
+            f"{tiles.first_cols} columns: disparity {tiles.d_range[0]}..{tiles.d_range[1]} px; "
+            f"stretch {l0:g}..{l1:g} (left), {r0:g}..{r1:g} (right) DN from the same window",
+        )
 
     def _broken(self, tiles: _PairTiles, issues: list[Issue]) -> Issue:
         """The ERROR of a pair whose stream stopped before its last block."""
@@ -318,7 +342,7 @@ class TileLevel:
             rng = disparity_range(a, b, terrain.range_m, margin_px=margin)
         except ValueError:
             rng = (0, 0)
-        tiles.terrain, tiles.d_range = terrain, rng
+        tiles.terrain, tiles.d_range, tiles.first_cols = terrain, rng, n
         limits = []
         for img in (left, right):
             ok = img != opt.nodata
@@ -470,8 +494,8 @@ class TileLevel:
 class TileStage:
     """Streamed DSM tiles of every streamed pair: full resolution and/or the quick-look.
 
-    ``heights`` on and streaming: full-resolution tiles, plus quick-look tiles when
-    ``heights_quicklook`` is 2, 4 or 8; -2, -4 or -8: the quick-look tiles only (no
+    ``heights`` on and streaming: full-resolution tiles, plus quick-look tiles reduced by 2, 4
+    or 8 when ``heights_quicklook`` is 1, 2 or 3; -1, -2 or -3: the quick-look tiles only (no
     full-resolution tiles). Feed it every streamed block (:meth:`keep`, a copy of a borrowed
     view) and call it on each of the pipeline's outputs (:meth:`__call__`): the tiles now
     covered come in :attr:`Outputs.tiles`.
@@ -484,12 +508,9 @@ class TileStage:
     def __init__(self, config: PipelineConfig, streams: Mapping[int, StreamPair]) -> None:
         opt = options_of(config)
         q = int(config.dense.quicklook)
-        if abs(q) not in (0, *QUICKLOOK_FACTORS):
-            raise ValueError(
-                f"heights_quicklook = {q}: must be 0 (off), 2, 4 or 8 (quick-look tiles alongside "
-                "the full-resolution ones), or -2, -4, -8 (quick-look tiles instead)"
-            )
-        factors = ([] if q < 0 else [1]) + ([abs(q)] if q else [])
+        if abs(q) > len(QUICKLOOK_FACTORS):
+            raise ValueError(f"heights_quicklook = {q}: must be -3 .. 3 (a level, 2^|level|)")
+        factors = ([] if q < 0 else [1]) + ([QUICKLOOK_FACTORS[abs(q) - 1]] if q else [])
         self.streams = streams
         self.levels = [TileLevel(opt, f, streams) for f in factors]
 
@@ -518,7 +539,13 @@ class TileStage:
         for p in pairs:  # the stream began and ended within one call
             if p.pair_id == pair_id:
                 return _Geometry(
-                    pair_id, p.normalization, p.left.affine, p.left_grid, p.right_grid, p.stamp_ns
+                    pair_id,
+                    p.normalization,
+                    p.left.affine,
+                    p.left_grid,
+                    p.right_grid,
+                    p.stamp_ns,
+                    streamed=False,
                 )
         return None
 
@@ -559,3 +586,39 @@ def assemble_tiles(tiles: list[HeightTile]) -> Dsm | None:
         np.copyto(count[rs, cs], t.dsm.count, where=t.owned)
         np.copyto(filled[rs, cs], t.dsm.filled, where=t.owned)
     return Dsm(heights, pg, count, filled)
+
+
+def tiles_of_pair(
+    config: PipelineConfig,
+    pair: PairResult,
+    left: NDArray[np.generic],
+    right: NDArray[np.generic],
+    *,
+    block_cols: int = TILE_COLS,
+) -> list[tuple[int, HeightTile]]:
+    """The tiles of a whole normalized pair fed as streamed blocks (benchmarks, tests).
+
+    The images are cut into blocks of ``block_cols`` columns, fed left, right, left, ... to a
+    :class:`TileStage` of ``config`` (its levels: ``heights_quicklook``), the stage called after
+    each block as the pipeline calls it after each input. Returns (blocks fed so far, tile) in
+    the order the tiles came.
+    """
+    stage = TileStage(config, {})
+    got: list[tuple[int, HeightTile]] = []
+    fed = 0
+    width = left.shape[1]
+    starts = list(range(0, width, block_cols))
+    for i, c0 in enumerate(starts):
+        for side, img, grid in (
+            ("left", left, pair.left_grid),
+            ("right", right, pair.right_grid),
+        ):
+            blk = BlockResult(
+                pair.pair_id, side, i, c0, img[:, c0 : c0 + block_cols], grid, pair.stamp_ns,
+                i == len(starts) - 1,
+            )  # fmt: skip
+            stage.keep(blk, [pair])
+            fed += 1
+            out = stage(Outputs(), blocks=False)
+            got += [(fed, t) for t in out.tiles]
+    return got

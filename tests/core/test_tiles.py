@@ -26,9 +26,10 @@ import numpy as np
 import pytest
 from testkit.paths import BAGS
 
+from parproj_ros.core.params import PARAMS
 from parproj_ros.core.pipeline import Pipeline
 from parproj_ros.core.results import Level, Outputs
-from parproj_ros.core.tiles import TILE_COLS, TileStage, assemble_tiles
+from parproj_ros.core.tiles import TILE_COLS, TileStage, assemble_tiles, tiles_of_pair
 from parproj_ros.imaging.heights import Dsm, DsmGrid
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
@@ -73,7 +74,7 @@ def _run(
 
 @pytest.fixture(scope="module")
 def streamed() -> dict[str, Any]:
-    calls, flushed = _run(quicklook=4)
+    calls, flushed = _run(quicklook=2)  # 1/4
     out = Outputs()
     for _, o in calls:
         out.extend(o)
@@ -227,16 +228,54 @@ def test_quicklook_factor_sign_and_range() -> None:
         cfg = config_from_bag(reader, scene_lines=LINES, heights=True, heights_quicklook=q)
         return TileStage(cfg, {})
 
-    assert {q: [lv.factor for lv in stage(q).levels] for q in (0, 4, -4)} == {
+    assert {q: [lv.factor for lv in stage(q).levels] for q in (0, 1, 2, 3, -2)} == {
         0: [1],
-        4: [1, 4],
-        -4: [4],
+        1: [1, 2],
+        2: [1, 4],
+        3: [1, 8],
+        -2: [4],
     }
-    with pytest.raises(ValueError, match=r"heights_quicklook = 3: must be 0 \(off\), 2, 4 or 8"):
-        stage(3)
+    row = next(p for p in PARAMS if p.name == "heights_quicklook")
+    assert (row.low, row.high, row.default) == (-3, 3, 0)  # every value in range is valid
 
 
 def test_no_tiles_without_streaming() -> None:
     cfg = config_from_bag(BagReader(BAG), heights=True)  # no scene_lines: no streaming
     assert not TileStage.applies(cfg)
     assert Pipeline(cfg).tiles is None
+
+
+def test_tiles_of_a_whole_pair_fed_as_blocks(streamed: dict[str, Any]) -> None:
+    # The benchmarks' path: a pair normalized whole, cut into 256-column blocks fed left,
+    # right, left, ...: tile 0 once both sides hold column 370 (2 blocks each), the same DSM
+    # as the streamed tiles (the blocks of a whole pair differ from the streamed ones by
+    # 1 DN at most, test_streaming.py).
+    reader = BagReader(BAG)
+    cfg = config_from_bag(
+        reader, scene_lines=LINES, heights=True, tie_points=False, streaming=False
+    )
+    calls: list[tuple[str, Outputs]] = []
+    pipe = Pipeline(cfg)
+    for item in reader.messages(topics=["navigation", *STRIPS]):
+        if item.topic == "navigation":
+            calls.append(("nav", pipe.add_navigation(conv.odometry_to_sample(item.msg))))
+        else:
+            arr = conv.image_to_array(item.msg)
+            stamp = conv.stamp_to_ns(item.msg.header.stamp)
+            calls.append(
+                ("strip", pipe.add_strip(STRIPS[item.topic], stamp, item.msg.header.frame_id, arr))
+            )
+    pairs = [p for _, o in calls for p in o.pairs] + pipe.flush().pairs
+    (pair,) = pairs
+    got = tiles_of_pair(cfg, pair, pair.left_image, pair.right_image)
+    assert [(fed, t.index) for fed, t in got] == [(4, 0), (6, 1), (6, 2)]
+    mine = assemble_tiles([t for _, t in got])
+    ref = assemble_tiles([t for t in streamed["out"].tiles if t.factor == 1])
+    assert mine is not None and ref is not None
+    g, h = mine.grid, ref.grid
+    assert (g.width, g.height) == (h.width, h.height)
+    assert (g.x0, g.y0, g.cell) == pytest.approx((h.x0, h.y0, h.cell), abs=1e-6 * h.cell)
+    both = np.isfinite(mine.heights) & np.isfinite(ref.heights)
+    a = abs(got[0][1].height_per_disparity_px)
+    assert both.sum() >= 0.97 * np.isfinite(ref.heights).sum()
+    assert _nmad((mine.heights - ref.heights)[both]) <= a / 4

@@ -35,7 +35,7 @@ from parproj_ros.ros.live import NodeProcess, Recorder, node_params_yaml, replay
 pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 
 BAG = BAGS / "airborne_foreaft"
-SETTINGS = {"scene_lines": 768, "heights": True, "heights_quicklook": 4}
+SETTINGS = {"scene_lines": 768, "heights": True, "heights_quicklook": 2}  # 1/4
 RATE = 0.2
 #: Navigation kept whole before the first and after the last strip of each view, seconds.
 NAV_AROUND_S = 1.0
