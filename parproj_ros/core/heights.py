@@ -67,11 +67,11 @@ class HeightsOptions:
         lr_check: the matcher's left-right check (:class:`SgbmParams`): "reduced" (a
             right-to-left pass at half resolution), "flip" (at full resolution, and the mean
             of both disparities) or "none".
-        reducer: how the DSM's cells take the points' heights (:func:`make_dsm`): "bilinear"
-            (each point spread over the 4 cells around it), "mean" or "median" (of the
-            points in the cell). With "reduced" and "bilinear", the step takes 2.2-2.7 times
-            one bare SGBM pass instead of 3.3-3.8 ("flip", "mean"), and the Marseille DSMs are
-            as close to s2p's or closer (docs/performance.md).
+        reducer: how the DSM's cells take the points' heights (:func:`make_dsm`):
+            "interpolated" (the height image interpolated at the cell centre's projection),
+            "mean" or "median" (of the points in the cell). "reduced" with "interpolated"
+            makes the step faster than "flip" with "mean", with DSMs as close to s2p's and
+            CARS's or closer (docs/performance.md).
     """
 
     margin_px: float = 8.0
@@ -84,7 +84,7 @@ class HeightsOptions:
     prior_m: tuple[float, float] = (-500.0, 500.0)
     matcher: Literal["sgbm_3way", "sgbm_8path"] = "sgbm_3way"
     lr_check: Literal["flip", "reduced", "none"] = "reduced"
-    reducer: Literal["mean", "median", "bilinear"] = "bilinear"
+    reducer: Literal["mean", "median", "interpolated"] = "interpolated"
 
 
 def measure_heights(

@@ -344,8 +344,8 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
 class _Binned:
     """The points of one block of rows binned into DSM cells lo .. lo + len(sums) - 1.
 
-    ``sums``: of the heights (of the weighted heights with ``weights``, the bilinear weights'
-    sums); ``idx`` and ``z``: the points' cells and heights (for a median).
+    ``sums``: of the heights; ``idx`` and ``z``: the points' cells and heights (for a
+    median).
     """
 
     lo: int
@@ -353,7 +353,6 @@ class _Binned:
     count: NDArray[np.int64]
     idx: NDArray[np.int64] | None
     z: Float32Array
-    weights: FloatArray | None = None
 
 
 def make_dsm(
@@ -364,7 +363,7 @@ def make_dsm(
     *,
     cell: float | None = None,
     grid: DsmGrid | None = None,
-    reducer: Literal["mean", "median", "bilinear"] = "mean",
+    reducer: Literal["mean", "median", "interpolated"] = "mean",
     fill: Literal["none", "nearest"] = "none",
     max_fill_cells: float = 3.0,
     block_px: int = 1 << 22,
@@ -373,9 +372,11 @@ def make_dsm(
 
     Every valid left pixel (col, row) gives ``Z = a d + b`` and its object (X, Y) through
     ``mapping`` (:class:`GroundMapping` of the left image); each DSM cell takes the mean (or
-    median) Z of the points falling in it, or, with "bilinear", the mean of the points around
-    its centre weighted by their bilinear weights (a point one cell or more away in X or in Y
-    weighs nothing; a point at the centre weighs 1).
+    median) Z of the points falling in it; with "interpolated", each such cell then takes the
+    height image (``a d + b``) interpolated bilinearly where its centre, at that mean height,
+    projects into the left image (where the interpolation reaches a pixel without height,
+    the mean stays): the height at the cell's centre rather than at the points scattered in
+    it.
 
     Args:
         disparity: float (rows, cols) in the left normalized grid, pixels, NaN where invalid
@@ -387,9 +388,8 @@ def make_dsm(
             image, :attr:`GroundMapping.ground_sample_distance`). Ignored with ``grid``.
         grid: the DSM grid (default: the one covering the valid points).
         reducer: "mean" (memory: 16 bytes per cell), "median" (also 12 bytes per valid
-            point) or "bilinear" (24 bytes per cell; each point spread over the 4 cells around
-            it: on the Marseille pairs 0.01-0.015 m less NMAD against s2p and CARS than
-            "mean", and a cell next to points has a height).
+            point) or "interpolated" (also 4 bytes per pixel; on Marseille 1-2 0.01 m less
+            NMAD than "mean" against s2p and CARS, 5 % less RMS; docs/performance.md).
         fill: "nearest" fills holes from the nearest cell with points, up to
             ``max_fill_cells`` cells away, and flags them in :attr:`Dsm.filled`.
         max_fill_cells: largest filled distance, cells.
@@ -398,9 +398,7 @@ def make_dsm(
             cells it reaches, so blocks smaller than the grid cost more time).
 
     Returns:
-        The DSM (all NaN when the map has no valid pixel). Its count is the number of points
-        whose nearest cell it is (with "bilinear", a cell next to points may have a height
-        and a count of 0).
+        The DSM (all NaN when the map has no valid pixel).
     """
     h = disparity.shape[0]
     a, b = float(height_per_disparity_px), float(height_offset_m)
@@ -423,7 +421,6 @@ def make_dsm(
     n_cells = grid.width * grid.height
     sums = np.zeros(n_cells, dtype=np.float64)
     count = np.zeros(n_cells, dtype=np.float64)  # whole numbers (float: a quick mean)
-    weights = np.zeros(n_cells, dtype=np.float64) if reducer == "bilinear" else count
     keys: list[NDArray[np.int64]] = []
     vals: list[Float32Array] = []
     # The cell of pixel (c, r) at height z: floor(k . (c, r, z) + k0), k per cell axis (the
@@ -436,8 +433,6 @@ def make_dsm(
     def grid_block(rows: tuple[int, int]) -> _Binned | None:
         r0, r1 = rows
         z = heights_from_disparity(disparity[r0:r1], a, b)  # NaN where no disparity
-        if reducer == "bilinear":
-            return _bilinear_block(z, (r0, r1), kc, kr, grid)
         pix_rows = np.arange(r0, r1, dtype=float)[:, None]
         fc = kc[0] * pix_cols + (kc[1] * pix_rows + (kc[3] + 0.5))
         fc += kc[2] * z
@@ -463,24 +458,21 @@ def make_dsm(
     # Blocks of about block_px pixels, at least one per thread, binned a wave of one block per
     # thread at a time (bounded memory) and summed in order (the same sums on any threads).
     n_threads = workers()
-    px = max(1, block_px // 4 if reducer == "bilinear" else block_px)  # 4 cells a point
-    parts = max(n_threads, math.ceil(h * disparity.shape[1] / px))
+    parts = max(n_threads, math.ceil(h * disparity.shape[1] / max(1, block_px)))
     blocks = row_parts(h, parts, min_rows=1)
     for i in range(0, len(blocks), n_threads):
         for binned in run_parts(grid_block, blocks[i : i + n_threads]):
             if binned is None:
                 continue
-            lo, n = binned.lo, binned.sums.size
-            sums[lo : lo + n] += binned.sums
+            lo, n = binned.lo, binned.count.size
             count[lo : lo + n] += binned.count
-            if binned.weights is not None:
-                weights[lo : lo + n] += binned.weights
+            sums[lo : lo + n] += binned.sums
             if binned.idx is not None:
                 keys.append(binned.idx)
                 vals.append(binned.z)
     out = np.empty(n_cells, dtype=np.float32)
     with np.errstate(invalid="ignore"):  # 0 / 0: NaN, a cell without points
-        np.divide(sums, weights, out=out, casting="same_kind")
+        np.divide(sums, count, out=out, casting="same_kind")
     if reducer == "median" and keys:
         k = np.concatenate(keys)
         v = np.concatenate(vals)
@@ -492,6 +484,8 @@ def make_dsm(
         hi_i = starts + lens // 2
         out[k[starts]] = 0.5 * (v[lo_i].astype(float) + v[hi_i].astype(float))
     heights = out.reshape(grid.height, grid.width)
+    if reducer == "interpolated":
+        _interpolate_cells(heights, heights_from_disparity(disparity, a, b), mapping, grid)
     filled = np.zeros(heights.shape, dtype=bool)
     if fill == "nearest" and np.isfinite(heights).any():
         filled = _fill_nearest(heights, max_fill_cells)
@@ -503,49 +497,47 @@ def make_dsm(
     )
 
 
-def _bilinear_block(
-    z: Float32Array, rows: tuple[int, int], kc: FloatArray, kr: FloatArray, grid: DsmGrid
-) -> _Binned | None:
-    """The points of rows[0]:rows[1] spread over the 4 cells around each, bilinearly.
+def _interpolate_cells(
+    heights: Float32Array,
+    image: Float32Array,
+    mapping: GroundMapping,
+    grid: DsmGrid,
+    block_rows: int = 512,
+) -> None:
+    """Each cell with a height takes ``image`` where its centre at that height projects.
 
-    ``z``: their heights (NaN: no point); ``kc``, ``kr``: the cell column and row of pixel
-    (c, r) at height z, ``k . (c, r, z) + k[3]`` (centres at whole numbers).
+    In place; bilinear (``cv2.remap``); a cell whose interpolation reaches a pixel without a
+    height (NaN) or the image's edge keeps its height. By blocks of rows, on threads.
+
+    Args:
+        heights: (grid.height, grid.width), metres, NaN without.
+        image: the heights of the left normalized pixels, metres, NaN without.
+        mapping: the left image's ground mapping.
+        grid: the cells.
+        block_rows: cells' rows at once.
     """
-    pix_cols = np.arange(z.shape[1], dtype=float)
-    pix_rows = np.arange(rows[0], rows[1], dtype=float)[:, None]
-    fc = kc[0] * pix_cols + (kc[1] * pix_rows + kc[3])
-    fc += kc[2] * z
-    fr = kr[0] * pix_cols + (kr[1] * pix_rows + kr[3])
-    fr += kr[2] * z
-    # points whose 2 x 2 cells reach the grid (NaN compares False)
-    sel = (fc > -1.0) & (fc < grid.width) & (fr > -1.0) & (fr < grid.height)
-    fc, fr, zs = fc[sel], fr[sel], z[sel].astype(np.float64)
-    if fc.size == 0:
-        return None
-    c0, r0 = np.floor(fc), np.floor(fr)
-    tc, tr = fc - c0, fr - r0
-    w, h = grid.width, grid.height
-    # nearest cell: the count
-    nc, nr = c0 + (tc >= 0.5), r0 + (tr >= 0.5)
-    near_ok = (nc < w) & (nr < h) & (nc >= 0) & (nr >= 0)
-    near = (nr[near_ok] * w + nc[near_ok]).astype(np.int64)
-    idx_parts, w_parts = [], []
-    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):
-        rr, cc = r0 + dr, c0 + dc
-        wk = (tr if dr else 1.0 - tr) * (tc if dc else 1.0 - tc)
-        wk[(rr < 0) | (rr >= h) | (cc < 0) | (cc >= w)] = 0.0
-        idx_parts.append((np.clip(rr, 0, h - 1) * w + np.clip(cc, 0, w - 1)).astype(np.int64))
-        w_parts.append(wk)
-    idx = np.concatenate(idx_parts)
-    wts = np.concatenate(w_parts)
-    lo = int(min(idx.min(), near.min())) if near.size else int(idx.min())
-    n = int(max(idx.max(), near.max()) if near.size else idx.max()) - lo + 1
-    idx -= lo
-    near -= lo
-    sums = cast("FloatArray", np.bincount(idx, weights=wts * np.tile(zs, 4), minlength=n))
-    wsum = cast("FloatArray", np.bincount(idx, weights=wts, minlength=n))
-    count = np.bincount(near, minlength=n)
-    return _Binned(lo, sums, count, None, z, wsum)
+    k = _ground_to_pixel_matrix(mapping)
+    xs = grid.x0 + grid.cell * np.arange(grid.width, dtype=float)
+
+    def sample(rows: tuple[int, int]) -> None:
+        r0, r1 = rows
+        z = heights[r0:r1]
+        ok = np.isfinite(z)
+        if not ok.any():
+            return
+        zz = np.where(ok, z, np.float32(0.0))
+        ys = (grid.y0 - grid.cell * np.arange(r0, r1, dtype=float))[:, None]
+        col, row = (
+            (kk[0] * xs + (kk[1] * ys + kk[3])).astype(np.float32) + np.float32(kk[2]) * zz
+            for kk in k
+        )
+        got = cv2.remap(
+            image, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+        )
+        use = ok & np.isfinite(got)
+        z[use] = got[use]
+
+    run_parts(sample, _spans(grid.height, block_rows))
 
 
 def orthoimage(

@@ -184,6 +184,28 @@ def test_dsm_mean_and_median_of_cells() -> None:
     assert med.heights[1, 1] == pytest.approx(1.0)
 
 
+def test_interpolated_cells_take_the_height_at_their_centre() -> None:
+    """A slanted plane seen with pixels 0.3 / 0.2 cell off the cell centres: "mean" gives the
+    height of the point in the cell, "interpolated" the plane's height at the centre."""
+    grid = OutputGrid(1.0, 0.3, -0.2, 100, 100)  # pixel (c, r) at X = c + 0.3, Y = -r + 0.2
+    flip = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    m = GroundMapping(grid, flip, AffineModel.from_array([1, 0, 0, 0, 0, 1, 0, 0]))
+    rr, cc = np.mgrid[0:50, 0:60].astype(float)
+    disp = (0.5 * cc + 0.25 * rr).astype(np.float32)  # Z = 2 d + 10 = 10 + X - 0.3 + ...
+    cells = DsmGrid(0.0, 0.0, 1.0, 60, 50)
+    mean = make_dsm(disp, 2.0, 10.0, m, grid=cells)
+    interp = make_dsm(disp, 2.0, 10.0, m, grid=cells, reducer="interpolated")
+    x, y = cells.centres()
+    plane = 10.0 + (x - 0.3) - 0.5 * (y - 0.2)  # 2 (0.5 c + 0.25 r) + 10 at the centre
+    inner = np.zeros(plane.shape, dtype=bool)
+    inner[2:-2, 2:-2] = True
+    assert np.isfinite(interp.heights[inner]).all()
+    # remap's weights are in 1/32 px: 1.5 m per px of slope, within 0.05 m
+    assert np.abs(interp.heights[inner] - plane[inner]).max() < 0.05
+    assert np.abs(mean.heights[inner] - plane[inner]).min() > 0.15  # 0.3 - 0.5 x 0.2 m off
+    assert np.array_equal(np.isfinite(mean.heights), np.isfinite(interp.heights))
+
+
 def test_dsm_of_nothing() -> None:
     dsm = make_dsm(np.full((8, 8), np.nan, np.float32), 1.0, 0.0, identity_mapping())
     assert np.isnan(dsm.heights).all()

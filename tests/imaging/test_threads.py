@@ -75,8 +75,9 @@ def test_heights_are_the_same_on_one_thread_or_two(cv2_threads: None, lr_check: 
         )
         dsm = make_dsm(res.disparity, 0.8, 100.0, mapping, fill="nearest", block_px=block_px)
         med = make_dsm(res.disparity, 0.8, 100.0, mapping, reducer="median", block_px=block_px)
+        itp = make_dsm(res.disparity, 0.8, 100.0, mapping, reducer="interpolated")
         ortho = orthoimage(left, dsm, mapping, block_rows=37)
-        out.append((res.disparity, dsm.heights, dsm.count, med.heights, ortho))
+        out.append((res.disparity, dsm.heights, dsm.count, med.heights, itp.heights, ortho))
     assert np.isfinite(out[0][0]).mean() > 0.8  # it matched
     for other in out[1:]:
         for a, b in zip(out[0], other, strict=True):
