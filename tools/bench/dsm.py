@@ -229,9 +229,10 @@ def bench_heights_step(
     return res
 
 
-#: The quick-look the benchmark runs the node with (``heights_quicklook``; issue 26: "of your
-#: choice"): -4, the tiles of the normalized blocks reduced by 4 (a 16th of the pixels, a
-#: quarter of the disparities) instead of the full-resolution tiles; 4 would make both.
+#: The quick-look the benchmark runs the node with (issue 26: "of your choice"): -4, the tiles
+#: of the normalized blocks reduced by 4 (a 16th of the pixels, a quarter of the disparities)
+#: instead of the full-resolution tiles; 4 would make both. Given to the node as its
+#: ``heights_quicklook`` value (a level -3..3 there, reduction 2^|level|: -2).
 QUICKLOOK_FACTOR = -4
 #: The streamed DSM tiles' topic (issue 26, item 1).
 TILE_TOPIC = "dsm_tile"
@@ -261,7 +262,13 @@ def quicklook_setup(factor: int = QUICKLOOK_FACTOR) -> tuple[dict[str, Any], lis
         )
     param = found[0]
     value: Any = factor
-    if param.type == "string" or param.choices:
+    if param.high is not None and param.high < 8 and abs(factor) > 1:
+        # A level (heights_quicklook -3..3: reduction 2^|level|, negative: instead).
+        level = round(math.log2(abs(factor)))
+        if 2**level != abs(factor) or level > param.high:
+            return f"no level of {param.name} ({param.low}..{param.high}) reduces by {factor}"
+        value = level if factor > 0 else -level
+    elif param.type == "string" or param.choices:
         value = str(factor)
         if param.choices and value not in param.choices:
             return f"the quick-look parameter {param.name} has no choice {factor}: {param.choices}"
@@ -342,8 +349,14 @@ def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
         k for k in tiles if k.endswith(level)
     ]
     err = f" (live run: {live['error']})" if live.get("error") else ""
-    if not quick:
-        out["heights_quicklook_realtime_factor_reason"] = f"no quick-look tiles received{err}"
+    said = [i for i in live.get("node_issues") or [] if "quicklook" in i]
+    err += f" (node: {said[0]})" if said else ""
+    got = (tiles[quick[0]] or {}).get("tiles") if quick else 0
+    if not got:
+        where = quick[0] if quick else list(tiles)
+        out["heights_quicklook_realtime_factor_reason"] = (
+            f"no quick-look tiles received on {where}{err}"
+        )
     else:
         f = (tiles[quick[0]] or {}).get("realtime_factor")
         out["heights_quicklook_realtime_factor"] = f
