@@ -64,6 +64,10 @@ TILE_COLS = 256
 TILE_OVERLAP = 64
 #: Columns both sides must hold before the terrain is measured on them (the first window).
 FIRST_WINDOW_COLS = 256
+#: Rows of a band of the first window whose terrain is measured (:func:`_window_terrain`) ...
+TERRAIN_BAND_ROWS = 1024
+#: ... and the most bands measured, spread over the rows.
+TERRAIN_BANDS = 6
 #: The quick-look reductions of ``heights_quicklook`` levels 1, 2, 3 (-1, -2, -3: instead of
 #: the full resolution; 0: off).
 QUICKLOOK_FACTORS = (2, 4, 8)
@@ -179,6 +183,56 @@ class _PairTiles:
     def covers(self, col: int) -> bool:
         """Whether both sides hold every column before ``col`` (or all they will)."""
         return all(s.covered >= min(col, self.width) or s.done for s in self.sides.values())
+
+
+def _window_terrain(
+    left: NDArray[np.generic],
+    right: NDArray[np.generic],
+    geo: _Geometry,
+    prior: Terrain,
+    nodata: float,
+) -> Terrain:
+    """The terrain of a window of columns 0.. of both images, measured by row bands.
+
+    :func:`measure_terrain` reduces an image until its longer side is 1,024 px: a window of a
+    few hundred columns and a whole scene of rows (13,816 at IKONOS size) would keep some 20
+    columns. So the window is cut into at most :data:`TERRAIN_BANDS` bands of
+    :data:`TERRAIN_BAND_ROWS` rows spread over its rows, each measured at full resolution;
+    the terrain is the hull of the bands' (the prior when no band measures one).
+    """
+    rows, cols = left.shape[:2]
+    band = min(rows, TERRAIN_BAND_ROWS)
+    count = min(TERRAIN_BANDS, math.ceil(rows / band))
+    starts = sorted({round(i * (rows - band) / max(1, count - 1)) for i in range(count)})
+    measured = []
+    for r0 in starts:
+        grids = [
+            OutputGrid(g.pixel, g.x_origin, g.y_origin + r0 * g.pixel, cols, band)
+            for g in (geo.left_grid, geo.right_grid)
+        ]
+        t = measure_terrain(
+            left[r0 : r0 + band],
+            right[r0 : r0 + band],
+            grids[0],
+            grids[1],
+            geo.normalization,
+            prior,
+            nodata=nodata,
+        )
+        if t.source == TerrainSource.TIE_POINTS:
+            measured.append(t)
+    if not measured:
+        return prior
+    if len(measured) == 1:
+        return measured[0]
+    spans = [t.measured_m for t in measured if t.measured_m is not None]
+    return Terrain(
+        min(t.low_m for t in measured),
+        max(t.high_m for t in measured),
+        TerrainSource.TIE_POINTS,
+        sum(t.points for t in measured),
+        (min(lo for lo, _ in spans), max(hi for _, hi in spans)),
+    )
 
 
 class TileLevel:
@@ -322,10 +376,7 @@ class TileLevel:
         terrain = prior
         where = f"pair {geo.pair_id}"
         if opt.measure_terrain:
-            sub = [replace(g, width=n) for g in (geo.left_grid, geo.right_grid)]
-            terrain = measure_terrain(
-                left, right, sub[0], sub[1], geo.normalization, prior, nodata=opt.nodata
-            )
+            terrain = _window_terrain(left, right, geo, prior, opt.nodata)
             if terrain.source != TerrainSource.TIE_POINTS:
                 tiles.issues.append(
                     Issue(

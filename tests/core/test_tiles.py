@@ -20,6 +20,7 @@ the same bounds hold on the cells next to a border.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -251,11 +252,9 @@ def test_no_tiles_without_streaming() -> None:
     assert Pipeline(cfg).tiles is None
 
 
-def test_tiles_of_a_whole_pair_fed_as_blocks(streamed: dict[str, Any]) -> None:
-    # The benchmarks' path: a pair normalized whole, cut into 256-column blocks fed left,
-    # right, left, ...: tile 0 once both sides hold column 370 (2 blocks each), the same DSM
-    # as the streamed tiles (the blocks of a whole pair differ from the streamed ones by
-    # 1 DN at most, test_streaming.py).
+@pytest.fixture(scope="module")
+def whole_pair() -> dict[str, Any]:
+    """The fore/aft pair normalized whole (not streamed), and its settings with heights on."""
     reader = BagReader(BAG)
     cfg = config_from_bag(
         reader, scene_lines=LINES, heights=True, tie_points=False, streaming=False
@@ -273,6 +272,17 @@ def test_tiles_of_a_whole_pair_fed_as_blocks(streamed: dict[str, Any]) -> None:
             )
     pairs = [p for _, o in calls for p in o.pairs] + pipe.flush().pairs
     (pair,) = pairs
+    return {"pair": pair, "config": cfg}
+
+
+def test_tiles_of_a_whole_pair_fed_as_blocks(
+    streamed: dict[str, Any], whole_pair: dict[str, Any]
+) -> None:
+    # The benchmarks' path: a pair normalized whole, cut into 256-column blocks fed left,
+    # right, left, ...: tile 0 once both sides hold column 370 (2 blocks each), the same DSM
+    # as the streamed tiles (the blocks of a whole pair differ from the streamed ones by
+    # 1 DN at most, test_streaming.py).
+    pair, cfg = whole_pair["pair"], whole_pair["config"]
     got = tiles_of_pair(cfg, pair, pair.left_image, pair.right_image)
     assert [(fed, t.index) for fed, t in got] == [(4, 0), (6, 1), (6, 2)]
     mine = assemble_tiles([t for _, t in got])
@@ -307,3 +317,32 @@ def test_heights_of_the_tiles_stand_for_the_whole_pair(streamed: dict[str, Any])
     has = np.isfinite(res.dsm.heights)
     assert (res.ortho[has] > 0).mean() > 0.99 and np.all(res.ortho[~has] == 0)
     print(f"valid share tiles {res.valid_share:.4f}, whole {whole.valid_share:.4f}")
+
+
+def test_a_tall_first_window_is_measured_by_row_bands(whole_pair: dict[str, Any]) -> None:
+    # At IKONOS size a window of 256 columns has some 13,816 rows: measure_terrain reduces it
+    # to 1,024 rows and some 20 columns, too few for tie points. The pair stacked 14 times
+    # (11,074 rows) is such a window: measured whole, the prior; by bands of 1,024 rows, the
+    # terrain of the pair (the same ground 14 times: the single window's, within its margin).
+    from parproj_ros.core.terrain import Terrain, TerrainSource, measure_terrain
+    from parproj_ros.core.tiles import _Geometry, _window_terrain
+
+    pair = whole_pair["pair"]
+    n = 256
+    left = np.tile(pair.left_image[:, :n], (14, 1))
+    right = np.tile(pair.right_image[:, :n], (14, 1))
+    grids = [replace(g, width=n, height=left.shape[0]) for g in (pair.left_grid, pair.right_grid)]
+    prior = Terrain(-500.0, 500.0, TerrainSource.PRIOR)
+    whole = measure_terrain(left, right, *grids, pair.normalization, prior, nodata=0.0)
+    assert whole.source == TerrainSource.PRIOR
+    geo = _Geometry(
+        pair.pair_id, pair.normalization, pair.left.affine, grids[0], grids[1], pair.stamp_ns
+    )
+    banded = _window_terrain(left, right, geo, prior, 0.0)
+    one = _window_terrain(pair.left_image[:, :n], pair.right_image[:, :n], geo, prior, 0.0)
+    assert banded.source == one.source == TerrainSource.TIE_POINTS
+    print(f"banded {banded.describe()}; one window {one.describe()}")
+    a = abs(pair.height_per_disparity_px)
+    assert banded.low_m == pytest.approx(one.low_m, abs=4 * a)
+    assert banded.high_m == pytest.approx(one.high_m, abs=4 * a)
+    assert banded.points > 3 * one.points
