@@ -181,6 +181,34 @@ def targets(res: dict[str, Any]) -> list[dict[str, Any]]:
                 else ""
             ),
         )
+    ql = res.get("quicklook") or {}
+    qlv = ql.get("live") or {}
+    if qlv:
+        # Issue 26, Done when: the quick-look at the sensor rate, heights on.
+        f = s["heights_quicklook_realtime_factor"]
+        lat = s["heights_tile_latency_max_s"]
+        budget = (res.get("config") or {}).get("memory_budget_mb")
+        add(
+            f"quick-look DSM at the sensor rate (heights on, heights_quicklook reduction "
+            f"{ql.get('factor')}): quick-look real-time factor >= 1.0, every DSM tile within 2 s "
+            "of its last strip, no pair shed",
+            None
+            if f is None and lat is None
+            else (
+                f is not None
+                and f >= 1.0
+                and lat is not None
+                and lat <= 2.0
+                and not qlv.get("pairs_shed")
+            ),
+            f"real-time factor {_f(f)}, tile latency max {_f(lat, 2)} s, "
+            f"{(qlv.get('tiles') or {}).get('dsm_quicklook_tile', {}).get('tiles')} quick-look "
+            f"tiles, {qlv.get('pairs_received')}/{qlv.get('pairs')} pairs, shed "
+            f"{qlv.get('pairs_shed')}, node peak RSS "
+            f"{_f((qlv.get('rss') or {}).get('peak_mb'), 0)} MB (budget: "
+            f"{'the default' if budget is None else f'{budget:g} MB'}), node CPU "
+            f"{_f(s['heights_quicklook_node_cpu_per_sensor_s'], 2)} s per sensor s",
+        )
     q = res.get("quick_elapsed_s")
     if q is not None:
         add("`python -m tools.bench --quick` under 60 s", q < 60.0, f"{q:.1f} s")
@@ -485,6 +513,7 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
                     markdown,
                 )
                 yield ""
+    yield from _heights_lines(res, h, markdown)
     sc = res.get("scaling") or []
     if sc:
         yield f"{h}Scaling of resample() with scene length and width"
@@ -532,6 +561,66 @@ def _report_lines(res: dict[str, Any], *, markdown: bool, command: str = "") -> 
     yield ""
     for line in DEFINITIONS:
         yield f"- {line}" if markdown else f"  {line}"
+
+
+def _heights_lines(res: dict[str, Any], h: str, markdown: bool) -> Iterator[str]:
+    """The heights section (issue 26): the step against bare SGBM, CPU, the quick-look."""
+    s = heights_keys(res)
+    hs = res.get("heights_step") or {}
+    if not hs and not res.get("quicklook"):
+        return
+    yield f"{h}Heights at the sensor rate (issue 26; tools/bench/dsm.py)"
+    yield ""
+    if hs.get("pair_size"):
+        whole = hs.get("whole_pair_size") or hs["pair_size"]
+        yield (
+            f"The benchmark's first pair normalized in this process ({whole[0]} x {whole[1]} px"
+            + (f"; its central {hs['pair_size'][1]} rows" if whole != hs["pair_size"] else "")
+            + f"), disparities {hs.get('d_range')}, {_f(100 * (hs.get('matched_share') or 0), 1)}"
+            f" % matched, OpenCV threads {hs.get('cv2_threads')}, best of "
+            f"{(res.get('config') or {}).get('heights_repeats')}."
+        )
+        yield ""
+    cpu = (res.get("live") or {}).get("cpu_per_sensor_s") or {}
+    qlv = (res.get("quicklook") or {}).get("live") or {}
+    qcpu = qlv.get("cpu_per_sensor_s") or {}
+    rows = [
+        ["heights step, core/heights.measure_heights (heights_full_mpx_s), Mpx/s",
+         _f(s["heights_full_mpx_s"], 2)],
+        ["one bare StereoSGBM pass, dense.sgbm_matcher (sgbm_bare_mpx_s), Mpx/s",
+         _f(s["sgbm_bare_mpx_s"], 2)],
+        ["step time / bare pass time", _f(s["heights_full_over_sgbm_bare"], 2)],
+        ["left pixels the sensor delivers per second (line rate x detectors), Mpx/s",
+         _f(s["heights_needed_mpx_s"], 1)],
+        ["times too slow for them (heights_full_shortfall)", _f(s["heights_full_shortfall"], 1)],
+        ["CPU s per sensor s, live run (node / render process / bench)",
+         " / ".join(_f(cpu.get(k), 2) for k in ("node", "render", "bench"))],
+        ["quick-look run: reduction (heights_quicklook_factor)",
+         str(s["heights_quicklook_factor"])],
+        ["quick-look real-time factor (heights_quicklook_realtime_factor)",
+         _f(s["heights_quicklook_realtime_factor"])
+         if s["heights_quicklook_realtime_factor"] is not None
+         else f"n/a: {s['heights_quicklook_realtime_factor_reason']}"],
+        ["DSM tile latency max, s (heights_tile_latency_max_s)",
+         _f(s["heights_tile_latency_max_s"], 2)
+         if s["heights_tile_latency_max_s"] is not None
+         else f"n/a: {s['heights_tile_latency_max_s_reason']}"],
+        ["quick-look run: CPU s per sensor s (node / render process / bench)",
+         " / ".join(_f(qcpu.get(k), 2) for k in ("node", "render", "bench"))],
+    ]  # fmt: skip
+    for name, fig in (qlv.get("tiles") or {}).items():
+        if "@" in name:
+            continue
+        lat = fig.get("latency_s") or {}
+        rows.append(
+            [
+                f"{name}: tiles / pairs / before the last strip; latency median / max, s",
+                f"{fig.get('tiles')} / {fig.get('pairs')} / {fig.get('during_pass')}; "
+                f"{_f(lat.get('median'), 2)} / {_f(lat.get('max'), 2)}",
+            ]
+        )
+    yield from _table(["figure", "value"], rows, markdown)
+    yield ""
 
 
 #: Where the node's time goes beyond the transport (issue 11's profile; README "Keeping up").
