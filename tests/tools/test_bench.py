@@ -328,3 +328,28 @@ def test_central_band_keeps_the_heights_where_the_whole_pair_puts_them() -> None
     n_band, n_whole = np.isfinite(band.dsm.heights).sum(), np.isfinite(whole.dsm.heights).sum()
     share = 256 / left.shape[0]  # of the rows
     assert 0.8 * share * n_whole < n_band < 1.2 * share * n_whole
+
+
+def test_heights_section_and_quicklook_target_render() -> None:
+    """The report's heights section and the quick-look target, from a run's figures (a
+    quick-look run whose tiles came late: the target is not met, and says by what)."""
+    fig = {"tiles": 8, "pairs": 4, "during_pass": 1, "realtime_factor": 0.07,
+           "latency_s": {"median": 6.8, "max": 14.75}}  # fmt: skip
+    res = {
+        "config": {"detectors": 2048, "live_rate": 1.0, "heights_repeats": 2},
+        "heights_step": {"heights_full_mpx_s": 2.0, "sgbm_bare_mpx_s": 8.0,
+                         "heights_over_sgbm": 4.0, "pair_size": [2048, 2063], "error": None},
+        "quicklook": {"available": True, "factor": -4, "live": {
+            "pairs": 4, "pairs_received": 4, "pairs_shed": 0, "rss": {"peak_mb": 1000.0},
+            "cpu_per_sensor_s": {"node": 6.0, "render": 0.07, "bench": 0.5},
+            "tiles": {"dsm_tile": {**fig, "tiles": 0}, "dsm_quicklook_tile": fig,
+                      "dsm_quicklook_tile@4": fig}}},
+    }  # fmt: skip
+    md = format_markdown(res)
+    assert "## Heights at the sensor rate" in md
+    assert (
+        "| heights step, core/heights.measure_heights (heights_full_mpx_s), Mpx/s | 2.00 |" in md
+    )
+    assert "| times too slow for them (heights_full_shortfall) | 6.7 |" in md  # 13.3 / 2.0
+    (t,) = [t for t in targets(res) if t["target"].startswith("quick-look DSM")]
+    assert t["met"] is False and "tile latency max 14.75 s" in t["figure"]

@@ -93,7 +93,7 @@ def heights_keys(res: dict[str, Any]) -> dict[str, Any]:
         "node_cpu_per_sensor_s": cpu.get("node"),
         "render_cpu_per_sensor_s": cpu.get("render"),
         "bench_cpu_per_sensor_s": cpu.get("bench"),
-        **quicklook_keys(res.get("quicklook") if lv else None),
+        **quicklook_keys(res.get("quicklook")),
     }
 
 
