@@ -252,7 +252,11 @@ class TileLevel:
         self.factor = factor
         self.streams = streams
         self.pairs: dict[str, _PairTiles] = {}
-        self.params = SgbmParams(mode=MATCHER_MODES[options.matcher], stretch_percentiles=(0, 100))
+        self.params = SgbmParams(
+            mode=MATCHER_MODES[options.matcher],
+            lr_check=options.lr_check,
+            stretch_percentiles=(0, 100),
+        )
 
     # ---- blocks in ----------------------------------------------------------------------
     def keep(self, blk: BlockResult, geo: _Geometry | None) -> None:
@@ -519,6 +523,7 @@ class TileLevel:
             b,
             geo.mapping(col0, disp.shape[1]),
             grid=box,
+            reducer=opt.reducer,
             fill=opt.fill,
             max_fill_cells=opt.max_fill_cells,
         )
