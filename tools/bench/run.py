@@ -207,7 +207,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m tools.bench",
         description="benchmark: resampler, live node over DDS, memory",
     )
-    p.add_argument("--quick", action="store_true", help="2048 x 2048 scenes, under a minute")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="2048 x 2048 scenes: 1-2 minutes (the heights part's second live run lasts as long "
+        "as the node's backlog); under 20 s with --no-heights",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument("--markdown", help="write the report (bench/BENCHMARKS.md) to this file")
     p.add_argument("--include-quick", help="JSON of a --quick run to include in the report")
