@@ -392,9 +392,10 @@ def test_whole_images_once_and_no_anaglyph() -> None:
 
 
 def test_contract_qos_are_the_node_profiles() -> None:
-    """``qos_profile`` of the contract's QoS gives the rclpy profiles the node has always built
-    (node.py: strips and navigation sensor-data reliability with deep queues, GCP and pair
-    selection reliable transient-local, outputs and /diagnostics ``QoSProfile(depth=10)``)."""
+    """``qos_profile`` of the contract's QoS gives the rclpy profiles the node builds: strips
+    and navigation sensor-data reliability with deep queues, GCP and pair selection reliable
+    transient-local, outputs and /diagnostics ``QoSProfile(depth=10)``, the latched outputs
+    (issue 25) reliable transient-local (their depth then set by ``latched_depth``)."""
     from rclpy.qos import (
         DurabilityPolicy,
         HistoryPolicy,
@@ -418,6 +419,15 @@ def test_contract_qos_are_the_node_profiles() -> None:
             durability=DurabilityPolicy.TRANSIENT_LOCAL,
         ),
         **{t: QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE) for t in OUTPUTS},
+        **{
+            t.name: QoSProfile(
+                depth=10,
+                reliability=ReliabilityPolicy.RELIABLE,
+                durability=DurabilityPolicy.TRANSIENT_LOCAL,
+            )
+            for t in contract.OUTPUTS
+            if t.qos is contract.LATCHED_OUTPUT_QOS
+        },
         "/diagnostics": QoSProfile(depth=10),  # create_publisher(..., 10)
     }
     node["pairs"] = node["gcp"]
