@@ -485,7 +485,7 @@ def make_dsm(
         out[k[starts]] = 0.5 * (v[lo_i].astype(float) + v[hi_i].astype(float))
     heights = out.reshape(grid.height, grid.width)
     if reducer == "interpolated":
-        _interpolate_cells(heights, heights_from_disparity(disparity, a, b), mapping, grid)
+        _interpolate_cells(heights, disparity, (a, b), mapping, grid)
     filled = np.zeros(heights.shape, dtype=bool)
     if fill == "nearest" and np.isfinite(heights).any():
         filled = _fill_nearest(heights, max_fill_cells)
@@ -499,19 +499,22 @@ def make_dsm(
 
 def _interpolate_cells(
     heights: Float32Array,
-    image: Float32Array,
+    disparity: NDArray[np.floating[Any]],
+    relation: tuple[float, float],
     mapping: GroundMapping,
     grid: DsmGrid,
     block_rows: int = 512,
 ) -> None:
-    """Each cell with a height takes ``image`` where its centre at that height projects.
+    """Each cell with a height takes the pixels' heights where its centre at that height projects.
 
-    In place; bilinear (``cv2.remap``); a cell whose interpolation reaches a pixel without a
+    In place; bilinear (``cv2.remap``) in the heights ``a d + b`` of the part of the disparity
+    map the block's cells project into; a cell whose interpolation reaches a pixel without a
     height (NaN) or the image's edge keeps its height. By blocks of rows, on threads.
 
     Args:
         heights: (grid.height, grid.width), metres, NaN without.
-        image: the heights of the left normalized pixels, metres, NaN without.
+        disparity: the left disparity map, pixels, NaN without.
+        relation: (a, b) of ``Z = a d + b``.
         mapping: the left image's ground mapping.
         grid: the cells.
         block_rows: cells' rows at once.
@@ -531,8 +534,17 @@ def _interpolate_cells(
             (kk[0] * xs + (kk[1] * ys + kk[3])).astype(np.float32) + np.float32(kk[2]) * zz
             for kk in k
         )
+        # the pixels they reach (and their bilinear neighbours), as heights
+        h, w = disparity.shape
+        left = min(max(math.floor(float(col[ok].min())) - 1, 0), w - 1)
+        right = max(min(math.ceil(float(col[ok].max())) + 2, w), left + 1)
+        top = min(max(math.floor(float(row[ok].min())) - 1, 0), h - 1)
+        bottom = max(min(math.ceil(float(row[ok].max())) + 2, h), top + 1)
+        part = heights_from_disparity(disparity[top:bottom, left:right], *relation)
+        col -= np.float32(left)
+        row -= np.float32(top)
         got = cv2.remap(
-            image, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
+            part, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan
         )
         use = ok & np.isfinite(got)
         z[use] = got[use]
