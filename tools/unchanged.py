@@ -410,16 +410,31 @@ def _image_diff(a: Any, b: Any) -> str:
     if not bad.size:
         return "equal"
     cols = max(1, a.step // dt.itemsize) if a.step else max(1, a.width)
-    first = int(bad[0])
-    with np.errstate(invalid="ignore"):
-        d = np.abs(va[bad].astype(float) - vb[bad].astype(float))
-    big = float(np.nanmax(d)) if np.isfinite(d).any() else float("nan")
-    nan_mismatch = int(np.sum(np.isnan(va[bad].astype(float)) != np.isnan(vb[bad].astype(float))))
-    return (
-        f"{bad.size} of {va.size} pixels ({a.encoding}) differ, first at row {first // cols} "
-        f"col {first % cols} (base {va[first].item()!r}, current {vb[first].item()!r}), "
-        f"largest |difference| {big:.6g}, NaN in one only: {nan_mismatch}"
-    )
+    fa, fb = va[bad].astype(float), vb[bad].astype(float)
+    na, nb = np.isnan(fa), np.isnan(fb)
+    both_nan = int(np.sum(na & nb))  # NaN either side, other bits (sign, payload)
+    one_nan = int(np.sum(na != nb))
+    valued = bad[~na & ~nb]
+    text = f"{bad.size} of {va.size} pixels ({a.encoding}) differ"
+    if valued.size:
+        first = int(valued[0])
+        big = float(np.max(np.abs(va[valued].astype(float) - vb[valued].astype(float))))
+        text += (
+            f"; {valued.size} in value, first at row {first // cols} col {first % cols} "
+            f"(base {va[first].item()!r}, current {vb[first].item()!r}), largest |difference| "
+            f"{big:.6g}"
+        )
+    if one_nan:
+        first = int(bad[na != nb][0])
+        text += (
+            f"; {one_nan} NaN on one side only, first at row {first // cols} col {first % cols} "
+            f"(base {va[first].item()!r}, current {vb[first].item()!r})"
+        )
+    if both_nan:
+        ia = int(va.view(f"u{dt.itemsize}")[bad[na & nb][0]])
+        ib = int(vb.view(f"u{dt.itemsize}")[bad[na & nb][0]])
+        text += f"; {both_nan} NaN on both sides with other bits (e.g. {ia:#x} vs {ib:#x})"
+    return text
 
 
 def diff_fields(a: Any, b: Any, path: str = "") -> Iterator[str]:
@@ -665,6 +680,61 @@ def first_differing(
     return subject[:160]
 
 
+#: Paths whose changes can change what the checks run (the code, its data, its messages).
+BEHAVIOUR_PATHS = ("parproj_ros", "bags", "msg_defs", "config", "setup.cfg", "setup.py")
+
+
+def walk(
+    todo: Sequence[Check], env: dict[str, str], out: Path, base_rev: str, cur_rev: str
+) -> list[str]:
+    """Each commit of base..current touching :data:`BEHAVIOUR_PATHS` against the one before.
+
+    Returns one line per (commit, check) that changes the result, with its first differences;
+    a commit that changes nothing is not listed. Commits touching other paths are skipped.
+    """
+    revs = git(
+        "rev-list", "--first-parent", "--reverse", f"{base_rev}..{cur_rev}", "--", *BEHAVIOUR_PATHS
+    ).split()
+    print(f"unchanged: walking {len(revs)} commits of {base_rev[:7]}..{cur_rev[:7]}")
+    prev: dict[str, Path] = {}  # check -> the last result it gave (the base's at first)
+    lines: list[str] = []
+    for rev in revs:
+        subject = git("log", "-1", "--format=%h %s", rev)[:100]
+        tree = worktree("walk", rev)
+        folder = out / f"walk_{rev[:7]}"
+        changed = []
+        try:
+            r = Runner.make(tree, env, out / "logs")
+            try:
+                r.check_import()
+            except RunError as err:  # a commit that does not run: compared past it
+                lines.append(f"{subject}:\n  does not import: {err.args[0].splitlines()[-1]}")
+                print(f"unchanged: walk {subject[:60]}: does not import")
+                continue
+            for check in todo:
+                try:
+                    result = check.produce(r, folder, out / "base")
+                    before = prev.get(check.name, out / "base" / result.relative_to(folder))
+                    row = check.compare(before, result)
+                except (RunError, OSError) as err:
+                    changed.append(f"  {check.name}: FAILED: {str(err).splitlines()[0]}")
+                    continue
+                prev[check.name] = result
+                if not row.same:
+                    diffs = [n for n in row.notes if "only in CDR alignment padding" not in n]
+                    changed.append(f"  {check.name}: {len(diffs)} differences, e.g.")
+                    changed.extend(f"    {d[:160]}" for d in diffs[:4])
+        finally:
+            remove(tree)
+        for old in out.glob("walk_*"):  # results no check compares with any more
+            if not any(p.is_relative_to(old) for p in prev.values()):
+                shutil.rmtree(old, ignore_errors=True)
+        print(f"unchanged: walk {subject[:60]}: {'changes' if changed else 'same'}")
+        if changed:
+            lines += [f"{subject}:", *changed]
+    return lines or [f"no commit of the {len(revs)} walked changes a result"]
+
+
 def print_table(rows: Sequence[Row]) -> None:
     """The table, then each row's differences and notes."""
     heads = ("check", "base", "current", "same?")
@@ -719,6 +789,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         action="store_true",
         help="for each check that differs, find the first commit base..current where it does",
     )
+    p.add_argument(
+        "--walk",
+        action="store_true",
+        help="run the checks at every commit of base..current that touches the code, bags, "
+        "messages or config, each against the one before: which commits change what",
+    )
     return p.parse_args(argv)
 
 
@@ -741,11 +817,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if "real" in args.only and not (args.data / "left_image.tif").exists():
         print(f"unchanged: {args.data}/left_image.tif not found (--data)", file=sys.stderr)
         return 2
-    if args.bisect and args.working_tree:
-        print("unchanged: --bisect needs --current (commits), not --working-tree", file=sys.stderr)
+    if (args.bisect or args.walk) and args.working_tree:
+        print("unchanged: --bisect/--walk need commits, not --working-tree", file=sys.stderr)
         return 2
     trees: list[Tree] = []
     rows: list[Row] = []
+    walked: list[str] = []
     try:
         trees.append(worktree("base", args.base))
         if args.working_tree:
@@ -758,7 +835,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = args.out or Path("/tmp") / f"unchanged_{base_t.rev[:7]}_{cur_t.rev[:7]}"
         if out.resolve().is_relative_to(ROOT):
             raise SetupError(f"--out {out} is inside the checkout; choose a folder outside it")
-        for old in [out / "base", out / "current", *out.glob("probe_*")]:
+        for old in [out / "base", out / "current", *out.glob("probe_*"), *out.glob("walk_*")]:
             shutil.rmtree(old, ignore_errors=True)  # no result of an earlier run is compared
         env = environment(args, out)
         base, cur = (Runner.make(t, env, out / "logs") for t in trees)
@@ -776,6 +853,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 if row.same is False:
                     found = first_differing(check, env, out, base_t.rev, cur_t.rev)
                     row.notes.append(f"first commit where it differs: {found}")
+        walked = walk(todo, env, out, base_t.rev, cur_t.rev) if args.walk else []
     except SetupError as err:
         print(f"unchanged: error: {err}", file=sys.stderr)
         return 2
@@ -786,6 +864,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     cur_name = "working tree" if args.working_tree else f"{args.current} = {cur_t.rev[:7]}"
     print(f"\nbase {args.base} = {base_t.rev[:7]}, current {cur_name}; results in {out}")
     print_table(rows)
+    if walked:
+        print("\ncommits that change a result (each against the commit before):")
+        print("\n".join(walked))
     return 0 if rows and all(r.same for r in rows) else 1
 
 
