@@ -30,9 +30,9 @@ from ..imaging.dense import (
     match_pair,
     refine_range,
 )
-from ..imaging.heights import GroundMapping, make_dsm, orthoimage
+from ..imaging.heights import Dsm, GroundMapping, make_dsm, orthoimage
 from .config import PipelineConfig
-from .results import BlockResult, HeightsResult, Issue, Level, Outputs, PairResult
+from .results import BlockResult, HeightsResult, HeightTile, Issue, Level, Outputs, PairResult
 from .terrain import Terrain, TerrainSource, measure_terrain
 
 Float32Array = NDArray[np.float32]
@@ -243,12 +243,27 @@ class HeightsStage:
     def __init__(self, options: HeightsOptions) -> None:
         self.options = options
         self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
+        #: The full-resolution streamed tiles of the pairs in progress (core/tiles.py), by pair.
+        self._tiles: dict[str, list[HeightTile]] = {}
 
     def __call__(self, out: Outputs) -> Outputs:
-        """Add the heights (and their issues) of the pairs ``out`` completes, in place."""
+        """Add the heights (and their issues) of the pairs ``out`` completes, in place.
+
+        A streamed pair whose full-resolution tiles all came (:attr:`Outputs.tiles`) gets its
+        heights from them (:func:`~parproj_ros.core.tiles.heights_from_tiles`): it is not
+        matched a second time.
+        """
         for blk in out.blocks:
             self.keep(blk)
+        for tile in out.tiles:
+            if tile.factor == 1:
+                self._tiles.setdefault(tile.pair_id, []).append(tile)
         for pair in out.pairs:
+            from_tiles = self._from_tiles(pair)
+            if from_tiles is not None:
+                self.forget(pair.pair_id)
+                out.heights.append(from_tiles)
+                continue
             images = self._images(pair)
             if images is None:
                 out.issues.append(
@@ -319,7 +334,88 @@ class HeightsStage:
             sides.append(img)
         return sides[0], sides[1]
 
+    def _from_tiles(self, pair: PairResult) -> HeightsResult | None:
+        """The heights of a streamed pair from its full-resolution tiles; None: not all came."""
+        tiles = self._tiles.pop(pair.pair_id, [])
+        if pair.left_image is not None or not tiles:
+            return None
+        opt = self.options
+        fill = opt.max_fill_cells if opt.fill == "nearest" else 0.0
+        return heights_from_tiles(tiles, max_fill_cells=fill, nodata=opt.nodata)
+
     def forget(self, pair_id: str) -> None:
-        """Drop the blocks of a pair that will not complete (its scenes were shed or failed)."""
+        """Drop the blocks and tiles of a pair (done, or it will not complete)."""
         for side in ("left", "right"):
             self._blocks.pop((pair_id, side), None)
+        self._tiles.pop(pair_id, None)
+
+
+def assemble_tiles(tiles: list[HeightTile]) -> Dsm | None:
+    """The DSM of one pair's tiles on the pair's grid (cells of tiles not given: NaN)."""
+    ok = [t for t in tiles if t.ok and t.dsm is not None and t.owned is not None]
+    if not ok or ok[0].pair_grid is None:
+        return None
+    pg = ok[0].pair_grid
+    heights = np.full((pg.height, pg.width), np.nan, dtype=np.float32)
+    count = np.zeros(heights.shape, dtype=np.int32)
+    filled = np.zeros(heights.shape, dtype=bool)
+    for t in ok:
+        assert t.dsm is not None and t.owned is not None
+        g = t.dsm.grid
+        r0 = round((pg.y0 - g.y0) / pg.cell)
+        c0 = round((g.x0 - pg.x0) / pg.cell)
+        rs, cs = slice(r0, r0 + g.height), slice(c0, c0 + g.width)
+        np.copyto(heights[rs, cs], t.dsm.heights, where=t.owned)
+        np.copyto(count[rs, cs], t.dsm.count, where=t.owned)
+        np.copyto(filled[rs, cs], t.dsm.filled, where=t.owned)
+    return Dsm(heights, pg, count, filled)
+
+
+def heights_from_tiles(
+    tiles: list[HeightTile], *, max_fill_cells: float = 0.0, nodata: float = 0.0
+) -> HeightsResult | None:
+    """A pair's :class:`HeightsResult` made of all its tiles (one level), without matching again.
+
+    The disparity is the tiles' own columns side by side, the heights ``a d + b``, the DSM and
+    ortho-image the tiles' owned cells on the pair's grid (:func:`assemble_tiles`). For a
+    streamed pair this can stand for the whole-pair heights step, which would match the pair
+    a second time. None: not every tile of the pair is given, or none has a DSM.
+
+    Args:
+        tiles: every tile of one pair at one level, any order.
+        max_fill_cells: the fill applied (``heights_max_fill_cells`` with ``nearest``, else 0).
+        nodata: the ortho-image's no-data value.
+    """
+    if not tiles:
+        return None
+    tiles = sorted(tiles, key=lambda t: t.index)
+    first = tiles[0]
+    if [t.index for t in tiles] != list(range(first.count)):
+        return None
+    dsm = assemble_tiles(tiles)
+    if dsm is None:
+        return None
+    disparity = np.concatenate([t.disparity for t in tiles], axis=1)
+    valid = sum(int(np.isfinite(t.disparity).sum()) for t in tiles)
+    data = sum(np.isfinite(t.disparity).sum() / t.valid_share for t in tiles if t.valid_share > 0)
+    a, b = first.height_per_disparity_px, first.height_offset_m
+    ortho_t = next(t.ortho for t in tiles if t.ortho is not None)
+    ortho = np.full(dsm.heights.shape, nodata, dtype=ortho_t.dtype)
+    pg = dsm.grid
+    for t in tiles:
+        if t.ok and t.dsm is not None and t.owned is not None and t.ortho is not None:
+            g = t.dsm.grid
+            r0 = round((pg.y0 - g.y0) / pg.cell)
+            c0 = round((g.x0 - pg.x0) / pg.cell)
+            np.copyto(ortho[r0 : r0 + g.height, c0 : c0 + g.width], t.ortho, where=t.owned)
+    bad = [t for t in tiles if not t.ok]
+    status = DenseStatus.OK
+    share = float(valid / data) if data > 0 else 0.0
+    message = f"{100 * share:.1f} % of the left pixels with data matched, in {len(tiles)} tiles"
+    if bad:
+        message += f" ({len(bad)} without heights: {bad[0].message})"
+    return HeightsResult(
+        first.pair_id, first.stamp_ns, status, message, first.d_range, share,
+        disparity.astype(np.float32), (a * disparity + b).astype(np.float32), dsm, ortho, a, b,
+        max_fill_cells, first.terrain,
+    )  # fmt: skip

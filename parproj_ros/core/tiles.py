@@ -50,9 +50,13 @@ from ..imaging.dense import (
 from ..imaging.heights import Dsm, DsmGrid, GroundMapping, make_dsm, orthoimage
 from ..imaging.resample import OutputGrid
 from .config import PipelineConfig
-from .heights import MATCHER_MODES, HeightsOptions, options_of
+from .heights import (
+    MATCHER_MODES,
+    HeightsOptions,
+    options_of,
+)
 from .ledger import StreamPair
-from .results import BlockResult, HeightsResult, HeightTile, Issue, Level, Outputs, PairResult
+from .results import BlockResult, HeightTile, Issue, Level, Outputs, PairResult
 from .terrain import Terrain, TerrainSource, measure_terrain, reduce_image
 
 Float32Array = NDArray[np.float32]
@@ -623,27 +627,6 @@ class TileStage:
         return out
 
 
-def assemble_tiles(tiles: list[HeightTile]) -> Dsm | None:
-    """The DSM of one pair's tiles on the pair's grid (cells of tiles not given: NaN)."""
-    ok = [t for t in tiles if t.ok and t.dsm is not None and t.owned is not None]
-    if not ok or ok[0].pair_grid is None:
-        return None
-    pg = ok[0].pair_grid
-    heights = np.full((pg.height, pg.width), np.nan, dtype=np.float32)
-    count = np.zeros(heights.shape, dtype=np.int32)
-    filled = np.zeros(heights.shape, dtype=bool)
-    for t in ok:
-        assert t.dsm is not None and t.owned is not None
-        g = t.dsm.grid
-        r0 = round((pg.y0 - g.y0) / pg.cell)
-        c0 = round((g.x0 - pg.x0) / pg.cell)
-        rs, cs = slice(r0, r0 + g.height), slice(c0, c0 + g.width)
-        np.copyto(heights[rs, cs], t.dsm.heights, where=t.owned)
-        np.copyto(count[rs, cs], t.dsm.count, where=t.owned)
-        np.copyto(filled[rs, cs], t.dsm.filled, where=t.owned)
-    return Dsm(heights, pg, count, filled)
-
-
 def tiles_of_pair(
     config: PipelineConfig,
     pair: PairResult,
@@ -678,53 +661,3 @@ def tiles_of_pair(
             out = stage(Outputs(), blocks=False)
             got += [(fed, t) for t in out.tiles]
     return got
-
-
-def heights_from_tiles(
-    tiles: list[HeightTile], *, max_fill_cells: float = 0.0, nodata: float = 0.0
-) -> HeightsResult | None:
-    """A pair's :class:`HeightsResult` made of all its tiles (one level), without matching again.
-
-    The disparity is the tiles' own columns side by side, the heights ``a d + b``, the DSM and
-    ortho-image the tiles' owned cells on the pair's grid (:func:`assemble_tiles`). For a
-    streamed pair this can stand for the whole-pair heights step, which would match the pair
-    a second time. None: not every tile of the pair is given, or none has a DSM.
-
-    Args:
-        tiles: every tile of one pair at one level, any order.
-        max_fill_cells: the fill applied (``heights_max_fill_cells`` with ``nearest``, else 0).
-        nodata: the ortho-image's no-data value.
-    """
-    if not tiles:
-        return None
-    tiles = sorted(tiles, key=lambda t: t.index)
-    first = tiles[0]
-    if [t.index for t in tiles] != list(range(first.count)):
-        return None
-    dsm = assemble_tiles(tiles)
-    if dsm is None:
-        return None
-    disparity = np.concatenate([t.disparity for t in tiles], axis=1)
-    valid = sum(int(np.isfinite(t.disparity).sum()) for t in tiles)
-    data = sum(np.isfinite(t.disparity).sum() / t.valid_share for t in tiles if t.valid_share > 0)
-    a, b = first.height_per_disparity_px, first.height_offset_m
-    ortho_t = next(t.ortho for t in tiles if t.ortho is not None)
-    ortho = np.full(dsm.heights.shape, nodata, dtype=ortho_t.dtype)
-    pg = dsm.grid
-    for t in tiles:
-        if t.ok and t.dsm is not None and t.owned is not None and t.ortho is not None:
-            g = t.dsm.grid
-            r0 = round((pg.y0 - g.y0) / pg.cell)
-            c0 = round((g.x0 - pg.x0) / pg.cell)
-            np.copyto(ortho[r0 : r0 + g.height, c0 : c0 + g.width], t.ortho, where=t.owned)
-    bad = [t for t in tiles if not t.ok]
-    status = DenseStatus.OK
-    share = float(valid / data) if data > 0 else 0.0
-    message = f"{100 * share:.1f} % of the left pixels with data matched, in {len(tiles)} tiles"
-    if bad:
-        message += f" ({len(bad)} without heights: {bad[0].message})"
-    return HeightsResult(
-        first.pair_id, first.stamp_ns, status, message, first.d_range, share,
-        disparity.astype(np.float32), (a * disparity + b).astype(np.float32), dsm, ortho, a, b,
-        max_fill_cells, first.terrain,
-    )  # fmt: skip

@@ -27,16 +27,11 @@ import numpy as np
 import pytest
 from testkit.paths import BAGS
 
+from parproj_ros.core.heights import HeightsStage, assemble_tiles, heights_from_tiles, options_of
 from parproj_ros.core.params import PARAMS
 from parproj_ros.core.pipeline import Pipeline
 from parproj_ros.core.results import Level, Outputs
-from parproj_ros.core.tiles import (
-    TILE_COLS,
-    TileStage,
-    assemble_tiles,
-    heights_from_tiles,
-    tiles_of_pair,
-)
+from parproj_ros.core.tiles import TILE_COLS, TileStage, tiles_of_pair
 from parproj_ros.imaging.heights import Dsm, DsmGrid
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
@@ -86,7 +81,12 @@ def streamed() -> dict[str, Any]:
     for _, o in calls:
         out.extend(o)
     out.extend(flushed)
-    return {"calls": calls, "flushed": flushed, "out": out}
+    # The reference: the whole-pair heights step on the pair's blocks joined (what step 7
+    # did for a streamed pair before its tiles stood for it).
+    cfg = config_from_bag(BagReader(BAG), scene_lines=LINES, heights=True, tie_points=False)
+    ref = HeightsStage(options_of(cfg))(Outputs(pairs=list(out.pairs), blocks=list(out.blocks)))
+    (whole,) = ref.heights
+    return {"calls": calls, "flushed": flushed, "out": out, "whole": whole}
 
 
 def _on_grid(dsm: Dsm, grid: DsmGrid) -> np.ndarray:
@@ -131,8 +131,7 @@ def test_tiles_come_while_the_pass_arrives(streamed: dict[str, Any]) -> None:
 
 
 def test_assembled_tiles_equal_the_whole_pair_dsm(streamed: dict[str, Any]) -> None:
-    out = streamed["out"]
-    (whole,) = out.heights
+    out, whole = streamed["out"], streamed["whole"]
     assert whole.ok
     tiles = [t for t in out.tiles if t.factor == 1]
     # Each cell of the pair's grid belongs to one tile at most.
@@ -301,8 +300,7 @@ def test_heights_of_the_tiles_stand_for_the_whole_pair(streamed: dict[str, Any])
     # heights_from_tiles: the pair's HeightsResult from its tiles, not matched again; against
     # the whole-pair step: the same grid of left pixels, disparities within the matcher's
     # noise (a quarter of a pixel, NMAD), the same share matched within 2 %.
-    out = streamed["out"]
-    (whole,) = out.heights
+    out, whole = streamed["out"], streamed["whole"]
     res = heights_from_tiles([t for t in out.tiles if t.factor == 1], max_fill_cells=1.0)
     assert res is not None and res.ok and res.pair_id == whole.pair_id
     assert res.disparity.shape == whole.disparity.shape
@@ -346,3 +344,16 @@ def test_a_tall_first_window_is_measured_by_row_bands(whole_pair: dict[str, Any]
     assert banded.low_m == pytest.approx(one.low_m, abs=4 * a)
     assert banded.high_m == pytest.approx(one.high_m, abs=4 * a)
     assert banded.points > 3 * one.points
+
+
+def test_step7_takes_a_streamed_pairs_heights_from_its_tiles(streamed: dict[str, Any]) -> None:
+    """The pipeline's heights of a streamed pair are its tiles assembled (to the bit), not a
+    second matching of the whole pair (issue 26: the tiles are the full-resolution DSM)."""
+    out = streamed["out"]
+    (got,) = out.heights
+    tiles = [t for t in out.tiles if t.factor == 1]
+    assert got.message.endswith(f"in {len(tiles)} tiles"), got.message
+    dsm = assemble_tiles(tiles)
+    assert dsm is not None and got.dsm is not None
+    np.testing.assert_array_equal(got.dsm.heights, dsm.heights)
+    assert got.disparity.shape == streamed["whole"].disparity.shape
