@@ -11,9 +11,10 @@ reports it (:meth:`PairLedger.counts`).
 States (:class:`PairState`): ``waiting`` (scenes arriving, or waiting for navigation or their
 partner), ``held`` (the streaming decision waits for navigation), ``streaming`` (column blocks
 emitted as lines arrive), ``whole`` (decided: normalized from whole scenes), ``made`` (its
-:class:`~parproj_ros.core.results.PairResult` returned). Pair k is the k-th scenes of two views;
-single-camera pairs are named by their scene ids and their state is that of their scenes.
-Times are nanoseconds.
+:class:`~parproj_ros.core.results.PairResult` returned), ``released`` (given up: its stream
+broke after blocks were published; what was published stays valid). Pair k is the k-th
+scenes of two views; single-camera pairs are named by their scene ids and their state is that
+of their scenes. Times are nanoseconds.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ class PairState(StrEnum):
     STREAMING = "streaming"
     WHOLE = "whole"
     MADE = "made"
+    RELEASED = "released"
 
 
 @dataclass
@@ -114,6 +116,7 @@ class PairLedger:
         self.made: dict[frozenset[str], None] = {}
         self.pairs_made = 0
         self._made_index: dict[int, None] = {}
+        self._released: dict[int, None] = {}
 
     # ---- what the policies record ----------------------------------------------------------
     def stream(self, stream: StreamPair) -> None:
@@ -153,6 +156,14 @@ class PairLedger:
         while len(self._made_index) > MADE_KEPT:
             del self._made_index[next(iter(self._made_index))]
 
+    def release(self, index: int) -> None:
+        """Pair ``index`` is given up (its stream broke): it will not be made (nor streamed)."""
+        self.end_stream(index)
+        self.not_streamed.add(index)
+        self._released[index] = None
+        while len(self._released) > MADE_KEPT:
+            del self._released[next(iter(self._released))]
+
     def done_with(self, scene: Scene, method: str) -> None:
         """A scene is done with (``method``, or "skipped"); the latest :data:`DONE_KEPT` kept."""
         self.done[scene.scene_id] = (scene.view, method)
@@ -174,6 +185,8 @@ class PairLedger:
         """Where pair ``index`` (two views: the k-th scenes) is."""
         if index in self.streams:
             return PairState.STREAMING
+        if index in self._released:
+            return PairState.RELEASED
         if index in self.held_until and index not in self.not_streamed:
             return PairState.HELD
         if index in self.not_streamed:
@@ -202,4 +215,5 @@ class PairLedger:
             "scenes_waiting_navigation": len(self.waiting),
             "scenes_waiting_partner": sum(len(r) for r in self.ready.values()),
             "pairs_made": self.pairs_made,
+            "pairs_released": len(self._released),
         }

@@ -536,6 +536,7 @@ class Streamer:
                     if s.prefetched or (s.done and s.result.scene.image.shape[0] > 0):
                         self.ledger.ready[s.view][stream.index] = s.result
                 return None
+            self.ledger.release(stream.index)
             out.issues.append(
                 Issue(
                     Level.ERROR,

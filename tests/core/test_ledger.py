@@ -65,6 +65,7 @@ def test_a_streamed_pair_walks_waiting_streaming_made() -> None:
         "scenes_waiting_navigation": 0,
         "scenes_waiting_partner": 0,
         "pairs_made": 1,
+        "pairs_released": 0,
     }
     assert pipe.pairs_done == 1
 
@@ -89,3 +90,34 @@ def test_the_policies_keep_no_pair_state() -> None:
     for policy in (pipe.pairing, pipe.streamer, pipe.feed):
         assert not owned & set(vars(policy)), (type(policy).__name__, set(vars(policy)))
     assert isinstance(pipe.ledger, PairLedger)
+
+
+def test_a_broken_stream_is_released() -> None:
+    """The right view's last strips never come (the pass stops): the streamed pair is given
+    up after its blocks were published; the ledger says released, and it is not made."""
+    reader = BagReader(BAG)
+    pipe = Pipeline(config_from_bag(reader, scene_lines=LINES, tie_points=False))
+    items = [i for i in reader.messages() if i.topic == "navigation" or "image_strip" in i.topic]
+    rights = [k for k, i in enumerate(items) if i.topic == "right/image_strip"]
+    drop = set(rights[-2:])
+    states = [pipe.ledger.state(0)]
+    for k, item in enumerate(items):
+        if k in drop:
+            continue
+        if item.topic == "navigation":
+            pipe.add_navigation(conv.odometry_to_sample(item.msg))
+        else:
+            m = item.msg
+            pipe.add_strip(
+                item.topic.split("/")[0],
+                conv.stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        if pipe.ledger.state(0) != states[-1]:
+            states.append(pipe.ledger.state(0))
+    out = pipe.flush()
+    assert not out.pairs and any(i.level == "error" for i in out.issues), out.issues
+    assert pipe.ledger.state(0) == PairState.RELEASED
+    assert states[:2] == [PairState.WAITING, PairState.STREAMING]
+    assert pipe.ledger.counts()["pairs_released"] == 1 and pipe.pairs_done == 0
