@@ -295,6 +295,16 @@ def test_tile_latency_from_the_strip_that_completes_its_ground() -> None:
     assert keys["heights_quicklook_realtime_factor"] == pytest.approx(1.25)
     assert keys["heights_tile_latency_max_s"] == pytest.approx(0.3)
     assert keys["heights_quicklook_realtime_factor_reason"] is None
+    # A run that ended early gives no figure of the pass; its reason quotes the partial one.
+    keys = quicklook_keys(
+        {"available": True, "factor": 4,
+         "live": {"error": "node killed: resident memory 8531 MB above the benchmark's limit",
+                  "tiles": {"dsm_quicklook_tile": fig}, "cpu_per_sensor_s": {}}}
+    )  # fmt: skip
+    assert keys["heights_quicklook_realtime_factor"] is None
+    assert keys["heights_tile_latency_max_s"] is None
+    why = keys["heights_tile_latency_max_s_reason"]
+    assert "ended early (node killed" in why and "3 quick-look tiles" in why and "0.3" in why
 
 
 def test_central_band_keeps_the_heights_where_the_whole_pair_puts_them() -> None:

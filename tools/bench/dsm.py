@@ -315,6 +315,9 @@ def bench_quicklook(
 def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
     """The quick-look's ``--json`` keys, each None with a ``<key>_reason`` when not measured.
 
+    A live run that ended early (the node killed above its memory limit, a stall) gives None
+    too, its reason quoting the figure over the tiles that came before.
+
     ``heights_quicklook_realtime_factor``: of the quick-look tiles (the topic with "quick" in
     its name, else the ``@<factor>`` tiles of ``dsm_tile``); ``heights_tile_latency_max_s``:
     the longest latency of any DSM tile received (every tile topic); and the CPU seconds per
@@ -373,4 +376,13 @@ def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
         out["heights_tile_latency_max_s"] = max(maxima)
     else:
         out["heights_tile_latency_max_s_reason"] = f"no DSM tile placed on {list(tiles)}{err}"
+    if live.get("error"):
+        # A run that ended early measured its first tiles only: no figure of the pass.
+        for key in ("heights_quicklook_realtime_factor", "heights_tile_latency_max_s"):
+            if out[key] is not None:
+                out[f"{key}_reason"] = (
+                    f"the live run ended early ({live['error']}); {got} quick-look tiles came "
+                    f"before, this figure over them: {out[key]:.3g}"
+                )
+                out[key] = None
     return out
