@@ -191,6 +191,7 @@ class ProcessSummary:
         unusable: the pairs whose normalized images share almost no ground
             (:attr:`PairResult.unusable`).
         heights: (pair, whether it got a DSM) of every pair the heights step saw.
+        tiles: (pair, whether the tile has heights) of every streamed DSM tile.
     """
 
     scenes: int = 0
@@ -202,6 +203,7 @@ class ProcessSummary:
     direct: bool = False
     unusable: list[str] = field(default_factory=list)
     heights: list[tuple[str, bool]] = field(default_factory=list)
+    tiles: list[tuple[str, bool]] = field(default_factory=list)
 
 
 def _bag_issues(reader: BagReader, name: str) -> Outputs:
@@ -318,6 +320,7 @@ def process_bag(
             summary.pairs += len(out.pairs)
             summary.unusable += [p.pair_id for p in out.pairs if p.unusable]
             summary.heights += [(h.pair_id, h.ok) for h in out.heights]
+            summary.tiles += [(t.pair_id, t.ok) for t in out.tiles]
             summary.issues += out.issues
             if on_outputs:
                 on_outputs(out)

@@ -72,6 +72,8 @@ class HeightsOptions:
             "mean" or "median" (of the points in the cell). "reduced" with "interpolated"
             makes the step faster than "flip" with "mean", with DSMs as close to s2p's and
             CARS's or closer (docs/performance.md).
+        quicklook_only: streamed pairs get quick-look tiles only (``heights_quicklook`` < 0,
+            core/tiles.py): no full-resolution heights for them (their blocks are not kept).
     """
 
     margin_px: float = 8.0
@@ -85,6 +87,7 @@ class HeightsOptions:
     matcher: Literal["sgbm_3way", "sgbm_8path"] = "sgbm_3way"
     lr_check: Literal["flip", "reduced", "none"] = "reduced"
     reducer: Literal["mean", "median", "interpolated"] = "interpolated"
+    quicklook_only: bool = False
 
 
 def measure_heights(
@@ -219,6 +222,10 @@ def options_of(config: PipelineConfig) -> HeightsOptions:
         nodata=float(config.output.nodata),
         measure_terrain=config.ties.terrain == "tie_points",
         prior_m=config.orientation.prior_heights,
+        quicklook_only=config.dense.quicklook < 0
+        and config.stream.enabled
+        and len(config.views) == 2
+        and config.scenes.lines > 0,
     )
 
 
@@ -263,6 +270,17 @@ class HeightsStage:
             if from_tiles is not None:
                 self.forget(pair.pair_id)
                 out.heights.append(from_tiles)
+                continue
+            if pair.left_image is None and self.options.quicklook_only:
+                self.forget(pair.pair_id)
+                out.issues.append(
+                    Issue(
+                        Level.OK,
+                        f"pair {pair.pair_id}",
+                        "heights: its quick-look tiles stand for them (heights_quicklook < 0): "
+                        "no full-resolution DSM",
+                    )
+                )
                 continue
             images = self._images(pair)
             if images is None:
@@ -313,8 +331,12 @@ class HeightsStage:
         ]
 
     def keep(self, blk: BlockResult) -> None:
-        """Keep a streamed block (its pixels as they are: pass a copy of a borrowed view)."""
-        self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
+        """Keep a streamed block (its pixels as they are: pass a copy of a borrowed view).
+
+        Not with quick-look tiles only: no full-resolution heights are made of them.
+        """
+        if not self.options.quicklook_only:
+            self._blocks.setdefault((blk.pair_id, blk.side), []).append(blk)
 
     def _images(self, pair: PairResult) -> tuple[NDArray[np.generic], NDArray[np.generic]] | None:
         if pair.left_image is not None and pair.right_image is not None:

@@ -357,3 +357,29 @@ def test_step7_takes_a_streamed_pairs_heights_from_its_tiles(streamed: dict[str,
     assert dsm is not None and got.dsm is not None
     np.testing.assert_array_equal(got.dsm.heights, dsm.heights)
     assert got.disparity.shape == streamed["whole"].disparity.shape
+
+
+def test_quicklook_only_makes_no_full_resolution_heights(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``heights_quicklook`` -2: streamed pairs get their 1/4 tiles and nothing at full
+    resolution: no block kept for step 7, no whole-pair matching (measure_heights is never
+    called), an OK line saying so; the run's verdict counts the tiles as its heights."""
+    from parproj_ros.apps.commands.process import verdict
+    from parproj_ros.apps.process import ProcessSummary
+    from parproj_ros.core import heights
+
+    def never(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("the whole pair was matched")
+
+    monkeypatch.setattr(heights, "measure_heights", never)
+    calls, flushed = _run(quicklook=-2)
+    out = Outputs()
+    for _, o in calls:
+        out.extend(o)
+    out.extend(flushed)
+    assert out.pairs and not out.heights
+    assert out.tiles and {t.factor for t in out.tiles} == {4} and all(t.ok for t in out.tiles)
+    said = [i for i in out.issues if "quick-look tiles stand for them" in i.message]
+    assert [i.level for i in said] == ["ok"] * len(out.pairs)
+    summary = ProcessSummary(pairs=len(out.pairs), tiles=[(t.pair_id, t.ok) for t in out.tiles])
+    assert verdict(summary, heights=True) == 0
+    assert verdict(ProcessSummary(pairs=1), heights=True) == 1  # neither DSM nor tiles

@@ -108,7 +108,8 @@ def verdict(summary: ProcessSummary, *, heights: bool) -> int:
             "(ERROR above); check that the scenes overlap, or import with --dem"
         )
     missing = [p for p, ok in summary.heights if not ok]
-    if heights and summary.pairs and (missing or not summary.heights):
+    tiled = {p for p, ok in summary.tiles if ok}  # quick-look tiles only: they are the heights
+    if heights and summary.pairs and (missing or not (summary.heights or tiled)):
         which = ", ".join(missing) if missing else "every pair"
         problems.append(
             f"--heights: no DSM for {which} (the WARN above says why: e.g. textureless "
