@@ -257,7 +257,7 @@ class HeightsStage:
         """Add the heights (and their issues) of the pairs ``out`` completes, in place.
 
         A streamed pair whose full-resolution tiles all came (:attr:`Outputs.tiles`) gets its
-        heights from them (:func:`~parproj_ros.core.tiles.heights_from_tiles`): it is not
+        heights from them (:func:`heights_from_tiles`): it is not
         matched a second time.
         """
         for blk in out.blocks:
