@@ -532,6 +532,25 @@ def qos_profile(qos: contract.Qos) -> Any:
     )
 
 
+def _elevation_grid(
+    name: str, grid: Any, heights: NDArray[Any], stamp_ns: int, frame_id: str
+) -> Any:
+    """A parproj_msgs/ElevationGrid with its header, name, grid and heights (32FC1) filled."""
+    from parproj_msgs.msg import ElevationGrid
+    from sensor_msgs.msg import Image
+
+    m = ElevationGrid()
+    ns_to_stamp(stamp_ns, m.header.stamp)
+    m.header.frame_id = frame_id
+    m.pair_id = name
+    m.x0, m.y0, m.cell_size = float(grid.x0), float(grid.y0), float(grid.cell)
+    m.heights = array_to_image(
+        np.ascontiguousarray(heights, dtype=np.float32), Image(), frame_id=frame_id,
+        stamp_ns=stamp_ns,
+    )  # fmt: skip
+    return m
+
+
 def fused_to_msg(f: Any, *, frame_id: str) -> Any:
     """A :class:`~parproj_ros.core.results.FusedResult` -> parproj_msgs/ElevationGrid.
 
@@ -539,22 +558,8 @@ def fused_to_msg(f: Any, *, frame_id: str) -> Any:
     the object frame, NaN holes); no ortho-image and no disparity fields (several pairs); the
     terrain fields empty. The count and spread layers are in ``parproj fuse``'s GeoTIFFs.
     """
-    from parproj_msgs.msg import ElevationGrid
-    from sensor_msgs.msg import Image
-
     d = f.fused
-    g = d.grid
-    m = ElevationGrid()
-    ns_to_stamp(f.stamp_ns, m.header.stamp)
-    m.header.frame_id = frame_id
-    m.pair_id = f.name
-    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
-    m.heights = array_to_image(
-        np.ascontiguousarray(d.heights, dtype=np.float32),
-        Image(),
-        frame_id=frame_id,
-        stamp_ns=f.stamp_ns,
-    )
+    m = _elevation_grid(f.name, d.grid, d.heights, f.stamp_ns, frame_id)
     m.completeness = float(d.completeness)
     return m
 
@@ -568,22 +573,10 @@ def tile_to_msg(t: Any, *, frame_id: str) -> Any:
     not own; ``completeness`` the share of its owned cells with a height; the disparity range,
     matched share, height relation and terrain as ``dsm`` has them (pixels of the tile's level).
     """
-    from parproj_msgs.msg import ElevationGrid
     from sensor_msgs.msg import Image
 
     dsm = t.dsm
-    g = dsm.grid
-    m = ElevationGrid()
-    ns_to_stamp(t.stamp_ns, m.header.stamp)
-    m.header.frame_id = frame_id
-    m.pair_id = t.name
-    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
-    m.heights = array_to_image(
-        np.ascontiguousarray(dsm.heights, dtype=np.float32),
-        Image(),
-        frame_id=frame_id,
-        stamp_ns=t.stamp_ns,
-    )
+    m = _elevation_grid(t.name, dsm.grid, dsm.heights, t.stamp_ns, frame_id)
     if t.ortho is not None:
         m.ortho = array_to_image(t.ortho, Image(), frame_id=frame_id, stamp_ns=t.stamp_ns)
     m.filled_cells = int(dsm.filled.sum())
@@ -613,7 +606,6 @@ def heights_to_msgs(
     (parproj_msgs/ElevationGrid, only when there is a DSM) and ``dsm_cloud`` (the same DSM as a
     sensor_msgs/PointCloud2 at :func:`cloud_step` ``(dsm, dsm_cloud_step)``, unless that is 0).
     """
-    from parproj_msgs.msg import ElevationGrid
     from sensor_msgs.msg import Image
     from stereo_msgs.msg import DisparityImage
 
@@ -641,18 +633,7 @@ def heights_to_msgs(
     ]
     if h.dsm is None:
         return out
-    g = h.dsm.grid
-    m = ElevationGrid()
-    ns_to_stamp(h.stamp_ns, m.header.stamp)
-    m.header.frame_id = frame_id
-    m.pair_id = h.pair_id
-    m.x0, m.y0, m.cell_size = float(g.x0), float(g.y0), float(g.cell)
-    m.heights = array_to_image(
-        np.ascontiguousarray(h.dsm.heights, dtype=np.float32),
-        Image(),
-        frame_id=frame_id,
-        stamp_ns=h.stamp_ns,
-    )
+    m = _elevation_grid(h.pair_id, h.dsm.grid, h.dsm.heights, h.stamp_ns, frame_id)
     if h.ortho is not None:
         m.ortho = array_to_image(h.ortho, Image(), frame_id=frame_id, stamp_ns=h.stamp_ns)
     m.filled_cells = int(h.dsm.filled.sum())
@@ -670,7 +651,7 @@ def heights_to_msgs(
     step = cloud_step(h.dsm.heights.shape, dsm_cloud_step)
     if step:
         cloud = dsm_to_cloud(
-            h.dsm.heights, g, h.ortho, step=step, frame_id=frame_id, stamp_ns=h.stamp_ns
+            h.dsm.heights, h.dsm.grid, h.ortho, step=step, frame_id=frame_id, stamp_ns=h.stamp_ns
         )
         out.append((contract.DSM_CLOUD, cloud, h.stamp_ns))
     return out
