@@ -64,14 +64,15 @@ class HeightsOptions:
         prior_m: the heights assumed for a pair that carries none (``z_avg`` +-
             ``height_range``), metres.
         matcher: OpenCV's SGBM with 3 directions ("sgbm_3way") or 8 paths ("sgbm_8path").
-        lr_check: the matcher's left-right check (:class:`SgbmParams`): "reduced" (a
-            right-to-left pass at half resolution), "flip" (at full resolution, and the mean
-            of both disparities) or "none".
-        reducer: how the DSM's cells take the points' heights (:func:`make_dsm`):
-            "interpolated" (the height image interpolated at the cell centre's projection),
-            "mean" or "median" (of the points in the cell). "reduced" with "interpolated"
-            makes the step faster than "flip" with "mean", with DSMs as close to s2p's and
-            CARS's or closer (docs/performance.md).
+        lr_check: the matcher's left-right check (:class:`SgbmParams`): "flip" (a
+            right-to-left pass at full resolution, and the mean of both disparities),
+            "reduced" (that pass at half resolution: the step 2.3-2.8x one bare SGBM pass
+            instead of 3.3-3.8x, but more blunders kept on the simulated bags) or "none".
+        reducer: how the DSM's cells take the points' heights (:func:`make_dsm`): "mean" or
+            "median" (of the points in the cell), or "interpolated" (then the height image
+            interpolated where the cell's centre projects: less NMAD and RMS on Marseille and
+            the simulated bags, some 0.035 s per Mpx more). docs/performance.md has the
+            figures of each.
         quicklook_only: streamed pairs get quick-look tiles only (``heights_quicklook`` < 0,
             core/tiles.py): no full-resolution heights for them (their blocks are not kept).
     """
@@ -85,8 +86,8 @@ class HeightsOptions:
     measure_terrain: bool = False
     prior_m: tuple[float, float] = (-500.0, 500.0)
     matcher: Literal["sgbm_3way", "sgbm_8path"] = "sgbm_3way"
-    lr_check: Literal["flip", "reduced", "none"] = "reduced"
-    reducer: Literal["mean", "median", "interpolated"] = "interpolated"
+    lr_check: Literal["flip", "reduced", "none"] = "flip"
+    reducer: Literal["mean", "median", "interpolated"] = "mean"
     quicklook_only: bool = False
 
 
