@@ -717,7 +717,9 @@ def walk(
                     before = prev.get(check.name, out / "base" / result.relative_to(folder))
                     row = check.compare(before, result)
                 except (RunError, OSError) as err:
-                    changed.append(f"  {check.name}: FAILED: {str(err).splitlines()[0]}")
+                    msg = str(err).splitlines()
+                    changed.append(f"  {check.name}: FAILED: {msg[0]}")
+                    changed.extend(f"    {line[:160]}" for line in msg[1:][-3:])
                     continue
                 prev[check.name] = result
                 if not row.same:
