@@ -16,7 +16,7 @@ from ..core import contract
 from ..core.config import PipelineConfig
 from ..core.memory import raw_pair_bytes, tune_malloc
 from ..core.results import Issue, Level, Outputs
-from ..core.session import InputKind, Session, Strip
+from ..core.session import InputKind, Session
 from ..io.earth import earth_transform
 from ..ros import conversions as conv
 from ..ros.bag import BagReader, BagWriter
@@ -245,9 +245,7 @@ def _input(topic: str, msg: Any, strip_topics: dict[str, str]) -> tuple[InputKin
     if topic == contract.NAVIGATION:
         return InputKind.NAV, conv.odometry_to_sample(msg)
     if topic in strip_topics:
-        pixels = conv.image_to_array(msg)
-        stamp = conv.stamp_to_ns(msg.header.stamp)
-        return InputKind.STRIP, Strip(strip_topics[topic], stamp, msg.header.frame_id, pixels)
+        return InputKind.STRIP, conv.strip_from_msg(strip_topics[topic], msg)
     if topic == contract.GCP:
         return InputKind.GCP, conv.gcp_from_msg(msg)
     if topic == contract.PAIRS:

@@ -18,6 +18,7 @@ from ..core import contract, params
 from ..core.contract import OUTPUT_TOPICS as OUTPUT_TOPICS  # the node's, process's (for now)
 from ..core.contract import PAIR_IMAGE_TOPICS as PAIR_IMAGE_TOPICS
 from ..core.results import METHODS, BlockResult, GroundPoint, Level, PairResult, SceneResult
+from ..core.session import Strip
 from ..core.trajectory import NavSample, make_sample
 from ..geometry.rotation import rotation_to_quaternion
 from ..imaging.encodings import DTYPE_ENCODINGS, ENCODING_DTYPES
@@ -38,6 +39,19 @@ def ns_to_stamp(ns: int, stamp: Any) -> Any:
     ns = int(ns)
     stamp.sec, stamp.nanosec = divmod(ns, 1_000_000_000)
     return stamp
+
+
+def strip_from_msg(view: str, msg: Any) -> Strip:
+    """A sensor_msgs/Image strip of ``view`` -> the session's :class:`Strip` input.
+
+    Its first line's stamp (ns), its scene id (``header.frame_id``) and its pixels (a view on the
+    message data when possible).
+
+    Raises:
+        ConversionError: the image cannot be read (:func:`image_to_array`).
+    """
+    pixels = image_to_array(msg)
+    return Strip(view, stamp_to_ns(msg.header.stamp), msg.header.frame_id, pixels)
 
 
 def image_to_array(msg: Any) -> NDArray[np.generic]:

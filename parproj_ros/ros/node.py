@@ -25,7 +25,7 @@ from ..core.admission import PairAdmission, prefault, working_set_floor
 from ..core.config import config_from_values
 from ..core.frames import ObjectFrame
 from ..core.results import BlockResult, Issue, Level, Outputs
-from ..core.session import InputKind, Session, Strip, Worker
+from ..core.session import InputKind, Session, Worker
 from ..io.earth import earth_transform
 from ..io.gcp_file import load_gcp_file
 from . import conversions as conv
@@ -113,7 +113,7 @@ class ParprojNode(Node):
         issues += unknown_parameters(self)
         self.log("info", start_line(vals))
         self._announced = ""
-        self._observe("frame_id", "")  # a frame_id parameter given: its place on Earth now
+        self._announce_frame()  # a frame_id parameter given: its place on Earth now
         self._report(issues)
         self.worker.start()
 
@@ -128,8 +128,12 @@ class ParprojNode(Node):
             issues.append(Issue(Level.ERROR, "gcp_file", f"{where}; continuing without it"))
 
     def _observe(self, where: str, frame_id: str) -> None:
-        """Note an input's frame; once the outputs' frame is known, say where it is on Earth."""
+        """Note an input's frame (a WARN if not the outputs'); then :meth:`_announce_frame`."""
         self._report(self._frame.observe(where, frame_id))
+        self._announce_frame()
+
+    def _announce_frame(self) -> None:
+        """Once the outputs' frame is known, say where it is on Earth (once per frame)."""
         frame = self.frame_id
         if frame == self._announced or not (self._frame.given or self._frame.seen):
             return
@@ -194,8 +198,7 @@ class ParprojNode(Node):
             self._count("strips")
             return
         try:
-            arr = conv.image_to_array(msg)
-            item = Strip(view, conv.stamp_to_ns(msg.header.stamp), msg.header.frame_id, arr)
+            item = conv.strip_from_msg(view, msg)
         except conv.ConversionError as err:
             self._count("strips_rejected")
             where = f"{view}/{msg.header.frame_id}"
