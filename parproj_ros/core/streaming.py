@@ -22,6 +22,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Generator, Mapping
 from contextlib import closing
+from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -94,6 +96,203 @@ def plan_blocks(geom: SceneGeometry, grid: OutputGrid, lines: int) -> list[Block
     return blocks
 
 
+class Decision(StrEnum):
+    """What the streaming policy decides for a pair (:func:`decide_streams`)."""
+
+    HOLD = "hold"  # the decision waits until navigation reaches ``until_ns``
+    WHOLE = "whole"  # not streamed: its scenes are processed whole
+    STREAM = "stream"  # stream it: predict the open scenes' parameters and open the stream
+
+
+#: A side of a pair as the policy sees it: a scene still arriving (or a complete scene held
+#: for the decision, as if open), or a scene already oriented (its result).
+Part = tuple[str, OpenScene | SceneResult]
+
+
+@dataclass(frozen=True)
+class StreamDecision:
+    """The streaming policy's decision for pair ``pair``; the :class:`Streamer` carries it out.
+
+    ``parts``: the sides to stream, in view order (STREAM). ``held``: complete scenes held for
+    the decision, by view, streamed at once (STREAM). ``until_ns``: the time navigation must
+    reach (HOLD) or the decision time, the first line of the pair's later scene (STREAM).
+    ``issue``: what to report (WHOLE; None: nothing to say).
+    """
+
+    pair: int
+    kind: Decision
+    parts: tuple[Part, ...] = ()
+    held: Mapping[str, Scene] = field(default_factory=dict)
+    until_ns: int = 0
+    issue: Issue | None = None
+
+
+@dataclass(frozen=True)
+class NavState:
+    """What the streaming policy reads of navigation.
+
+    The newest and the first sample (ns, or None before any) and the largest gap between
+    samples inside a scene (s).
+    """
+
+    last_ns: int | None
+    first_ns: int | None
+    max_gap_s: float
+
+
+def undecided(ledger: PairLedger, scene: Scene) -> bool:
+    """Whether ``scene``'s pair waits for navigation to decide streaming (held).
+
+    Only a scene still arriving at the decision time counts: one complete before it would
+    have been processed whole anyway.
+    """
+    t = ledger.held_until.get(scene.index)
+    return t is not None and not ledger.decided(scene.index) and scene.last_line_ns >= t
+
+
+def held(ledger: PairLedger, scene: Scene, nav_last_ns: int | None) -> bool:
+    """Whether a complete scene is held for its pair's streaming decision.
+
+    Undecided (:func:`undecided`), and navigation (newest sample ``nav_last_ns``) has not
+    passed the scene yet (the bound).
+    """
+    return undecided(ledger, scene) and (nav_last_ns is None or nav_last_ns <= scene.last_line_ns)
+
+
+def decide_streams(
+    ledger: PairLedger,
+    opened: Mapping[str, OpenScene | None],
+    nav: NavState,
+    config: PipelineConfig,
+) -> list[StreamDecision]:
+    """The streaming policy: a decision for each pair that can be decided now, in pair order.
+
+    Pure: reads the ledger, the scenes open in each view (``opened``, in the configured view
+    order) and navigation; changes nothing. A pair both of whose sides have begun (a scene
+    open, a complete scene held for the decision, or an oriented scene waiting for its
+    partner) is streamed, unless a held scene ended short, pair 0 may have begun before the
+    pipeline listened (start unseen), or one view's strips stopped arriving (a short scene:
+    processed whole). A pair with one side begun whose other scene, complete, waits for
+    navigation that lags far behind is held (:meth:`Streamer.start` explains the hold). A
+    pair with nothing to decide yet gets no decision. The decision for pair k reads only
+    pair k's records, so the decisions may be carried out in order.
+    """
+    names = list(opened)
+    pending = {o.index for o in opened.values() if o is not None} | set(ledger.held_until)
+    lines = config.scenes.lines
+    periods = {v.name: v.camera.line_period for v in config.views}
+    decisions: list[StreamDecision] = []
+    for k in sorted(pending):
+        if ledger.decided(k):
+            continue
+        parts: list[Part] = []
+        held_now: dict[str, Scene] = {}  # complete scenes held for the decision, by view
+        waiting = False  # a complete scene of the pair waits for navigation
+        for n in names:
+            o = opened[n]
+            sc = next((w for w in ledger.waiting if w.view == n and w.index == k), None)
+            if o is not None and o.index == k:
+                parts.append((n, o))
+            elif k in ledger.ready[n]:
+                parts.append((n, ledger.ready[n][k]))
+            elif sc is not None and held(ledger, sc, nav.last_ns):
+                held_now[n] = sc
+                parts.append((n, OpenScene(sc.scene_id, k, sc.first_line_ns, sc.lines)))
+            elif sc is not None:
+                waiting = True
+        if len(parts) < 2:
+            opens = [p.first_line_ns for _, p in parts if not isinstance(p, SceneResult)]
+            if (
+                waiting
+                and opens
+                and k not in ledger.held_until
+                and (nav.last_ns is None or nav.last_ns < max(opens) - nav.max_gap_s * 1e9)
+            ):
+                # The other scene, complete, waits for navigation, which lags far behind
+                # this one's start: the decision waits for navigation.
+                decisions.append(StreamDecision(k, Decision.HOLD, until_ns=max(opens)))
+            continue
+        short = [sc for sc in held_now.values() if sc.lines != lines]
+        if short:
+            issue = Issue(
+                Level.WARN,
+                f"pair {k}",
+                "not streamed: navigation lagged behind the strips until "
+                + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
+                + f" ended short ({short[0].lines} of {lines} lines): processed whole",
+            )
+            decisions.append(StreamDecision(k, Decision.WHOLE, issue=issue))
+            continue
+        if k == 0 and any(
+            not isinstance(part, SceneResult)
+            and not start_seen(part.first_line_ns, nav.first_ns, config.navigation.start_margin_s)
+            for _, part in parts
+        ):
+            # Perhaps the rest of a scene under way when the pipeline started: it will be
+            # skipped when complete (orientation.start_unseen), not streamed.
+            decisions.append(StreamDecision(k, Decision.WHOLE))
+            continue
+        # Time of the line after the last one received, per open scene (the period of the
+        # first view with that open scene).
+        ends = {
+            o.scene_id: o.first_line_ns
+            + o.lines * (next(periods[n] for n in names if opened[n] == o) * 1e9)
+            for o in opened.values()
+            if o is not None
+        }
+        newest = max(ends.values(), default=0)
+        duration = lines * max(periods.values())
+        stale_ns = max(STALE_MIN_S, duration) * 1e9
+        overdue = [
+            part
+            for _, part in parts
+            if not isinstance(part, SceneResult)
+            and part.scene_id in ends
+            and newest - ends[part.scene_id] > stale_ns
+        ]
+        if overdue:
+            # Strips of a scene stopped coming while the other view went on (by more than
+            # a scene, at least STALE_MIN_S): it is short (end of a pass) and its length is
+            # unknown, so it is processed whole. A view merely delivered late is not stale.
+            issue = Issue(
+                Level.OK,
+                f"pair {k}",
+                "not streamed: the strips of "
+                + ", ".join(p[0] for p in overdue)
+                + " stopped arriving (a short scene): processed whole",
+            )
+            decisions.append(StreamDecision(k, Decision.WHOLE, issue=issue))
+            continue
+        decide_ns = max((p[2] for _, p in parts if not isinstance(p, SceneResult)), default=0)
+        decisions.append(
+            StreamDecision(k, Decision.STREAM, tuple(parts), held_now, until_ns=decide_ns)
+        )
+    return decisions
+
+
+class SideEnd(StrEnum):
+    """What a streamed side's complete scene means for its pair (:func:`side_end`)."""
+
+    AS_PLANNED = "as_planned"  # its last blocks; the pair is made when both sides are done
+    WHOLE = "whole"  # ended short before anything was published: the pair is made whole
+    ABANDON = "abandon"  # ended short after blocks were published: the pair is released
+
+
+def side_end(stream: StreamPair, scene: Scene) -> SideEnd:
+    """The streaming policy at the end of a streamed side's scene. Pure.
+
+    A scene of the planned length ends as planned. One that ended short (a stop, a gap) breaks
+    the stream: when nothing was published or released yet the pair falls back to whole
+    scenes, unseen; otherwise it is abandoned (what was published stays valid).
+    """
+    side = next(s for s in stream.sides.values() if s.view == scene.view)
+    if scene.lines == side.lines:
+        return SideEnd.AS_PLANNED
+    if all(s.next_block == 0 for s in stream.sides.values()) and scene.released == 0:
+        return SideEnd.WHOLE
+    return SideEnd.ABANDON
+
+
 class Streamer:
     """The streaming of two-view pairs: the decisions, recorded in the ledger.
 
@@ -128,25 +327,13 @@ class Streamer:
         #: meanwhile. None: blocks are returned in the outputs.
         self.block_sink: Callable[[BlockResult], None] | None = None
 
-    def _start_seen(self, first_line_ns: int) -> bool:
-        return start_seen(first_line_ns, self.feed.first_ns, self.config.navigation.start_margin_s)
-
     def undecided(self, scene: Scene) -> bool:
-        """Whether ``scene``'s pair waits for navigation to decide streaming (held).
-
-        Only a scene still arriving at the decision time counts: one complete before it would
-        have been processed whole anyway.
-        """
-        t = self.ledger.held_until.get(scene.index)
-        return t is not None and not self.ledger.decided(scene.index) and scene.last_line_ns >= t
+        """Whether ``scene``'s pair waits for navigation to decide (:func:`undecided`)."""
+        return undecided(self.ledger, scene)
 
     def held(self, scene: Scene) -> bool:
-        """Whether a complete scene is held for its pair's streaming decision.
-
-        Undecided (:meth:`undecided`), and navigation has not passed the scene yet (the bound).
-        """
-        last = self.nav.last_ns
-        return self.undecided(scene) and (last is None or last <= scene.last_line_ns)
+        """Whether a complete scene is held for its pair's streaming decision (:func:`held`)."""
+        return held(self.ledger, scene, self.nav.last_ns)
 
     @property
     def can_stream(self) -> bool:
@@ -177,111 +364,25 @@ class Streamer:
         out = Outputs()
         ledger = self.ledger
         ledger.release_decided_holds()
-        names = [v.name for v in self.config.views]
-        opened = {n: self.assemblers[n].open_scene() for n in names}
-        pending = {o.index for o in opened.values() if o is not None} | set(ledger.held_until)
-        for k in sorted(pending):
-            if ledger.decided(k):
+        opened = {v.name: self.assemblers[v.name].open_scene() for v in self.config.views}
+        nav = NavState(self.nav.last_ns, self.feed.first_ns, self.nav.max_gap_s)
+        for decision in decide_streams(ledger, opened, nav, self.config):
+            if decision.kind is not Decision.STREAM:
+                self._record(decision, out)
                 continue
-            parts: list[tuple[str, OpenScene | SceneResult]] = []
-            held: dict[str, Scene] = {}  # complete scenes held for the decision, by view
-            waiting = False  # a complete scene of the pair waits for navigation
-            for n in names:
-                o = opened[n]
-                sc = next((w for w in ledger.waiting if w.view == n and w.index == k), None)
-                if o is not None and o.index == k:
-                    parts.append((n, o))
-                elif k in ledger.ready[n]:
-                    parts.append((n, ledger.ready[n][k]))
-                elif sc is not None and self.held(sc):
-                    held[n] = sc
-                    parts.append((n, OpenScene(sc.scene_id, k, sc.first_line_ns, sc.lines)))
-                elif sc is not None:
-                    waiting = True
-            if len(parts) < 2:
-                opens = [p.first_line_ns for _, p in parts if not isinstance(p, SceneResult)]
-                last = self.nav.last_ns
-                if (
-                    waiting
-                    and opens
-                    and k not in ledger.held_until
-                    and (last is None or last < max(opens) - self.nav.max_gap_s * 1e9)
-                ):
-                    # The other scene, complete, waits for navigation, which lags far behind
-                    # this one's start: the decision waits for navigation (see above).
-                    ledger.hold(k, max(opens))
-                continue
-            short = [sc for sc in held.values() if sc.lines != self.config.scenes.lines]
-            if short:
-                self.ledger.not_stream(k)
-                out.issues.append(
-                    Issue(
-                        Level.WARN,
-                        f"pair {k}",
-                        "not streamed: navigation lagged behind the strips until "
-                        + ", ".join(f"{sc.view}/{sc.scene_id}" for sc in short)
-                        + f" ended short ({short[0].lines} of {self.config.scenes.lines} "
-                        "lines): processed whole",
-                    )
-                )
-                continue
-            if k == 0 and any(
-                not isinstance(part, SceneResult) and not self._start_seen(part.first_line_ns)
-                for _, part in parts
-            ):
-                # Perhaps the rest of a scene under way when the pipeline started: it will be
-                # skipped when complete (orientation.start_unseen), not streamed.
-                self.ledger.not_stream(k)
-                continue
-            # Time of the line after the last one received, per open scene.
-            ends = {
-                o.scene_id: o.first_line_ns + o.lines * self._period(o)
-                for o in opened.values()
-                if o is not None
-            }
-            newest = max(ends.values(), default=0)
-            duration = self.config.scenes.lines * max(
-                v.camera.line_period for v in self.config.views
-            )
-            stale_ns = max(STALE_MIN_S, duration) * 1e9
-            overdue = [
-                part
-                for _, part in parts
-                if not isinstance(part, SceneResult)
-                and part.scene_id in ends
-                and newest - ends[part.scene_id] > stale_ns
-            ]
-            if overdue:
-                # Strips of a scene stopped coming while the other view went on (by more than
-                # a scene, at least STALE_MIN_S): it is short (end of a pass) and its length is
-                # unknown, so it is processed whole. A view merely delivered late is not stale.
-                self.ledger.not_stream(k)
-                out.issues.append(
-                    Issue(
-                        Level.OK,
-                        f"pair {k}",
-                        (
-                            "not streamed: the strips of "
-                            + ", ".join(p[0] for p in overdue)
-                            + " stopped arriving (a short scene): processed whole"
-                        ),
-                    )
-                )
-                continue
+            k = decision.pair
             results: list[SceneResult] = []
-            for name, part in parts:
+            for name, part in decision.parts:
                 if isinstance(part, SceneResult):
                     results.append(part)
                     continue
-                sc = held.get(name)
+                sc = decision.held.get(name)
                 res = self._predict_scene(
-                    name,
-                    part,
-                    out,
-                    max(p[2] for _, p in parts if not isinstance(p, SceneResult)),
-                    None if sc is None else sc.image.dtype,
+                    name, part, decision.until_ns, None if sc is None else sc.image.dtype
                 )
-                if res is None:
+                if not isinstance(res, SceneResult):
+                    if res is not None:
+                        self._record(res, out)
                     return out
                 results.append(res)
             if k in ledger.not_streamed:
@@ -298,7 +399,7 @@ class Streamer:
                             "streaming decision held until then",
                         )
                     )
-                for sc in held.values():
+                for sc in decision.held.values():
                     ledger.waiting.remove(sc)
                     closed = self._close(stream, sc)
                     if closed is None:  # not streamed after all: waits for navigation again
@@ -307,33 +408,35 @@ class Streamer:
                         out.extend(closed)
         return out
 
-    def _period(self, opened: OpenScene) -> float:
-        """Line period (ns) of the view whose open scene is ``opened``."""
-        for name, asm in self.assemblers.items():
-            if asm.open_scene() == opened:
-                return self.views[name].camera.line_period * 1e9
-        return 0.0
+    def _record(self, decision: StreamDecision, out: Outputs) -> None:
+        """Record a HOLD or WHOLE decision in the ledger; its issue, if any, goes to ``out``."""
+        if decision.kind is Decision.HOLD:
+            self.ledger.hold(decision.pair, decision.until_ns)
+        elif decision.kind is Decision.WHOLE:
+            self.ledger.not_stream(decision.pair)
+        if decision.issue is not None:
+            out.issues.append(decision.issue)
 
     def _predict_scene(
         self,
         name: str,
         opened: OpenScene,
-        out: Outputs,
         decide_ns: int,
         dtype: np.dtype | None = None,
-    ) -> SceneResult | None:
+    ) -> SceneResult | StreamDecision | None:
         """Parameters of a scene that has just started, from the latest navigation.
 
         ``decide_ns``: the decision time (the first line of the pair's later scene). When
         navigation has not reached within ``max_gap_s`` of the scene start then (it lags:
         separate topics), the pair waits (held) until navigation reaches the
         decision time, and the motion is then fitted on the navigation up to that time only,
-        as an on-time decision would have been. None: not (yet) possible.
+        as an on-time decision would have been. None: not yet possible (navigation has not
+        reached the decision time); a HOLD or WHOLE decision: not possible now, for
+        :meth:`_record`.
         """
         sid, k, t0, _ = opened
         if self.gcps.count(sid) >= self.config.orientation.min_gcp:
-            self.ledger.not_stream(k)  # GCP-based parameters need the whole scene
-            return None
+            return StreamDecision(k, Decision.WHOLE)  # GCP-based parameters: the whole scene
         view = self.views[name]
         lines = self.config.scenes.lines
         until = self.ledger.held_until.get(k)
@@ -343,18 +446,17 @@ class Streamer:
         try:
             fit = self.nav.fit_recent(t0, view.mounting, until_ns=until)
         except NavigationError as err:
-            if until is None:
-                self.ledger.hold(k, decide_ns)  # navigation lags: wait for it (see above)
-                return None
-            self.ledger.not_stream(k)
-            out.issues.append(
-                Issue(
+            if until is None:  # navigation lags: wait for it (see above)
+                return StreamDecision(k, Decision.HOLD, until_ns=decide_ns)
+            return StreamDecision(
+                k,
+                Decision.WHOLE,
+                issue=Issue(
                     Level.WARN,
                     f"{name}/{sid}",
                     f"not streamed (navigation at the scene start: {err}): processed whole",
-                )
+                ),
             )
-            return None
         model = PushbroomModel(view.camera, fit.motion)
         try:
             nav = parameters_from_navigation(
@@ -366,13 +468,13 @@ class Streamer:
                 crab_tolerance_px=self.config.orientation.crab_tolerance_px,
             )
         except GeometryError as err:
-            self.ledger.not_stream(k)
-            out.issues.append(
-                Issue(
+            return StreamDecision(
+                k,
+                Decision.WHOLE,
+                issue=Issue(
                     Level.WARN, f"{name}/{sid}", f"cannot stream ({err}): whole-scene processing"
-                )
+                ),
             )
-            return None
         if dtype is None:
             dtype = self.assemblers[name].retained()[1].dtype
         placeholder = Scene(
@@ -399,8 +501,7 @@ class Streamer:
         lines = (results[0].scene.lines, results[1].scene.lines)
         geo = pair_geometry(results[0], results[1], lines, self.config, self.gcps)
         if isinstance(geo, Issue):
-            self.ledger.not_stream(k)
-            out.issues.append(geo)
+            self._record(StreamDecision(k, Decision.WHOLE, issue=geo), out)
             return out
         sides: dict[str, SideStream] = {}
         for name, res, geom, grid in (
@@ -527,10 +628,11 @@ class Streamer:
         out = Outputs()
         side = next(s for s in stream.sides.values() if s.view == scene.view)
         where = f"{scene.view}/{scene.scene_id}"
-        if scene.lines != side.lines:
+        end = side_end(stream, scene)
+        if end is not SideEnd.AS_PLANNED:
             self.ledger.end_stream(stream.index)
             self.ledger.not_stream(stream.index)
-            if all(s.next_block == 0 for s in stream.sides.values()) and scene.released == 0:
+            if end is SideEnd.WHOLE:
                 # Nothing was published or released yet: fall back to whole scenes, unseen.
                 for s in stream.sides.values():
                     if s.prefetched or (s.done and s.result.scene.image.shape[0] > 0):
