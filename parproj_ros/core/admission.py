@@ -2,8 +2,13 @@
 
 The node asks :class:`PairAdmission` at the first strip of each scene whether its pair may be
 taken (its subscription callbacks run it, so it is thread-safe); a pair refused is shed whole,
-before conversion or queueing (docs/node.md, "Overload"). The policy reads the process memory
-(:mod:`parproj_ros.core.memory`) and the raw data the node holds; it knows nothing of rclpy.
+before conversion or queueing (docs/node.md, "Overload"). The policy itself is pure:
+:func:`decide_admission` takes the pairs in flight and the memory terms (:class:`MemoryTerms`)
+and returns the decision with its reason. :class:`PairAdmission` does the rest: it follows each
+view's strips to tell which pair a strip belongs to, reads the process memory
+(:mod:`parproj_ros.core.memory`) and the raw data the node holds, learns the working set, and
+records each decision in the ledger's :class:`~parproj_ros.core.ledger.AdmissionBook` (pairs
+admitted or shed, pairs in flight). It knows nothing of rclpy.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..imaging.assembly import SceneAssembler
+from .ledger import AdmissionBook
 from .memory import (
     held_bytes,
     malloc_trim,
@@ -76,6 +82,61 @@ def working_set_floor(config: Any) -> tuple[float, float]:
     return float(WHOLE_IMAGE_WORKING_SET_PAIRS), WHOLE_IMAGE_WORKING_SET_MB
 
 
+@dataclass(frozen=True)
+class MemoryTerms:
+    """The figures an admission decision reads, bytes (:class:`PairAdmission`'s rule).
+
+    ``startup``: memory held at the first strip less its raw data; ``raw``: raw scene data held
+    now; ``pair``: one raw pair (both scenes); ``work``: the working set counted (learnt, or
+    its floor); ``budget``: ``memory_budget_mb``; ``usable``: the budget less
+    :data:`HEADROOM`.
+    """
+
+    startup: int
+    raw: int
+    pair: int
+    work: int
+    budget: int
+    usable: int
+
+    def need(self, in_flight: int, raw: int = 0) -> int:
+        """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
+        return self.startup + max(raw, (in_flight + 1) * self.pair) + self.work
+
+
+def decide_admission(in_flight: int, terms: MemoryTerms) -> tuple[bool, str]:
+    """The admission policy: whether a new pair may be taken, and why not. Pure.
+
+    With nothing in flight a pair is always admitted (the node can hold no less). Otherwise it
+    is admitted when start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working
+    set is within the usable budget. The reason names every term, and, when the budget cannot
+    hold two pairs in flight (consecutive pairs overlap in time, so it sheds at any rate), the
+    budget that would.
+    """
+    if not in_flight:
+        return True, ""
+    need = terms.need(in_flight, terms.raw)
+    if need <= terms.usable:
+        return True, ""
+    mb = 2**20
+    least = terms.need(1)
+    short = (
+        f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
+        f"any rate: memory_budget_mb >= {math.ceil(least / (1 - HEADROOM) / mb)} would)"
+        if least > terms.usable
+        else ""
+    )
+    n, pair = in_flight, terms.pair
+    return False, (
+        f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
+        f"(start-up {terms.startup / mb:.0f} MB + raw data "
+        f"{max(terms.raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
+        f"held + working set {terms.work / mb:.0f} MB), over {terms.usable / mb:.0f} MB "
+        f"(memory_budget_mb {terms.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
+        f"{short}"
+    )
+
+
 @dataclass
 class _ViewStream:
     """Where a view's strip stream is: its current scene (frame_id), lines in it, ordinal."""
@@ -130,8 +191,11 @@ class PairAdmission:
         raw_held: Callable[[], int] = lambda: 0,
         floor_pairs: float = WORKING_SET_PAIRS,
         floor_mb: float = 0.0,
+        book: AdmissionBook | None = None,
     ) -> None:
         self.views = list(views)
+        #: Where the decisions and the pairs in flight are recorded (the pipeline ledger's).
+        self.book = AdmissionBook() if book is None else book
         #: The working set is at least ``floor_mb`` MB + this many raw pairs.
         self.floor_pairs = float(floor_pairs)
         self.floor = int(floor_mb * 2**20)
@@ -146,9 +210,6 @@ class PairAdmission:
         self._samples: deque[int] = deque(maxlen=WORKING_SET_SAMPLES)
         self._peak_rest = 0  # the largest non-raw memory read by sample() since the last sample
         self._streams = {v: _ViewStream() for v in self.views}
-        self._decided: dict[int, bool] = {}
-        self._in_flight: set[int] = set()
-        self._scene_group: dict[tuple[str, str], int] = {}
         self._lock = threading.Lock()
         self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
 
@@ -188,13 +249,11 @@ class PairAdmission:
             st.max_lines = max(st.max_lines, st.lines)
             group = self._group_of(st.ordinal)
             if new_scene:
-                self._scene_group[(view, frame_id)] = group
-            if group not in self._decided:
+                self.book.scene(view, frame_id, group)
+            if self.book.decision(group) is None:
                 ok, why = self._decide()
-                self._decided[group] = ok
-                if ok:
-                    self._in_flight.add(group)
-                else:
+                self.book.decide(group, ok)
+                if not ok:
                     self.counts["pairs_shed"] += 1
                     issues.append(
                         Issue(
@@ -205,13 +264,12 @@ class PairAdmission:
                             "so far",
                         )
                     )
-                self._prune()
-            ok = self._decided[group]
+            ok = bool(self.book.decision(group))
             if not ok:
                 self.counts["strips_shed"] += 1
                 if new_scene:
                     self.counts["scenes_shed"] += 1
-                    close = previous is not None and self._decided.get(previous, False)
+                    close = previous is not None and bool(self.book.decision(previous))
             return ok, issues, close
 
     def _memory(self) -> tuple[int, int, int]:
@@ -265,67 +323,33 @@ class PairAdmission:
         """The working set counted for a pair of ``pair`` bytes: learnt, or the floor, bytes."""
         return max(self.working_set, self.floor + int(self.floor_pairs * pair))
 
+    def terms(self, raw: int = 0) -> MemoryTerms:
+        """The memory terms of a decision now, with ``raw`` bytes of raw data held."""
+        pair = self.pair_bytes()
+        return MemoryTerms(self.base, raw, pair, self._work(pair), self.budget, self.usable)
+
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
-        pair = self.pair_bytes()
-        return self.base + max(raw, (in_flight + 1) * pair) + self._work(pair)
+        return self.terms().need(in_flight, raw)
 
     def _decide(self) -> tuple[bool, str]:
+        """Read the memory (given back first when over the budget), learn, and ask the policy."""
         if rss_bytes() > self.budget:
             malloc_trim()
         _rss, raw, rest = self._memory()
         self._learn(rest)
-        if not self._in_flight:
-            return True, ""
-        n = len(self._in_flight)
-        pair = self.pair_bytes()
-        need = self.need(n, raw)
-        mb = 2**20
-        usable = self.usable
-        # Consecutive pairs overlap in time: a budget below this sheds at any rate.
-        least = self.need(1)
-        short = (
-            f" (the budget cannot hold two pairs in flight, which consecutive pairs need at "
-            f"any rate: memory_budget_mb >= {math.ceil(least / (1 - HEADROOM) / mb)} would)"
-            if least > usable
-            else ""
-        )
-        if need > usable:
-            work = self._work(pair)
-            return False, (
-                f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
-                f"(start-up {self.base / mb:.0f} MB + raw data "
-                f"{max(raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
-                f"held + working set {work / mb:.0f} MB), over {usable / mb:.0f} MB "
-                f"(memory_budget_mb {self.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
-                f"{short}"
-            )
-        return True, ""
-
-    def _prune(self) -> None:
-        if len(self._decided) > 64:
-            for g in sorted(self._decided)[: len(self._decided) - 64]:
-                if g not in self._in_flight:
-                    del self._decided[g]
-        if len(self._scene_group) > 256:
-            for key in list(self._scene_group)[: len(self._scene_group) - 256]:
-                del self._scene_group[key]
+        return decide_admission(self.book.in_flight, self.terms(raw))
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
         rest = self._memory()[2]  # the pair's working set is still held
         with self._lock:
             self._learn(rest)
-            group = self._scene_group.get((view, scene_id))
-            if group is None and self._in_flight:  # a scene id of the pipeline's own: pairs
-                group = min(self._in_flight)  # come out in order, so it is the oldest one
-            if group is not None:
-                self._in_flight = {g for g in self._in_flight if g > group}
+        self.book.published(view, scene_id)
 
     def release_all(self) -> None:
         """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
-        with self._lock:
-            self._in_flight.clear()
+        self.book.release_all()
         malloc_trim()
 
     def memory_values(self) -> list[tuple[str, str | int]]:
@@ -343,8 +367,8 @@ class PairAdmission:
 
     @property
     def in_flight(self) -> int:
-        """Pairs admitted and not yet published."""
-        return len(self._in_flight)
+        """Pairs admitted and not yet published (the book's)."""
+        return self.book.in_flight
 
 
 def prefault(config: Any, prefault_mb: float, assemblers: Mapping[str, SceneAssembler]) -> str:

@@ -19,6 +19,7 @@ of their scenes. Times are nanoseconds.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
@@ -31,6 +32,10 @@ from .results import PairGeometry, SceneResult
 #: inputs naming them are reported.
 DONE_KEPT = 256
 MADE_KEPT = 1024
+#: Admission decisions and scenes' arrival pairs remembered (the latest ones; pairs still in
+#: flight are always kept).
+ADMISSION_KEPT = 64
+ADMISSION_SCENES_KEPT = 256
 
 
 class PairState(StrEnum):
@@ -87,6 +92,73 @@ class StreamPair:
     scenes: dict[str, Scene] = field(default_factory=dict)
 
 
+class AdmissionBook:
+    """The admission's records of pairs (:mod:`parproj_ros.core.admission`), kept here.
+
+    The admission decides at a pair's first strip, in the node's subscription callbacks,
+    before the pipeline sees the strip; so its pairs are numbered in arrival order, shed ones
+    included (arrival pair g: the g-th scenes of each view since the start; single camera:
+    scenes 2g and 2g+1), not as the pipeline numbers the pairs it receives. Records: the
+    decision per arrival pair (admitted or shed), the pairs in flight (admitted, their
+    StereoPair not yet published), and each scene's arrival pair. Thread-safe: the callbacks
+    decide, the worker publishes, the summary reads.
+    """
+
+    def __init__(self) -> None:
+        self._decided: dict[int, bool] = {}
+        self._in_flight: set[int] = set()
+        self._scene_pair: dict[tuple[str, str], int] = {}
+        self._lock = threading.Lock()
+
+    def decision(self, pair: int) -> bool | None:
+        """Whether arrival pair ``pair`` was admitted; None: not decided."""
+        with self._lock:
+            return self._decided.get(pair)
+
+    def decide(self, pair: int, admitted: bool) -> None:
+        """Record the admission's decision for arrival pair ``pair`` (in flight if admitted)."""
+        with self._lock:
+            self._decided[pair] = admitted
+            if admitted:
+                self._in_flight.add(pair)
+            if len(self._decided) > ADMISSION_KEPT:
+                for g in sorted(self._decided)[: len(self._decided) - ADMISSION_KEPT]:
+                    if g not in self._in_flight:
+                        del self._decided[g]
+
+    def scene(self, view: str, scene_id: str, pair: int) -> None:
+        """Scene ``scene_id`` of ``view`` belongs to arrival pair ``pair``."""
+        with self._lock:
+            self._scene_pair[(view, scene_id)] = pair
+            if len(self._scene_pair) > ADMISSION_SCENES_KEPT:
+                for key in list(self._scene_pair)[: len(self._scene_pair) - ADMISSION_SCENES_KEPT]:
+                    del self._scene_pair[key]
+
+    def published(self, view: str, scene_id: str) -> None:
+        """A pair with this scene was published: its arrival pair and earlier ones leave.
+
+        A scene id of the pipeline's own (not an arrival's): pairs come out in order, so it is
+        the oldest pair in flight.
+        """
+        with self._lock:
+            pair = self._scene_pair.get((view, scene_id))
+            if pair is None and self._in_flight:
+                pair = min(self._in_flight)
+            if pair is not None:
+                self._in_flight = {g for g in self._in_flight if g > pair}
+
+    def release_all(self) -> None:
+        """Nothing is in flight any more (the flush at stop, or a scene timeout)."""
+        with self._lock:
+            self._in_flight.clear()
+
+    @property
+    def in_flight(self) -> int:
+        """Arrival pairs admitted and not yet published."""
+        with self._lock:
+            return len(self._in_flight)
+
+
 class PairLedger:
     """Every pair's record and state; the policies read it and record their decisions here.
 
@@ -103,6 +175,8 @@ class PairLedger:
             order); None: acquisitions 2k and 2k+1 pair up.
         made: the latest single-camera pairs made (their two scene ids).
         pairs_made: pairs whose result was returned.
+        admission: the node's admission records (:class:`AdmissionBook`: pairs admitted or
+            shed as they arrive, pairs in flight).
     """
 
     def __init__(self, views: Sequence[str]) -> None:
@@ -117,6 +191,7 @@ class PairLedger:
         self.pairs_made = 0
         self._made_index: dict[int, None] = {}
         self._released: dict[int, None] = {}
+        self.admission = AdmissionBook()
 
     # ---- what the policies record ----------------------------------------------------------
     def stream(self, stream: StreamPair) -> None:

@@ -95,6 +95,7 @@ class ParprojNode(Node):
             config.scenes.lines,
             self._raw_held,
             *working_set_floor(config),
+            book=self.pipeline.ledger.admission,
         )
         self.worker = Worker(self._handle, self.internal_error)
         inputs: dict[str, Callable[[Any], None]] = {contract.NAVIGATION: self._on_nav}

@@ -188,3 +188,50 @@ def test_floor_mb_counts_in_the_need(mem: Memory) -> None:
     assert first_strip(adm, 1)[0]  # 100 + 2 x 4 + (10 + 4) = 122 fits
     ok, issues, _ = first_strip(adm, 2)
     assert not ok and "would need 126 MB" in issues[0].message
+
+
+def test_the_policy_is_a_function_of_its_terms() -> None:
+    """decide_admission: pure, admitted exactly while the sum fits the usable budget."""
+    from parproj_ros.core.admission import HEADROOM, MemoryTerms, decide_admission
+
+    terms = MemoryTerms(startup=100 * MB, raw=0, pair=4 * MB, work=8 * MB, budget=0, usable=0)
+    # 2 in flight: 100 + 3 x 4 + 8 = 120 MB.
+    fits = MemoryTerms(**{**vars(terms), "usable": 120 * MB, "budget": 200 * MB})
+    assert decide_admission(2, fits) == (True, "")
+    over = MemoryTerms(**{**vars(fits), "usable": 120 * MB - 1})
+    ok, why = decide_admission(2, over)
+    assert not ok and "would need 120 MB" in why and "2 pairs in flight" in why
+    assert "cannot hold two pairs" not in why  # 100 + 2 x 4 + 8 = 116 MB fits
+    # Raw data held above the pairs in flight counts instead of them.
+    held = MemoryTerms(**{**vars(fits), "raw": 20 * MB})
+    ok, why = decide_admission(2, held)
+    assert not ok and "would need 128 MB" in why and "raw data 20 MB" in why
+    # Nothing in flight: always admitted, whatever the budget.
+    assert decide_admission(0, MemoryTerms(**{**vars(terms), "usable": 1})) == (True, "")
+    # A budget below two pairs in flight says which would do: 116 MB / (1 - headroom).
+    ok, why = decide_admission(1, MemoryTerms(**{**vars(terms), "usable": 110 * MB}))
+    import math
+
+    assert not ok and f"memory_budget_mb >= {math.ceil(116 / (1 - HEADROOM))} would" in why
+
+
+def test_decisions_are_recorded_in_the_ledger(mem: Memory) -> None:
+    """The admission keeps no pair state: the pipeline ledger's book has the decisions and
+    the pairs in flight, and the publication of a pair is read from it."""
+    from parproj_ros.core.admission import HEADROOM, PairAdmission
+    from parproj_ros.core.ledger import PairLedger
+
+    ledger = PairLedger(["left", "right"])
+    usable = 100 + 2 * 4 + 8  # one in flight + the new one
+    adm = PairAdmission(
+        ["left", "right"], usable / (1 - HEADROOM) + 1e-6, LINES, mem.raw_held,
+        book=ledger.admission,
+    )  # fmt: skip
+    assert [first_strip(adm, k)[0] for k in range(3)] == [True, True, False]
+    book = ledger.admission
+    assert (book.decision(0), book.decision(1), book.decision(2)) == (True, True, False)
+    assert book.in_flight == 2 and adm.in_flight == 2
+    adm.published("left", "left_0000")
+    assert book.in_flight == 1
+    ok, issues, _ = first_strip(adm, 3)
+    assert ok and not issues and book.decision(3) is True and book.in_flight == 2
