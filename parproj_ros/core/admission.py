@@ -89,7 +89,8 @@ class MemoryTerms:
     ``startup``: memory held at the first strip less its raw data; ``raw``: raw scene data held
     now; ``pair``: one raw pair (both scenes); ``work``: the working set counted (learnt, or
     its floor); ``budget``: ``memory_budget_mb``; ``usable``: the budget less
-    :data:`HEADROOM`.
+    :data:`HEADROOM`; ``tiles``: what the streamed DSM tiles hold now (the columns kept for
+    tiles still to come: :meth:`~parproj_ros.core.tiles.TileStage.held_bytes`).
     """
 
     startup: int
@@ -98,10 +99,11 @@ class MemoryTerms:
     work: int
     budget: int
     usable: int
+    tiles: int = 0
 
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
-        return self.startup + max(raw, (in_flight + 1) * self.pair) + self.work
+        return self.startup + max(raw, (in_flight + 1) * self.pair) + self.tiles + self.work
 
 
 def decide_admission(in_flight: int, terms: MemoryTerms) -> tuple[bool, str]:
@@ -127,14 +129,47 @@ def decide_admission(in_flight: int, terms: MemoryTerms) -> tuple[bool, str]:
         else ""
     )
     n, pair = in_flight, terms.pair
+    tiles = f" + streamed tiles {terms.tiles / mb:.0f} MB" if terms.tiles else ""
     return False, (
         f"{n} pairs in flight; with this one it would need {need / mb:.0f} MB "
         f"(start-up {terms.startup / mb:.0f} MB + raw data "
         f"{max(terms.raw, (n + 1) * pair) / mb:.0f} MB, {n + 1} x {pair / mb:.0f} MB or what is "
-        f"held + working set {terms.work / mb:.0f} MB), over {terms.usable / mb:.0f} MB "
+        f"held{tiles} + working set {terms.work / mb:.0f} MB), over {terms.usable / mb:.0f} MB "
         f"(memory_budget_mb {terms.budget / mb:.0f} MB less {HEADROOM:.0%} headroom)"
         f"{short}"
     )
+
+
+def decide_quicklook(
+    in_flight: int, terms: MemoryTerms, admitted: bool, shed: bool
+) -> tuple[bool, str]:
+    """Whether the quick-look tiles are shed from the pair just decided on, and why. Pure.
+
+    The quick-look (``heights_quicklook``) is the work the node gives up first: it is shed one
+    pair before any pair is, when the pair just decided on (with ``in_flight`` pairs in flight
+    before it) was shed, or when one more pair in flight after it would not fit the usable
+    budget (:meth:`MemoryTerms.need` of ``in_flight`` + 1 pairs and a pair more raw data).
+    Shed (``shed``), it resumes when two more pairs would fit. Returns the new state and, when
+    it changes, the reason (else "").
+    """
+    mb = 2**20
+    ahead = terms.need(in_flight + 1, terms.raw + terms.pair)
+    if not shed and (not admitted or ahead > terms.usable):
+        why = (
+            "the pair itself was shed"
+            if not admitted
+            else f"one more pair in flight would need {ahead / mb:.0f} MB, over "
+            f"{terms.usable / mb:.0f} MB usable: shed before any pair is"
+        )
+        return True, why
+    if shed and admitted:
+        room = terms.need(in_flight + 2, terms.raw + 2 * terms.pair)
+        if room <= terms.usable:
+            return False, (
+                f"two more pairs in flight would fit ({room / mb:.0f} MB of "
+                f"{terms.usable / mb:.0f} MB usable)"
+            )
+    return shed, ""
 
 
 @dataclass
@@ -192,6 +227,8 @@ class PairAdmission:
         floor_pairs: float = WORKING_SET_PAIRS,
         floor_mb: float = 0.0,
         book: AdmissionBook | None = None,
+        tiles_held: Callable[[], int] = lambda: 0,
+        quicklook: bool = False,
     ) -> None:
         self.views = list(views)
         #: Where the decisions and the pairs in flight are recorded (the pipeline ledger's).
@@ -202,6 +239,10 @@ class PairAdmission:
         self._trimmed = 0.0  # monotonic time of sample()'s last malloc_trim
         #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
         self.raw_held = raw_held
+        #: Bytes the streamed DSM tiles hold, read apart from the rest too.
+        self.tiles_held = tiles_held
+        #: Whether quick-look tiles are made (``heights_quicklook`` on): shed before pairs.
+        self.quicklook = quicklook
         self.single = len(self.views) == 1
         self.budget = int(budget_mb * 2**20)
         self.scene_lines = int(scene_lines)
@@ -212,6 +253,7 @@ class PairAdmission:
         self._streams = {v: _ViewStream() for v in self.views}
         self._lock = threading.Lock()
         self.counts = {"pairs_shed": 0, "scenes_shed": 0, "strips_shed": 0}
+        self.quicklook_sheds = 0  # times the quick-look tiles were shed
 
     def pair_bytes(self) -> int:
         """One raw pair (both scenes), bytes, as far as known (0 before any strip)."""
@@ -251,7 +293,8 @@ class PairAdmission:
             if new_scene:
                 self.book.scene(view, frame_id, group)
             if self.book.decision(group) is None:
-                ok, why = self._decide()
+                n = self.book.in_flight
+                ok, why, terms = self._decide()
                 self.book.decide(group, ok)
                 if not ok:
                     self.counts["pairs_shed"] += 1
@@ -264,6 +307,8 @@ class PairAdmission:
                             "so far",
                         )
                     )
+                if self.quicklook:
+                    issues += self._quicklook(n, terms, ok, group, f"{view}/{frame_id}")
             ok = bool(self.book.decision(group))
             if not ok:
                 self.counts["strips_shed"] += 1
@@ -281,7 +326,37 @@ class PairAdmission:
         rss = rss_bytes()
         held = held_bytes(rss)
         raw = min(held, max(0, int(self.raw_held())))
-        return rss, raw, held - raw
+        tiles = min(held - raw, self._tiles())
+        return rss, raw, held - raw - tiles
+
+    def _tiles(self) -> int:
+        """Bytes the streamed tiles hold (0 when they cannot be read now)."""
+        try:
+            return max(0, int(self.tiles_held()))
+        except Exception:  # read from another thread while the worker changes them
+            return 0
+
+    def _quicklook(
+        self, in_flight: int, terms: MemoryTerms, admitted: bool, pair: int, where: str
+    ) -> list[Issue]:
+        """Shed or resume the quick-look tiles (:func:`decide_quicklook`), saying so."""
+        was = self.book.quicklook_shed
+        shed, why = decide_quicklook(in_flight, terms, admitted, was)
+        if shed == was:
+            return []
+        self.book.quicklook_shed = shed
+        if shed:
+            self.quicklook_sheds += 1
+            return [
+                Issue(
+                    Level.WARN,
+                    where,
+                    f"overload: quick-look tiles shed from pair {pair} on ({why}); the "
+                    "quick-look tiles under way stop, the pairs keep coming; "
+                    f"{self.quicklook_sheds} times so far",
+                )
+            ]
+        return [Issue(Level.OK, where, f"quick-look tiles resumed from pair {pair} on: {why}")]
 
     def _group_of(self, ordinal: int) -> int:
         return ordinal // 2 if self.single else ordinal
@@ -323,22 +398,29 @@ class PairAdmission:
         """The working set counted for a pair of ``pair`` bytes: learnt, or the floor, bytes."""
         return max(self.working_set, self.floor + int(self.floor_pairs * pair))
 
-    def terms(self, raw: int = 0) -> MemoryTerms:
-        """The memory terms of a decision now, with ``raw`` bytes of raw data held."""
+    def terms(self, raw: int = 0, tiles: int = 0) -> MemoryTerms:
+        """The memory terms of a decision now.
+
+        With ``raw`` bytes of raw data held and ``tiles`` bytes held by the streamed tiles.
+        """
         pair = self.pair_bytes()
-        return MemoryTerms(self.base, raw, pair, self._work(pair), self.budget, self.usable)
+        return MemoryTerms(self.base, raw, pair, self._work(pair), self.budget, self.usable, tiles)
 
     def need(self, in_flight: int, raw: int = 0) -> int:
         """Memory to admit a pair with ``in_flight`` pairs already in flight, bytes."""
         return self.terms().need(in_flight, raw)
 
-    def _decide(self) -> tuple[bool, str]:
-        """Read the memory (given back first when over the budget), learn, and ask the policy."""
+    def _decide(self) -> tuple[bool, str, MemoryTerms]:
+        """Read the memory (given back first when over the budget), learn, and ask the policy.
+
+        Returns its decision, its reason and the terms it read.
+        """
         if rss_bytes() > self.budget:
             malloc_trim()
         _rss, raw, rest = self._memory()
         self._learn(rest)
-        return decide_admission(self.book.in_flight, self.terms(raw))
+        terms = self.terms(raw, self._tiles())
+        return (*decide_admission(self.book.in_flight, terms), terms)
 
     def published(self, view: str, scene_id: str) -> None:
         """A pair with this scene (of ``view``) was published: it and earlier pairs leave."""
@@ -363,6 +445,15 @@ class PairAdmission:
             ("held_mb", f"{held_bytes() / mb:.0f}"),
             ("rss_mb", f"{rss_bytes() / mb:.0f}"),
             ("memory_budget_mb", f"{self.budget / mb:.0f}"),
+            *(
+                [
+                    ("tiles_mb", f"{self._tiles() / mb:.0f}"),
+                    ("quicklook", "shed" if self.book.quicklook_shed else "on"),
+                    ("quicklook_sheds", self.quicklook_sheds),
+                ]
+                if self.quicklook
+                else []
+            ),
         ]
 
     @property

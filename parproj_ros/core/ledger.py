@@ -100,8 +100,9 @@ class AdmissionBook:
     included (arrival pair g: the g-th scenes of each view since the start; single camera:
     scenes 2g and 2g+1), not as the pipeline numbers the pairs it receives. Records: the
     decision per arrival pair (admitted or shed), the pairs in flight (admitted, their
-    StereoPair not yet published), and each scene's arrival pair. Thread-safe: the callbacks
-    decide, the worker publishes, the summary reads.
+    StereoPair not yet published), each scene's arrival pair, and whether the quick-look
+    tiles are shed. Thread-safe: the callbacks decide, the worker publishes, the summary
+    reads.
     """
 
     def __init__(self) -> None:
@@ -109,6 +110,9 @@ class AdmissionBook:
         self._in_flight: set[int] = set()
         self._scene_pair: dict[tuple[str, str], int] = {}
         self._lock = threading.Lock()
+        #: The quick-look tiles are shed (:func:`~parproj_ros.core.admission.decide_quicklook`):
+        #: set by the admission, read by the pipeline's tile stage (one bool: no lock needed).
+        self.quicklook_shed = False
 
     def decision(self, pair: int) -> bool | None:
         """Whether arrival pair ``pair`` was admitted; None: not decided."""

@@ -235,3 +235,56 @@ def test_decisions_are_recorded_in_the_ledger(mem: Memory) -> None:
     assert book.in_flight == 1
     ok, issues, _ = first_strip(adm, 3)
     assert ok and not issues and book.decision(3) is True and book.in_flight == 2
+
+
+def test_quicklook_is_shed_one_pair_before_any_pair(mem: Memory) -> None:
+    """heights_quicklook on: the quick-look tiles are shed at the pair after which one more
+    pair in flight would not fit, one pair before the first pair is shed, with a WARN; they
+    resume, with an OK line, when two more pairs in flight would fit again."""
+    from parproj_ros.core.admission import HEADROOM, PairAdmission
+    from parproj_ros.core.ledger import PairLedger
+    from parproj_ros.core.results import Level
+
+    ledger = PairLedger(["left", "right"])
+    # start-up 100 MB, pairs of 4 MB, working set 8 MB: n in flight + the new one need
+    # 100 + 4 (n + 1) + 8 MB; 120 MB fits pairs 0, 1, 2 in flight, not pair 3.
+    adm = PairAdmission(
+        ["left", "right"], 120 / (1 - HEADROOM) + 1e-6, LINES, mem.raw_held,
+        book=ledger.admission, quicklook=True,
+    )  # fmt: skip
+    said = []
+    for k in range(4):
+        ok, issues, _ = first_strip(adm, k)
+        said.append((k, ok, [(i.level, i.message) for i in issues]))
+    assert [ok for _, ok, _ in said] == [True, True, True, False]
+    assert said[0][2] == [] and said[1][2] == []  # 1 more in flight: 116, then 120 MB: fit
+    ((level, msg),) = said[2][2]  # pair 2 admitted; one more (3 in flight): 124 MB
+    assert level is Level.WARN and "quick-look tiles shed from pair 2 on" in msg
+    assert "would need 124 MB, over 120 MB usable" in msg and ledger.admission.quicklook_shed
+    assert len(said[3][2]) == 1 and "pair 3 (this scene" in said[3][2][0][1]  # no second WARN
+    for k in range(3):
+        adm.published("left", f"left_{k:04d}")
+    ok, issues, _ = first_strip(adm, 4)  # nothing in flight: 2 more would need 120 MB: fit
+    assert ok and [(i.level, i.message.split(":")[0]) for i in issues] == [
+        (Level.OK, "quick-look tiles resumed from pair 4 on")
+    ]
+    assert not ledger.admission.quicklook_shed
+    assert dict(adm.memory_values())["quicklook_sheds"] == 1
+
+
+def test_streamed_tiles_count_in_the_sum(mem: Memory) -> None:
+    """The bytes the tile stage holds are their own term of the sum (and not working set)."""
+    from parproj_ros.core.admission import HEADROOM, PairAdmission
+
+    tiles = {"held": 0}
+    adm = PairAdmission(
+        ["left", "right"], 120 / (1 - HEADROOM) + 1e-6, LINES, mem.raw_held,
+        tiles_held=lambda: tiles["held"],
+    )  # fmt: skip
+    assert first_strip(adm, 0)[0] and first_strip(adm, 1)[0]  # 116 MB with 1 in flight
+    tiles["held"] = 6 * MB
+    mem.rss += 6 * MB  # what the tiles hold is resident
+    ok, issues, _ = first_strip(adm, 2)  # 100 + 3 x 4 + 6 + 8 = 126 MB
+    assert not ok and "would need 126 MB" in issues[0].message
+    assert "streamed tiles 6 MB" in issues[0].message
+    assert adm.working_set == 0  # the 6 MB the tiles hold are not learnt as working set
