@@ -82,6 +82,14 @@ QUICKLOOK_FACTORS = (2, 4, 8)
 #: span matched 1.5 times its columns, a 512-column one 1.27 times (at 1/8, 512 reduced
 #: columns are 4,096 lines, 0.63 s of the IKONOS line rate).
 QUICKLOOK_TILE_COLS = 512
+#: A tile whose valid disparities lie within a pixel of an end of the range it searched, for
+#: this share of them or more, saw terrain beyond that end (SGBM piles such pixels at the end
+#: or rejects them): the pair's range is widened there and the tile matched again. On the
+#: airborne bag's tiles the share is 0.000-0.002; with the last tile's terrain moved 40 px
+#: below the range measured on the first window, 0.227 (and half its pixels lost).
+RANGE_EDGE_SHARE = 0.01
+#: Widenings of one pair's range at most (each costs a tile matched again).
+MAX_WIDENINGS = 4
 #: The left-right check of the quick-look levels when the heights' own is "flip".
 QUICKLOOK_LR_CHECK: Literal["flip", "reduced", "none"] = "reduced"
 
@@ -207,6 +215,10 @@ class _PairTiles:
     first_cols: int = 0
     #: Said in the pair's summary about its terrain (why no tie points were measured).
     note: str = ""
+    #: (tile, requested range after it) of each widening of the range (:meth:`TileLevel._widen`).
+    widened: list[tuple[int, tuple[int, int]]] = field(default_factory=list)
+    #: The range fixed on the first window, before any widening.
+    first_range: tuple[int, int] = (0, 0)
     issues: list[Issue] = field(default_factory=list)
 
     @property
@@ -220,7 +232,8 @@ class _PairTiles:
         dmin, dmax = self.d_range
         wa = max(0, c0 - TILE_OVERLAP - max(dmax, 0) - 1)
         wb = min(self.width, c1 + TILE_OVERLAP + max(-dmin, 0) + 1)
-        return wa, wb
+        # after a widening the columns before may be gone (never so with the first range)
+        return max(wa, *(s.start for s in self.sides.values())), wb
 
     def covers(self, col: int) -> bool:
         """Whether both sides hold every column before ``col`` (or all they will)."""
@@ -303,6 +316,10 @@ class TileLevel:
         self.factor = factor
         self.streams = streams
         self.pairs: dict[str, _PairTiles] = {}
+        #: Shed (:meth:`TileStage.shed_quicklook`): no tiles for pairs that start meanwhile.
+        self.shed = False
+        #: Pairs this level makes no tiles of (shed while under way or at their start).
+        self.off: set[str] = set()
         #: Columns of a tile's span, pixels of the level.
         self.tile_cols = TILE_COLS if factor == 1 else QUICKLOOK_TILE_COLS
         # The quick-look's left-right check: "flip" (a second full pass) becomes "reduced"
@@ -323,6 +340,9 @@ class TileLevel:
         """Hold a block's columns (reduced at the quick-look level); ``geo`` for a new pair."""
         tiles = self.pairs.get(blk.pair_id)
         if tiles is None:
+            if blk.pair_id in self.off or self.shed:
+                self.off.add(blk.pair_id)
+                return
             if geo is None:
                 return
             g = replace(
@@ -380,7 +400,12 @@ class TileLevel:
             f"{self.label} DSM tiles: {len(tiles.spans)} of {self.tile_cols} columns "
             f"({tiles.published} with heights); {tiles.terrain.describe()} on the first "
             f"{tiles.first_cols} columns{tiles.note}: disparity "
-            f"{tiles.d_range[0]}..{tiles.d_range[1]} px; "
+            f"{tiles.first_range[0]}..{tiles.first_range[1]} px"
+            + "".join(
+                f" (widened to {lo}..{hi} px at tile {i}: its disparities crowded an end)"
+                for i, (lo, hi) in tiles.widened
+            )
+            + "; "
             f"stretch {l0:g}..{l1:g} (left), {r0:g}..{r1:g} (right) DN from the same window",
         )
 
@@ -421,12 +446,44 @@ class TileLevel:
             return None
         wb = min([wb] + [s.covered for s in tiles.sides.values()])
         tile = self._match(tiles, i, wa, wb)
+        if len(tiles.widened) < MAX_WIDENINGS and self._widen(tiles, tile):
+            return self._next(tiles)  # the tile again on the wider range (once covered)
         tiles.next_tile += 1
         if tiles.next_tile < len(tiles.spans):
             nxt = tiles.window(tiles.next_tile)[0]
             for s in tiles.sides.values():
                 s.drop_before(nxt)
         return tile
+
+    def _widen(self, tiles: _PairTiles, tile: HeightTile) -> bool:
+        """Widen the pair's range at an end that ``tile``'s disparities crowd (True if so).
+
+        The range is measured once, on the pair's first window; terrain that later leaves it
+        shows as disparities piled within a pixel of the searched range's end
+        (:data:`RANGE_EDGE_SHARE`). That end moves out by half the searched width (16
+        disparities at least): one more SGBM block of disparities for the tiles after.
+        """
+        assert tiles.d_range is not None
+        d = tile.disparity
+        if d is None:
+            return False
+        d = d[np.isfinite(d)]
+        if d.size < 100:
+            return False
+        lo, hi = tile.d_range
+        low = float(np.count_nonzero(d < lo + 1)) / d.size
+        high = float(np.count_nonzero(d > hi - 1)) / d.size
+        if max(low, high) < RANGE_EDGE_SHARE:
+            return False
+        step = max(16, (hi - lo + 1) // 2)
+        dmin, dmax = tiles.d_range
+        if low >= RANGE_EDGE_SHARE:
+            dmin = min(dmin, lo - step)
+        if high >= RANGE_EDGE_SHARE:
+            dmax = max(dmax, hi + step)
+        tiles.d_range = (dmin, dmax)
+        tiles.widened.append((tile.index, (dmin, dmax)))
+        return True
 
     def _fix_range(self, tiles: _PairTiles) -> bool:
         """Terrain, disparity range, stretch limits and DSM grid from the first window."""
@@ -466,6 +523,7 @@ class TileLevel:
         except ValueError:
             rng = (0, 0)
         tiles.terrain, tiles.d_range, tiles.first_cols = terrain, rng, n
+        tiles.first_range = rng
         limits = []
         for img in (left, right):
             ok = img != opt.nodata
@@ -577,7 +635,12 @@ class TileLevel:
         ca = -e if i == 0 else c0 - 2
         cb = g.width - 1 + e if i == last else c1 + 1
         mapping = geo.mapping()
-        cc, rr, zz = np.meshgrid([ca, cb], [-e, g.height - 1 + e], tiles.terrain.range_m)
+        z_range = tiles.terrain.range_m
+        if tiles.widened and tiles.d_range is not None:  # the heights the wider range reaches
+            a, b = geo.height_relation
+            z_ends = [a * d + b for d in tiles.d_range]
+            z_range = (min(*z_range, *z_ends), max(*z_range, *z_ends))
+        cc, rr, zz = np.meshgrid([ca, cb], [-e, g.height - 1 + e], z_range)
         x, y = mapping.pixel_to_ground(cc, rr, zz)
         pad = math.ceil(opt.max_fill_cells) + 2
         r_a, c_a = pg.index(np.array([x.max()]), np.array([y.max()]))
@@ -645,6 +708,21 @@ class TileStage:
         factors = ([] if q < 0 else [1]) + ([QUICKLOOK_FACTORS[abs(q) - 1]] if q else [])
         self.streams = streams
         self.levels = [TileLevel(opt, f, streams) for f in factors]
+        #: Whether a quick-look level is made (the admission may shed it before pairs).
+        self.quicklook = any(level.factor > 1 for level in self.levels)
+
+    def held_bytes(self) -> int:
+        """Bytes of the columns held for tiles still to come, every level and pair.
+
+        Safe to call from another thread than the one feeding the stage (it reads copies of
+        the lists; a part replaced meanwhile is counted or not).
+        """
+        total = 0
+        for level in self.levels:
+            for tiles in list(level.pairs.values()):
+                for side in list(tiles.sides.values()):
+                    total += sum(int(p.nbytes) for p in list(side.parts))
+        return total
 
     @staticmethod
     def applies(config: PipelineConfig) -> bool:
@@ -680,6 +758,42 @@ class TileStage:
                     streamed=False,
                 )
         return None
+
+    def shed_quicklook(self, shed: bool) -> list[Issue]:
+        """Shed (True) or resume (False) the quick-look levels; what changed, in words.
+
+        Shed: the quick-look tiles of the pairs under way stop (their columns are freed; the
+        tiles published stay valid) and pairs that start meanwhile get none. Resumed: pairs
+        whose first block comes from then on get their quick-look tiles again. The full
+        resolution is never shed here (the admission sheds whole pairs).
+        """
+        issues: list[Issue] = []
+        for level in self.levels:
+            if level.factor == 1 or level.shed == shed:
+                continue
+            level.shed = shed
+            if not shed:
+                issues.append(
+                    Issue(
+                        Level.OK,
+                        "heights",
+                        f"{level.label} DSM tiles resumed, from the next pair that starts",
+                    )
+                )
+                continue
+            for pid, tiles in list(level.pairs.items()):
+                issues.append(
+                    Issue(
+                        Level.WARN,
+                        f"pair {pid}",
+                        f"{level.label} DSM tiles shed after {tiles.next_tile} of "
+                        f"{len(tiles.spans)} (the node's memory budget: the quick-look goes "
+                        "before any pair); the tiles published stay valid",
+                    )
+                )
+                level.off.add(pid)
+                del level.pairs[pid]
+        return issues
 
     def keep(self, blk: BlockResult, pairs: list[PairResult] | None = None) -> None:
         """Hold a streamed block (its pixels as they are: pass a copy of a borrowed view)."""

@@ -383,3 +383,178 @@ def test_quicklook_only_makes_no_full_resolution_heights(monkeypatch: pytest.Mon
     summary = ProcessSummary(pairs=len(out.pairs), tiles=[(t.pair_id, t.ok) for t in out.tiles])
     assert verdict(summary, heights=True) == 0
     assert verdict(ProcessSummary(pairs=1), heights=True) == 1  # neither DSM nor tiles
+
+
+def test_reduce_block_is_reduce_image_to_the_bit() -> None:
+    # The quick-look's reduction (core/tiles.reduce_block) against core/terrain.reduce_image:
+    # the same block means and the same no-data pixels (a reduced pixel whose block holds a
+    # no-data pixel), with no-data at the image's edges, one isolated pixel, and none.
+    from parproj_ros.core.terrain import reduce_image
+    from parproj_ros.core.tiles import reduce_block
+    from parproj_ros.imaging.resample import OutputGrid
+
+    rng = np.random.default_rng(5)
+    img = rng.integers(1, 2048, size=(203, 261)).astype(np.uint16)
+    img[:17, :40] = 0  # a scene's corner
+    img[120, 77] = 0  # one pixel
+    grid = OutputGrid(1.0, 0.0, 0.0, img.shape[1], img.shape[0])
+    for f in (2, 4, 8):
+        for a in (img, img[40:, 60:], img[:, 100:200]):
+            want, _ = reduce_image(a, grid, f, 0.0)
+            got = reduce_block(a, f, 0.0)
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+    # a no-data value inside the data's range
+    want, _ = reduce_image(img, grid, 4, 1000.0)
+    np.testing.assert_array_equal(reduce_block(img, 4, 1000.0), want)
+
+
+def _moved(right: np.ndarray, col: int, px: int) -> np.ndarray:
+    """The right image with its content from column ``col`` on moved ``px`` columns left: the
+    left pixels whose partners lie there get ``px`` more disparity (a step in the terrain)."""
+    out = right.copy()
+    out[:, col : right.shape[1] - px] = right[:, col + px :]
+    return out
+
+
+def test_the_range_widens_where_later_terrain_leaves_it(
+    whole_pair: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The range is measured on the first window (-49..14 px searched here); the right image's
+    # content from column 400 on moved 40 px: tiles 1 and 2 see disparities up to 40 px above
+    # their own (tile 2: 21..48 px), beyond the range. Without widening, half of tile 1's
+    # pixels are lost; with it, the tiles that crowd the range's end widen it and are matched
+    # again: tile 2 keeps its share within the 40 right columns whose content the move
+    # dropped (40 / 256 of its columns), and its range holds its disparities.
+    from parproj_ros.core import tiles as core_tiles
+
+    pair, cfg = whole_pair["pair"], whole_pair["config"]
+    step = 40
+    right = _moved(pair.right_image, 400, step)
+    plain = [t for _, t in tiles_of_pair(cfg, pair, pair.left_image, pair.right_image)]
+    wide = [t for _, t in tiles_of_pair(cfg, pair, pair.left_image, right)]
+    monkeypatch.setattr(core_tiles, "MAX_WIDENINGS", 0)
+    fixed = [t for _, t in tiles_of_pair(cfg, pair, pair.left_image, right)]
+    assert len({t.d_range for t in plain}) == 1  # no widening on the unmoved pair
+    assert wide[0].d_range == fixed[0].d_range == plain[0].d_range
+    hi = float(np.nanpercentile(plain[2].disparity, 99.5)) + step
+    print(
+        "shares plain / fixed / widened: "
+        + ", ".join(
+            f"tile {i} {p.valid_share:.3f} / {f.valid_share:.3f} / {w.valid_share:.3f}"
+            for i, (p, f, w) in enumerate(zip(plain, fixed, wide, strict=True))
+        )
+        + f"; ranges {[t.d_range for t in wide]}"
+    )
+    assert fixed[1].valid_share < 0.6 * plain[1].valid_share  # lost without widening
+    assert wide[2].d_range[1] >= hi and fixed[2].d_range[1] < hi
+    assert wide[2].valid_share >= plain[2].valid_share - step / TILE_COLS
+    # tile 1 holds the step itself (SGM's smoothness spreads across it): half its loss back
+    assert (
+        wide[1].valid_share
+        >= fixed[1].valid_share + (plain[1].valid_share - fixed[1].valid_share) / 2
+    )
+    dsms = [t.dsm for t in (plain[2], fixed[2], wide[2])]
+    cells = [int(np.isfinite(d.heights).sum()) for d in dsms if d is not None]
+    assert len(cells) == 3
+    assert cells[2] >= (1 - step / TILE_COLS) * cells[0] > cells[1]
+
+
+def test_a_quicklook_whose_prior_fits_16_disparities_measures_no_tie_points() -> None:
+    # heights_quicklook 3 (1/8) and a prior of -10..0 m: 1.74 m per reduced pixel of parallax,
+    # the prior and its 2 px margin fit SGBM's fewest 16 disparities, so the quick-look level
+    # measures no tie points (they could not narrow the search); the full resolution does.
+    from parproj_ros.core.tiles import _searched
+
+    reader = BagReader(BAG)
+    cfg = config_from_bag(
+        reader,
+        scene_lines=LINES,
+        heights=True,
+        tie_points=False,
+        heights_quicklook=3,
+        z_avg=-5.0,
+        height_range=5.0,
+    )
+    pipe = Pipeline(cfg)
+    out = Outputs()
+    for item in reader.messages(topics=["navigation", *STRIPS]):
+        if item.topic == "navigation":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
+        else:
+            arr = conv.image_to_array(item.msg)
+            stamp = conv.stamp_to_ns(item.msg.header.stamp)
+            out.extend(pipe.add_strip(STRIPS[item.topic], stamp, item.msg.header.frame_id, arr))
+    out.extend(pipe.flush())
+    quick = [t for t in out.tiles if t.factor == 8]
+    full = [t for t in out.tiles if t.factor == 1]
+    assert quick and all(t.ok for t in quick) and full
+    a, b = quick[0].height_per_disparity_px, quick[0].height_offset_m
+    assert _searched(a, b, quick[0].terrain, 2.0) == 16
+    assert quick[0].terrain.source == "prior" and full[0].terrain.source == "tie_points"
+    said = [i.message for i in out.issues if "quick-look (1/8) DSM tiles" in i.message]
+    assert len(said) == 1 and "tie points not measured" in said[0]
+
+
+def test_the_stage_says_its_quicklook_and_the_bytes_it_holds(whole_pair: dict[str, Any]) -> None:
+    # The admission's hooks: a quick-look level or not, and the columns held for the tiles
+    # to come (both sides, every level): after the first block of each side, exactly those
+    # blocks (full resolution) and their 1/4 reductions (the quick-look).
+    from parproj_ros.core.results import BlockResult
+
+    pair, cfg = whole_pair["pair"], whole_pair["config"]
+    assert not TileStage(cfg, {}).quicklook
+    stage = TileStage(replace(cfg, dense=replace(cfg.dense, quicklook=2)), {})
+    assert stage.quicklook and stage.held_bytes() == 0
+    kept = 0
+    for side, img, grid in (
+        ("left", pair.left_image, pair.left_grid),
+        ("right", pair.right_image, pair.right_grid),
+    ):
+        part = np.ascontiguousarray(img[:, :TILE_COLS])
+        stage.keep(BlockResult(pair.pair_id, side, 0, 0, part, grid, pair.stamp_ns, False), [pair])
+        rows, cols = part.shape[0] // 4, part.shape[1] // 4
+        kept += part.nbytes + rows * cols * part.itemsize
+    assert stage.held_bytes() == kept
+
+
+def test_the_quicklook_is_shed_and_resumed(whole_pair: dict[str, Any]) -> None:
+    # The admission's switch (core/pipeline.py passes the ledger's quicklook_shed): shed while
+    # a pair is under way, its quick-look stops (columns freed, a WARN naming the pair and
+    # the tiles made) and the full resolution goes on to its last tile; resumed, the next
+    # pair gets its quick-look tiles again, and the pair shed meanwhile stays without.
+    pair, cfg = whole_pair["pair"], whole_pair["config"]
+    stage = TileStage(replace(cfg, dense=replace(cfg.dense, quicklook=2)), {})
+    from parproj_ros.core.results import BlockResult
+
+    def feed(pid: str, col0: int = 0, col1: int | None = None) -> list[Any]:
+        p = replace(pair, pair_id=pid)
+        got: list[Any] = []
+        width = pair.left_image.shape[1]
+        starts = list(range(0, width, TILE_COLS))
+        for i, c0 in enumerate(starts):
+            if c0 < col0 or (col1 is not None and c0 >= col1):
+                continue
+            for side, img, grid in (
+                ("left", pair.left_image, pair.left_grid),
+                ("right", pair.right_image, pair.right_grid),
+            ):
+                part = np.ascontiguousarray(img[:, c0 : c0 + TILE_COLS])
+                last = i == len(starts) - 1
+                stage.keep(BlockResult(pid, side, i, c0, part, grid, 0, last), [p])
+                got += stage(Outputs(), blocks=False).tiles
+        return got
+
+    first = feed("a", col1=TILE_COLS)  # one block of each side: pair a under way
+    assert stage.held_bytes() > 0 and not first
+    said = stage.shed_quicklook(True)
+    assert [(i.level, i.where) for i in said] == [(Level.WARN, "pair a")]
+    assert "quick-look (1/4) DSM tiles shed after 0 of 1" in said[0].message
+    assert stage.shed_quicklook(True) == []  # no change, nothing said
+    rest = feed("a", col0=TILE_COLS)
+    assert [(t.factor, t.index) for t in rest] == [(1, 0), (1, 1), (1, 2)]
+    assert {t.factor for t in feed("b")} == {1}  # pair b starts while shed
+    assert stage.shed_quicklook(False)[0].level == Level.OK
+    again = feed("c")
+    assert {t.factor for t in again} == {1, 4} and [t.index for t in again if t.factor == 4] == [0]
+    assert stage.held_bytes() == 0
