@@ -558,3 +558,22 @@ def test_the_quicklook_is_shed_and_resumed(whole_pair: dict[str, Any]) -> None:
     again = feed("c")
     assert {t.factor for t in again} == {1, 4} and [t.index for t in again if t.factor == 4] == [0]
     assert stage.held_bytes() == 0
+
+
+def test_a_borrowed_block_is_copied_at_full_resolution_only(whole_pair: dict[str, Any]) -> None:
+    # keep(borrowed=True): the caller's pixels may change after the call (the streamer's
+    # view); the full resolution holds a copy, the quick-look its reduction: both unchanged
+    # when the caller's array is overwritten.
+    from parproj_ros.core.results import BlockResult
+    from parproj_ros.core.tiles import reduce_block
+
+    pair, cfg = whole_pair["pair"], whole_pair["config"]
+    stage = TileStage(replace(cfg, dense=replace(cfg.dense, quicklook=2)), {})
+    view = np.ascontiguousarray(pair.left_image[:, :TILE_COLS])
+    want = view.copy()
+    blk = BlockResult(pair.pair_id, "left", 0, 0, view, pair.left_grid, pair.stamp_ns, False)
+    stage.keep(blk, [pair], borrowed=True)
+    view[...] = 7
+    full, quick = (lv.pairs[pair.pair_id].sides["left"].parts[0] for lv in stage.levels)
+    np.testing.assert_array_equal(full, want)
+    np.testing.assert_array_equal(quick, reduce_block(want, 4, 0.0))
