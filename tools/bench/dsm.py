@@ -386,3 +386,112 @@ def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
                 )
                 out[key] = None
     return out
+
+
+#: The stages :func:`tile_stages` times, (attribute of parproj_ros.core.tiles, label).
+TILE_STAGES = (
+    ("reduce_block", "reduce blocks"),
+    ("_window_terrain", "terrain (tie points)"),
+    ("match_pair", "match_pair"),
+    ("make_dsm", "make_dsm"),
+    ("orthoimage", "orthoimage"),
+    ("to_uint8", "stretch"),
+)
+
+
+def tile_stages(
+    cfg: BenchConfig, quicklook: int = -3, *, log: Log = log_stderr, line_rate_hz: float = 6500.0
+) -> dict[str, Any]:
+    """CPU of the streamed tiles of the benchmark's first pair, by stage (issue 26).
+
+    The pair normalized whole in this process (:func:`bench_pair`), then fed as 256-column
+    blocks to a :class:`~parproj_ros.core.tiles.TileStage` with ``heights`` on and
+    ``heights_quicklook`` ``quicklook`` (:func:`~parproj_ros.core.tiles.tiles_of_pair`: a
+    contiguous copy of each block, as the pipeline keeps one), every stage's CPU seconds
+    (``time.process_time``: every thread of this process) counted once (outermost call).
+
+    Returns the tiles, CPU and wall seconds, CPU per sensor second (one pair per scene of
+    ``cfg.lines`` lines at ``line_rate_hz``), ms of CPU per tile, and ``stages``: seconds per
+    stage label, ``other`` the rest (block copies, windows, cell bookkeeping).
+    """
+    from parproj_ros.core import tiles as core_tiles
+
+    config, pair, left, right = bench_pair(cfg)
+    config = replace(config, dense=replace(config.dense, enabled=True, quicklook=quicklook))
+    spent: dict[str, float] = {}
+    depth = [0]
+    saved = {name: getattr(core_tiles, name) for name, _ in TILE_STAGES}
+
+    def timed(fn: Callable[..., Any], label: str) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            if depth[0]:
+                return fn(*args, **kwargs)
+            depth[0] += 1
+            c0 = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.process_time() - c0
+                depth[0] -= 1
+
+        return call
+
+    for name, label in TILE_STAGES:
+        setattr(core_tiles, name, timed(saved[name], label))
+    try:
+        gc.collect()
+        c0, t0 = time.process_time(), time.perf_counter()
+        got = core_tiles.tiles_of_pair(config, pair, left, right)
+        cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+    finally:
+        for name, fn in saved.items():
+            setattr(core_tiles, name, fn)
+    sensor_s = cfg.lines / line_rate_hz
+    n = max(1, len(got))
+    spent["other"] = cpu - sum(spent.values())
+    stages = dict(sorted(spent.items(), key=lambda kv: -kv[1]))
+    res: dict[str, Any] = {
+        "quicklook": quicklook,
+        "pair_size": [int(left.shape[1]), int(left.shape[0])],
+        "tiles": len(got),
+        "tiles_ok": sum(t.ok for _, t in got),
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "sensor_s": sensor_s,
+        "cpu_per_sensor_s": cpu / sensor_s,
+        "cpu_ms_per_tile": 1000 * cpu / n,
+        "stages": stages,
+    }
+    log(
+        f"tiles (heights_quicklook {quicklook}): {len(got)} of pair {left.shape[1]} x "
+        f"{left.shape[0]} px, CPU {cpu:.2f} s ({cpu / sensor_s:.2f} per sensor s, "
+        f"{1000 * cpu / n:.0f} ms a tile), wall {wall:.2f} s; "
+        + ", ".join(f"{k} {v:.3f} s" for k, v in stages.items())
+    )
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tools.bench.dsm [--quick] [--quicklook L]``: :func:`tile_stages` as JSON."""
+    import argparse
+    import json
+
+    from .config import FULL, QUICK
+
+    p = argparse.ArgumentParser(prog="python -m tools.bench.dsm", description=tile_stages.__doc__)
+    p.add_argument("--quick", action="store_true", help="the quick form's pair (2048 px)")
+    p.add_argument(
+        "--quicklook",
+        type=int,
+        default=-3,
+        choices=range(-3, 4),
+        help="heights_quicklook of the tiles (default -3: 1/8 only; 0: full resolution)",
+    )
+    args = p.parse_args(argv)
+    res = tile_stages(QUICK if args.quick else FULL, args.quicklook)
+    print(json.dumps(res, indent=1))
+    return 0 if res["tiles_ok"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
