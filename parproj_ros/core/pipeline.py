@@ -160,6 +160,8 @@ class Pipeline:
         if self.heights is None:
             return out
         if self.tiles is not None:  # the tiles the blocks now cover (core/tiles.py)
+            # The quick-look, shed or resumed by the node's admission under overload.
+            out.issues += self.tiles.shed_quicklook(self.ledger.admission.quicklook_shed)
             out = self.tiles(out)
         out = self.heights(out)
         return out if self.fusion is None else self.fusion(out)

@@ -96,6 +96,8 @@ class ParprojNode(Node):
             self._raw_held,
             *working_set_floor(config),
             book=self.pipeline.ledger.admission,
+            tiles_held=self._tiles_held,
+            quicklook=self.pipeline.tiles is not None and self.pipeline.tiles.quicklook,
         )
         self.worker = Worker(self._handle, self.internal_error)
         inputs: dict[str, Callable[[Any], None]] = {contract.NAVIGATION: self._on_nav}
@@ -253,6 +255,11 @@ class ParprojNode(Node):
         """Raw scene data the node holds: line buffers (kept or in use), queued strips, bytes."""
         lines = sum(a.pool.live_bytes for a in list(self.pipeline.assemblers.values()))
         return lines + self.worker.queued_bytes
+
+    def _tiles_held(self) -> int:
+        """Bytes the streamed DSM tiles hold (columns kept for tiles still to come)."""
+        tiles = self.pipeline.tiles
+        return 0 if tiles is None else tiles.held_bytes()
 
     def _check_idle(self) -> None:
         idle = time.monotonic() - self._last_strip
