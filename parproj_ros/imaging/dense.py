@@ -98,6 +98,19 @@ class SgbmParams:
         max_disparities: widest accepted search range, pixels (memory and time bound).
         min_valid_share: below this share of valid pixels (of the left pixels with data) the
             status is not OK.
+        subpixel: "sgbm": the sub-pixel disparities as OpenCV's SGBM gives them (a parabola
+            through its aggregated costs: "pixel-locked", the fractional parts crowd
+            towards whole pixels, 3.6 times as many within 1/16 px of one as uniform on the
+            Marseille pair 1-2); "gradient": then refined on the images themselves
+            (:func:`_refine_subpixel`, a Lucas-Kanade fit of the disparity in a Gaussian
+            window: fractional parts uniform, on Marseille pair 1-2 NMAD against s2p 0.918 ->
+            0.711 m, against CARS 1.047 -> 0.775 m; on the simulated bags NMAD against truth
+            0.17 -> 0.14-0.15 m; some 0.05 s per Mpx; docs/heights.md).
+        subpixel_sigma_px: standard deviation of the refinement's Gaussian window, pixels.
+        subpixel_iterations: refinement steps (each re-samples the right image at the
+            disparities of the previous one).
+        subpixel_max_px: a refined disparity farther than this from SGBM's, pixels, is not
+            taken (SGBM's stays: an edge, an occlusion, or too little texture to fit).
     """
 
     block_size: int = 5
@@ -113,6 +126,10 @@ class SgbmParams:
     stretch_percentiles: tuple[float, float] = (0.5, 99.5)
     max_disparities: int = 1024
     min_valid_share: float = 0.2
+    subpixel: Literal["sgbm", "gradient"] = "sgbm"
+    subpixel_sigma_px: float = 2.5
+    subpixel_iterations: int = 2
+    subpixel_max_px: float = 0.5
 
     def __post_init__(self) -> None:
         if self.lr_check not in ("flip", "reduced", "none"):
@@ -121,6 +138,13 @@ class SgbmParams:
             )
         if self.block_size < 1 or self.block_size % 2 == 0:
             raise ValueError(f"block_size must be odd and >= 1, got {self.block_size}")
+        if self.subpixel not in ("sgbm", "gradient"):
+            raise ValueError(f"subpixel must be 'sgbm' or 'gradient', got {self.subpixel!r}")
+        if not (self.subpixel_sigma_px > 0 and self.subpixel_iterations >= 1):
+            raise ValueError(
+                "subpixel_sigma_px must be > 0 px and subpixel_iterations >= 1, got "
+                f"{self.subpixel_sigma_px}, {self.subpixel_iterations}"
+            )
         lo, hi = self.stretch_percentiles
         if not 0.0 <= lo < hi <= 100.0:
             raise ValueError(f"stretch_percentiles must be 0 <= low < high <= 100, got {lo, hi}")
@@ -432,7 +456,129 @@ def _match_tile(
         disp[r0:r1] = dl
 
     run_parts(checks, row_parts(disp.shape[0], workers()))
+    if params.subpixel == "gradient":
+        disp = _refine_subpixel(lwin, rwin, disp, s, prep.shift, params)
     return disp, code
+
+
+def _refine_subpixel(
+    lwin: UInt8Array,
+    rwin: UInt8Array,
+    disp: Float32Array,
+    s: slice,
+    shift: int,
+    params: SgbmParams,
+) -> Float32Array:
+    """A tile's disparities refined on its images by a windowed 1-D gradient fit, pixels.
+
+    SGBM's sub-pixel step (a parabola through three aggregated costs) pulls disparities
+    towards whole pixels. Here, for every valid left pixel p, the disparity D common to a
+    Gaussian window around it (standard deviation ``subpixel_sigma_px``) is fitted to the
+    images: with each pixel q's current disparity d_q, the right image at q - D is, to first
+    order, ``R(q - d_q) + (d_q - D) g_q`` (g: the right image's horizontal gradient there), so
+    ``e_q = R(q - d_q) - L(q) + d_q g_q = D g_q + c`` (c: a brightness offset of the window),
+    a straight line in g fitted by weighted least squares (Gaussian filters of e, g, e g,
+    g^2). The fit holds at the centroid of its weights ``g (g - mean g)``, not at p: it is
+    moved back along the fitted disparities' gradient (with Gaussian weights of standard
+    deviation s, ``sum w (q - p) f = s^2 d/dp sum w f``: derivatives of the same filtered
+    sums), which keeps slopes unbiased. Repeated ``subpixel_iterations`` times; where the
+    window's gradient varies too little (variance < 1 DN^2 per px^2) the disparity stays,
+    and where the result moves more than ``subpixel_max_px`` from SGBM's, SGBM's is kept.
+    By row parts on threads (each with the rows its filters reach).
+
+    Args:
+        lwin: the left window (uint8, the matcher's input).
+        rwin: the right window, read ``shift`` columns to the left.
+        disp: disparities of the tile's columns ``s`` of the windows (NaN: invalid), pixels.
+        s: the tile's columns in the windows.
+        shift: the right window's shift, pixels.
+        params: ``subpixel_*`` settings.
+
+    Returns:
+        The refined disparities, the shape of ``disp`` (NaN where it is).
+    """
+    sigma = float(params.subpixel_sigma_px)
+    k = 2 * math.ceil(3.0 * sigma) + 1
+    rimg = rwin.astype(np.float32)
+    gx = cv2.Sobel(rimg, cv2.CV_32F, 1, 0, ksize=1, scale=0.5)
+    lt = lwin[:, s]
+    rows = disp.shape[0]
+    x = np.arange(s.start, s.stop, dtype=np.float32)[None, :]
+    valid = np.isfinite(disp)
+    d0 = np.where(valid, disp - np.float32(shift), np.float32(0.0)).astype(np.float32)
+    out = np.empty_like(d0)
+    halo = params.subpixel_iterations * (k // 2 + 2) + 2
+    s2 = np.float32(sigma * sigma)
+
+    def filt(a: Float32Array) -> Float32Array:
+        return cast(
+            "Float32Array",
+            cv2.GaussianBlur(a, (k, k), sigma, borderType=cv2.BORDER_CONSTANT),
+        )
+
+    def dx(a: Float32Array) -> Float32Array:
+        return cast("Float32Array", cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=1, scale=0.5))
+
+    def dy(a: Float32Array) -> Float32Array:
+        return cast("Float32Array", cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=1, scale=0.5))
+
+    def part(span: tuple[int, int]) -> None:
+        r0, r1 = span
+        ra, rb = max(0, r0 - halo), min(rows, r1 + halo)
+        lp = lt[ra:rb].astype(np.float32)
+        rp, gp = rimg[ra:rb], gx[ra:rb]
+        dp = d0[ra:rb]
+        wv = valid[ra:rb].astype(np.float32)
+        yr = np.ascontiguousarray(
+            np.broadcast_to(np.arange(rb - ra, dtype=np.float32)[:, None], dp.shape)
+        )
+        n = filt(wv)
+        inv_n = np.divide(1.0, n, out=np.zeros_like(n), where=n > 1e-6)
+        d = dp
+        for _ in range(params.subpixel_iterations):
+            xr = x - d
+            e = cast(
+                "Float32Array",
+                cv2.remap(rp, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+            )
+            g = cast(
+                "Float32Array",
+                cv2.remap(gp, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+            )
+            # e = R(x - d) - L(x) + d g: the right image at the common disparity D of a
+            # window is R(x - d) + (d - D) g, so e = D g + (brightness offset): a line fit
+            e -= lp
+            e += d * g
+            e *= wv
+            g *= wv
+            se, sg = filt(e), filt(g)
+            eg = e * g
+            seg = filt(eg)
+            g *= g
+            sgg = filt(g)
+            mg = sg * inv_n
+            num = seg - se * mg
+            den = sgg - sg * mg
+            ok = den > n  # variance of g over the window > 1 (DN / px)^2
+            inv_den = np.divide(1.0, den, out=np.zeros_like(den), where=ok)
+            new = np.where(ok, num * inv_den, d)
+            # the weights' centroid, relative to the pixel, and the fit moved back from it
+            cx = (dx(sgg) - mg * dx(sg)) * inv_den
+            cy = (dy(sgg) - mg * dy(sg)) * inv_den
+            corr = dx(new) * cx
+            corr += dy(new) * cy
+            corr *= s2
+            np.clip(corr, -0.5, 0.5, out=corr)
+            new -= np.where(ok, corr, np.float32(0.0))
+            d = new
+        far = np.abs(d - dp) > params.subpixel_max_px
+        d[far] = dp[far]
+        out[r0:r1] = d[r0 - ra : r1 - ra]
+
+    run_parts(part, row_parts(rows, workers()))
+    out += np.float32(shift)
+    out[~valid] = np.nan
+    return out
 
 
 def _reduced_right_pass(

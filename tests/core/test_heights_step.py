@@ -63,6 +63,29 @@ def test_the_cell_follows_the_option(pair: dict[str, Any]) -> None:
     assert res.ok and res.dsm.grid.cell == 2.0
 
 
+def test_subpixel_refinement_by_default_lowers_the_dsm_error(pair: dict[str, Any]) -> None:
+    """The default sub-pixel refinement ("gradient") against SGBM's own ("sgbm").
+
+    On this pair: NMAD against the terrain 0.107 against 0.158 m (|a| 1.19 m/px).
+    """
+    p, terrain = pair["pair"], pair["terrain"]
+    z = (terrain.min_height, terrain.max_height)
+    assert HeightsOptions().subpixel == "gradient"
+    acc = {}
+    for sp in ("sgbm", "gradient"):
+        opt = HeightsOptions(subpixel=sp)
+        res, _ = measure_heights(p, p.left_image, p.right_image, z, opt)
+        assert res.ok, res.message
+        acc[sp] = dsm_accuracy(res.dsm.heights, res.dsm.grid, terrain.height, res.dsm.filled)
+    print({k: {n: round(v, 4) for n, v in a.items()} for k, a in acc.items()})
+    a = abs(p.height_per_disparity_px)
+    assert acc["gradient"]["nmad"] < 0.8 * acc["sgbm"]["nmad"]
+    assert acc["gradient"]["nmad"] <= a / 8
+    assert acc["gradient"]["rms"] <= acc["sgbm"]["rms"] * 1.01
+    # the refinement moves disparities, it does not add or remove cells
+    assert abs(acc["gradient"]["completeness"] - acc["sgbm"]["completeness"]) < 0.005
+
+
 def test_inverted_x_parallax_sign_gives_the_same_heights(pair: dict[str, Any]) -> None:
     """Both images mirrored and a -> -a: the disparities change sign, the heights do not."""
     p, terrain = pair["pair"], pair["terrain"]

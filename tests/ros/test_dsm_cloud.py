@@ -191,7 +191,9 @@ def test_process_writes_the_cloud_of_the_dsm(tmp_path: Path, option: int | None)
     msgs = read_independently(out, [contract.DSM, contract.DSM_CLOUD])
     (grid_msg,), (cloud,) = msgs[contract.DSM], msgs[contract.DSM_CLOUD]
     heights, ortho, geo = grid_arrays(grid_msg)
-    assert heights.shape == (791, 787)
+    # the grid covers the valid points at their extreme heights: its size follows the
+    # disparities by a cell or so (787 columns with SGBM's sub-pixel step, 786 refined)
+    assert heights.shape[0] == 791 and abs(heights.shape[1] - 787) <= 2, heights.shape
 
     def stamp(m: Any) -> tuple[str, int, int]:
         return (m.header.frame_id, m.header.stamp.sec, m.header.stamp.nanosec)
