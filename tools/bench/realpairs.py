@@ -93,7 +93,10 @@ class Case:
         name: its key.
         images: the images imported (in order).
         refs: pair id -> {reference name: GeoTIFF}; the DSM of that pair is scored against
-            each ("fused" for the fused DSM).
+            each ("fused" for the fused DSM). CARS made no DSM of pairs 1-3 and 2-3: theirs
+            are scored against cars_dsm_123 too (the triplet's level, 2.4 m from each of
+            those pairs': compare its NMAD, not its median), so that a change is seen by
+            both pipelines' references, not tuned to one.
         footprints: pair id -> the images whose common footprint is scored.
         pairs_all: import with ``--pairs all`` and fuse the pairs' DSMs.
         srtm: an SRTM tile to score against when there is no reference DSM.
@@ -125,13 +128,13 @@ CASES: dict[str, Case] = {
     "marseille_13": Case(
         "marseille_13",
         (_img(1), _img(3)),
-        {"left+right": {"s2p": _ref("s2p_dsm_13")}},
+        {"left+right": {"s2p": _ref("s2p_dsm_13"), "cars": _ref("cars_dsm_123")}},
         {"left+right": (_img(1), _img(3))},
     ),
     "marseille_23": Case(
         "marseille_23",
         (_img(2), _img(3)),
-        {"left+right": {"s2p": _ref("s2p_dsm_23")}},
+        {"left+right": {"s2p": _ref("s2p_dsm_23"), "cars": _ref("cars_dsm_123")}},
         {"left+right": (_img(2), _img(3))},
     ),
     "marseille_123": Case(
