@@ -71,6 +71,8 @@ def _snapshot(ledger: PairLedger) -> dict[str, object]:
             if name == "waiting"
             else copy.deepcopy({v: {k: id(r) for k, r in d.items()} for v, d in value.items()})
             if name == "ready"
+            else id(value)
+            if name == "admission"  # the admission's book: not the streaming policy's
             else copy.copy(value)
         )
         for name, value in vars(ledger).items()
