@@ -143,6 +143,11 @@ class Pipeline:
         def keep_and_sink(blk: BlockResult) -> None:
             to(blk)
             try:
+                if heights.options.quicklook_only and tiles is not None:
+                    # Nothing keeps the full-resolution block: the quick-look levels take
+                    # their reduction of the borrowed pixels (no 7 MB copy per IKONOS block).
+                    tiles.keep(blk, borrowed=True)
+                    return
                 kept = replace(blk, image=blk.image.copy())
                 heights.keep(kept)
                 if tiles is not None:

@@ -329,10 +329,14 @@ class TileLevel:
         lr_check = options.lr_check
         if factor > 1 and lr_check == "flip":
             lr_check = QUICKLOOK_LR_CHECK
+        # The full resolution refines its sub-pixel disparities as the whole-pair step does
+        # (HeightsOptions.subpixel), so that a streamed pair's DSM is the step's; the
+        # quick-look keeps SGBM's own (its pixels are 2-8 times coarser, its CPU the limit).
         self.params = SgbmParams(
             mode=MATCHER_MODES[options.matcher],
             lr_check=lr_check,
             stretch_percentiles=(0, 100),
+            subpixel=options.subpixel if factor == 1 else "sgbm",
         )
 
     # ---- blocks in ----------------------------------------------------------------------

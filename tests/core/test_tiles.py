@@ -577,3 +577,69 @@ def test_a_borrowed_block_is_copied_at_full_resolution_only(whole_pair: dict[str
     full, quick = (lv.pairs[pair.pair_id].sides["left"].parts[0] for lv in stage.levels)
     np.testing.assert_array_equal(full, want)
     np.testing.assert_array_equal(quick, reduce_block(want, 4, 0.0))
+
+
+def test_quicklook_only_sink_takes_borrowed_blocks() -> None:
+    """With a block sink (the node's path) and quick-look tiles only, the pipeline hands the
+    tile stage the borrowed block (no copy): the sink's buffer, overwritten right after each
+    call as the render process's next block overwrites it, must not change the tiles, which
+    equal those made from blocks returned in the outputs (to the bit)."""
+    from parproj_ros.core.results import BlockResult
+
+    reader = BagReader(BAG)
+    cfg = config_from_bag(
+        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=-2
+    )
+    pipe = Pipeline(cfg)
+    seen: list[int] = []
+
+    def sink(blk: BlockResult) -> None:
+        seen.append(blk.index)
+
+    pipe.set_block_sink(sink)
+    stage = pipe.tiles
+    assert stage is not None
+    keep = stage.keep
+    flags: list[bool] = []
+
+    def spy(blk: BlockResult, pairs: Any = None, *, borrowed: bool = False) -> None:
+        flags.append(borrowed)
+        keep(blk, pairs, borrowed=borrowed)
+
+    stage.keep = spy  # type: ignore[method-assign]
+    # The borrowed pixels are scribbled over once the pipeline's call returns.
+    inner = pipe.streamer.block_sink
+    assert inner is not None
+
+    def borrowed(blk: BlockResult) -> None:
+        buf = blk.image.copy()
+        inner(replace(blk, image=buf))
+        buf[...] = 0
+
+    pipe.streamer.block_sink = borrowed
+    out = Outputs()
+    for item in reader.messages():
+        if item.topic == "navigation":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
+        elif item.topic in STRIPS:
+            m = item.msg
+            out.extend(
+                pipe.add_strip(
+                    STRIPS[item.topic],
+                    conv.stamp_to_ns(m.header.stamp),
+                    m.header.frame_id,
+                    conv.image_to_array(m),
+                )
+            )
+    out.extend(pipe.flush())
+    calls, flushed = _run(quicklook=-2)
+    ref = Outputs()
+    for _, o in calls:
+        ref.extend(o)
+    ref.extend(flushed)
+    assert seen and not out.blocks and out.tiles
+    assert flags and all(flags)  # every block handed over borrowed: no copy made
+    assert [t.pair_id for t in out.tiles] == [t.pair_id for t in ref.tiles]
+    for a, b in zip(out.tiles, ref.tiles, strict=True):
+        assert a.dsm is not None and b.dsm is not None
+        np.testing.assert_array_equal(a.dsm.heights, b.dsm.heights)

@@ -118,6 +118,9 @@ FULL = BenchConfig(
     min_sustained=0.995,
     heights_repeats=1,
     heights_rows=4096,
+    # 1/8 instead of the full resolution at the IKONOS width (1/4 took 1.6-1.9 CPU s of the
+    # node per sensor s there; docs/quicklook_bench.md): the quick form keeps -4.
+    quicklook_factor=-8,
     map_coordinates_rows=512,
     repeats=3,
     scaling=(
