@@ -263,6 +263,8 @@ class HeightsStage:
         self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
         #: The full-resolution streamed tiles of the pairs in progress (core/tiles.py), by pair.
         self._tiles: dict[str, list[HeightTile]] = {}
+        #: Quick-look tiles with a DSM of the pairs in progress, by pair (quick-look only).
+        self._quick: dict[str, int] = {}
 
     def __call__(self, out: Outputs) -> Outputs:
         """Add the heights (and their issues) of the pairs ``out`` completes, in place.
@@ -276,6 +278,8 @@ class HeightsStage:
         for tile in out.tiles:
             if tile.factor == 1:
                 self._tiles.setdefault(tile.pair_id, []).append(tile)
+            elif tile.ok:
+                self._quick[tile.pair_id] = self._quick.get(tile.pair_id, 0) + 1
         for pair in out.pairs:
             from_tiles = self._from_tiles(pair)
             if from_tiles is not None:
@@ -283,13 +287,22 @@ class HeightsStage:
                 out.heights.append(from_tiles)
                 continue
             if pair.left_image is None and self.options.quicklook_only:
+                quick = self._quick.pop(pair.pair_id, 0)
                 self.forget(pair.pair_id)
                 out.issues.append(
                     Issue(
                         Level.OK,
                         f"pair {pair.pair_id}",
-                        "heights: its quick-look tiles stand for them (heights_quicklook < 0): "
-                        "no full-resolution DSM",
+                        f"heights: its {quick} quick-look tiles stand for them "
+                        "(heights_quicklook < 0): no full-resolution DSM",
+                    )
+                    if quick
+                    else Issue(
+                        Level.WARN,
+                        f"pair {pair.pair_id}",
+                        "no heights: quick-look tiles only (heights_quicklook < 0) and none "
+                        "was made of this pair (shed under overload, or not matched: see the "
+                        "tiles' lines on /diagnostics)",
                     )
                 )
                 continue
@@ -381,6 +394,7 @@ class HeightsStage:
         for side in ("left", "right"):
             self._blocks.pop((pair_id, side), None)
         self._tiles.pop(pair_id, None)
+        self._quick.pop(pair_id, None)
 
 
 def assemble_tiles(tiles: list[HeightTile]) -> Dsm | None:

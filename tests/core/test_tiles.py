@@ -643,3 +643,35 @@ def test_quicklook_only_sink_takes_borrowed_blocks() -> None:
     for a, b in zip(out.tiles, ref.tiles, strict=True):
         assert a.dsm is not None and b.dsm is not None
         np.testing.assert_array_equal(a.dsm.heights, b.dsm.heights)
+
+
+def test_quicklook_only_pair_with_the_quicklook_shed_says_it_has_no_heights() -> None:
+    """Quick-look tiles only, shed by the admission before the pair starts (the ledger book's
+    flag, as the node's admission sets it): no tile, and the pair's heights line is a WARN that
+    it has none and why, not the OK line of a pair whose tiles stand for its heights."""
+    reader = BagReader(BAG)
+    cfg = config_from_bag(
+        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=-2
+    )
+    pipe = Pipeline(cfg)
+    pipe.ledger.admission.quicklook_shed = True
+    out = Outputs()
+    for item in reader.messages():
+        if item.topic == "navigation":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
+        elif item.topic in STRIPS:
+            m = item.msg
+            out.extend(
+                pipe.add_strip(
+                    STRIPS[item.topic],
+                    conv.stamp_to_ns(m.header.stamp),
+                    m.header.frame_id,
+                    conv.image_to_array(m),
+                )
+            )
+    out.extend(pipe.flush())
+    assert len(out.pairs) == 1 and not out.tiles and not out.heights
+    (said,) = [i for i in out.issues if i.where == f"pair {out.pairs[0].pair_id}"
+               and "heights" in i.message]  # fmt: skip
+    assert said.level == Level.WARN and "none was made of this pair (shed" in said.message
+    assert not any("stand for them" in i.message for i in out.issues)
