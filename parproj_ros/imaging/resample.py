@@ -179,8 +179,11 @@ def _fit_tiles(
         coef = np.einsum("jk,nkc->njc", pinv, vals)  # (n, 3, 2)
         err = np.einsum("kj,njc->nkc", design, coef) - vals
         emax = np.hypot(err[..., 0], err[..., 1]).max(axis=1)
-        for (r0, c0), cf, e in zip(origins, coef, emax, strict=True):
-            out.append(Tile(r0, c0, nr, nc, np.asarray(cf.T, dtype=float), float(e)))
+        affines = coef.transpose(0, 2, 1)  # (n, 2, 3): each tile's cf.T, a view of coef
+        out.extend(
+            Tile(r0, c0, nr, nc, aff, e)
+            for (r0, c0), aff, e in zip(origins, affines, emax.tolist(), strict=True)
+        )
     return out
 
 
