@@ -57,6 +57,7 @@ FOREIGN = {
     "msg",
     "sys",
     "os",
+    "time",
     "header",
 }
 #: Last parts that make ``a.b`` a file name, not a module attribute.
