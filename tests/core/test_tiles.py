@@ -44,15 +44,33 @@ LINES = 768
 STRIPS = {"left/image_strip": "left", "right/image_strip": "right"}
 
 
-def _run(
-    quicklook: int = 0, drop_last_right: int = 0
-) -> tuple[list[tuple[str, Outputs]], Outputs]:
-    """The bag fed message by message: [(input kind, outputs)], and the flush's outputs."""
-    reader = BagReader(BAG)
+def _pipeline(quicklook: int = 0) -> Pipeline:
+    """A pipeline of the bag's configuration with heights on and ``heights_quicklook``."""
     cfg = config_from_bag(
-        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=quicklook
-    )
-    pipe = Pipeline(cfg)
+        BagReader(BAG), scene_lines=LINES, heights=True, tie_points=False,
+        heights_quicklook=quicklook,
+    )  # fmt: skip
+    return Pipeline(cfg)
+
+
+def _all(calls: list[tuple[str, Outputs]], flushed: Outputs) -> Outputs:
+    """Every output of a :func:`_run`, in order, in one Outputs."""
+    out = Outputs()
+    for _, o in calls:
+        out.extend(o)
+    out.extend(flushed)
+    return out
+
+
+def _run(
+    quicklook: int = 0, drop_last_right: int = 0, pipe: Pipeline | None = None
+) -> tuple[list[tuple[str, Outputs]], Outputs]:
+    """The bag fed message by message: [(input kind, outputs)], and the flush's outputs.
+
+    ``pipe``: the pipeline to feed (set up by the caller); else :func:`_pipeline`.
+    """
+    reader = BagReader(BAG)
+    pipe = _pipeline(quicklook) if pipe is None else pipe
     items = [i for i in reader.messages() if i.topic == "navigation" or i.topic in STRIPS]
     rights = [k for k, i in enumerate(items) if i.topic == "right/image_strip"]
     skip = set(rights[len(rights) - drop_last_right :]) if drop_last_right else set()
@@ -586,11 +604,7 @@ def test_quicklook_only_sink_takes_borrowed_blocks() -> None:
     equal those made from blocks returned in the outputs (to the bit)."""
     from parproj_ros.core.results import BlockResult
 
-    reader = BagReader(BAG)
-    cfg = config_from_bag(
-        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=-2
-    )
-    pipe = Pipeline(cfg)
+    pipe = _pipeline(quicklook=-2)
     seen: list[int] = []
 
     def sink(blk: BlockResult) -> None:
@@ -617,26 +631,8 @@ def test_quicklook_only_sink_takes_borrowed_blocks() -> None:
         buf[...] = 0
 
     pipe.streamer.block_sink = borrowed
-    out = Outputs()
-    for item in reader.messages():
-        if item.topic == "navigation":
-            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
-        elif item.topic in STRIPS:
-            m = item.msg
-            out.extend(
-                pipe.add_strip(
-                    STRIPS[item.topic],
-                    conv.stamp_to_ns(m.header.stamp),
-                    m.header.frame_id,
-                    conv.image_to_array(m),
-                )
-            )
-    out.extend(pipe.flush())
-    calls, flushed = _run(quicklook=-2)
-    ref = Outputs()
-    for _, o in calls:
-        ref.extend(o)
-    ref.extend(flushed)
+    out = _all(*_run(pipe=pipe))
+    ref = _all(*_run(quicklook=-2))
     assert seen and not out.blocks and out.tiles
     assert flags and all(flags)  # every block handed over borrowed: no copy made
     assert [t.pair_id for t in out.tiles] == [t.pair_id for t in ref.tiles]
@@ -649,27 +645,9 @@ def test_quicklook_only_pair_with_the_quicklook_shed_says_it_has_no_heights() ->
     """Quick-look tiles only, shed by the admission before the pair starts (the ledger book's
     flag, as the node's admission sets it): no tile, and the pair's heights line is a WARN that
     it has none and why, not the OK line of a pair whose tiles stand for its heights."""
-    reader = BagReader(BAG)
-    cfg = config_from_bag(
-        reader, scene_lines=LINES, heights=True, tie_points=False, heights_quicklook=-2
-    )
-    pipe = Pipeline(cfg)
+    pipe = _pipeline(quicklook=-2)
     pipe.ledger.admission.quicklook_shed = True
-    out = Outputs()
-    for item in reader.messages():
-        if item.topic == "navigation":
-            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
-        elif item.topic in STRIPS:
-            m = item.msg
-            out.extend(
-                pipe.add_strip(
-                    STRIPS[item.topic],
-                    conv.stamp_to_ns(m.header.stamp),
-                    m.header.frame_id,
-                    conv.image_to_array(m),
-                )
-            )
-    out.extend(pipe.flush())
+    out = _all(*_run(pipe=pipe))
     assert len(out.pairs) == 1 and not out.tiles and not out.heights
     (said,) = [i for i in out.issues if i.where == f"pair {out.pairs[0].pair_id}"
                and "heights" in i.message]  # fmt: skip
