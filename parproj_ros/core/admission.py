@@ -110,10 +110,10 @@ def decide_admission(in_flight: int, terms: MemoryTerms) -> tuple[bool, str]:
     """The admission policy: whether a new pair may be taken, and why not. Pure.
 
     With nothing in flight a pair is always admitted (the node can hold no less). Otherwise it
-    is admitted when start-up + max(raw data held, (pairs in flight + 1) x raw pair) + working
-    set is within the usable budget. The reason names every term, and, when the budget cannot
-    hold two pairs in flight (consecutive pairs overlap in time, so it sheds at any rate), the
-    budget that would.
+    is admitted when start-up + max(raw data held, (pairs in flight + 1) x raw pair) + the
+    streamed tiles' columns + working set is within the usable budget. The reason names every
+    term, and, when the budget cannot hold two pairs in flight (consecutive pairs overlap in
+    time, so it sheds at any rate), the budget that would.
     """
     if not in_flight:
         return True, ""
