@@ -380,6 +380,7 @@ def run_through_node(
     log: Callable[[str], None] = print,
     also: Sequence[str] = (),
     program: Sequence[str] | None = None,
+    skip: Sequence[str] = (),
 ) -> LiveRun:
     """Replay ``bag`` into parproj_node (its own process) and record the outputs.
 
@@ -390,7 +391,7 @@ def run_through_node(
     with all their images and one message on each ``also`` topic (or ``timeout_s``, or the
     node died), and stops the node (SIGINT). ``program``: the command before ``--ros-args``
     (:class:`NodeProcess`; e.g. the node of a colcon install tree started from a shell that
-    sourced its setup script).
+    sourced its setup script). ``skip``: output topics not subscribed to (nor recorded).
     """
     import rclpy
     from rclpy.context import Context
@@ -407,14 +408,15 @@ def run_through_node(
     ctx = Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("parproj_recorder", context=ctx)
-    recorder = Recorder(node, workdir / "output", contract.OUTPUT_TOPICS)
+    topics = {t: m for t, m in contract.OUTPUT_TOPICS.items() if t not in skip}
+    recorder = Recorder(node, workdir / "output", topics)
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     res: dict[str, Any] = {}
     try:
-        discovered = recorder.wait_for_publishers(list(contract.OUTPUT_TOPICS), timeout_s=60.0)
+        discovered = recorder.wait_for_publishers(list(topics), timeout_s=60.0)
         if not discovered:
             log("live: the node's output topics were not discovered in 60 s")
         res = replay(

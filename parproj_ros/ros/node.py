@@ -82,6 +82,7 @@ class ParprojNode(Node):
         # Streamed blocks are published as each is rendered (the render process renders the
         # next one meanwhile), not gathered until the input's other outputs are made.
         self.pipeline.set_block_sink(self._publish_block)
+        self.blocks_unsubscribed = 0  # streamed blocks not sent: no subscriber (volatile)
         if said := prefault(config, float(vals["prefault_mb"]), self.pipeline.assemblers):
             self.log("info", said)
         self.worker_stall_s = float(vals["worker_stall_s"])
@@ -298,10 +299,19 @@ class ParprojNode(Node):
         self.reporter.outputs(out)
 
     def _publish_block(self, blk: BlockResult) -> None:
-        """Publish one streamed block as it is rendered (its pixels borrowed). Never raises."""
+        """Publish one streamed block as it is rendered (its pixels borrowed). Never raises.
+
+        A block topic nobody subscribes to gets nothing: it is volatile, so no subscriber,
+        present or later, could receive the block (image_transport's lazy publishing); its
+        CDR copy and DDS write (7 MB a block at the IKONOS width) are saved, and the
+        summary's ``blocks_unsubscribed`` counts the blocks not sent.
+        """
         if self.reporter.closed:
             return
         topic = contract.normalized_block_topic(blk.side)
+        if self.pubs[topic].get_subscription_count() == 0:
+            self.blocks_unsubscribed += 1
+            return
         try:
             self.pubs[topic].publish(conv.block_to_cdr(blk, frame_id=self.frame_id))
         except Exception as err:
@@ -325,6 +335,7 @@ class ParprojNode(Node):
             [
                 *self.admission.counts.items(),
                 *self.pipeline.ledger.counts().items(),
+                ("blocks_unsubscribed", self.blocks_unsubscribed),
                 ("queue", self.worker.qsize()),
                 ("queue_max", self.worker.take_peak()),
                 ("nav_samples", len(self.pipeline.nav)),

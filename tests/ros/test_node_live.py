@@ -27,9 +27,12 @@ ALL_BAGS = ["ikonos_agile", "airborne_foreaft", "crab_foreaft", "ventoux"]
 
 
 def run_live(
-    bag: Path, out: Path, rate: float = 0.0, **params: object
+    bag: Path, out: Path, rate: float = 0.0, skip: tuple[str, ...] = (), **params: object
 ) -> tuple[Path, dict[str, int], str]:
-    """Replay ``bag`` into parproj_node (child process); record its outputs into ``out``."""
+    """Replay ``bag`` into parproj_node (child process); record its outputs into ``out``.
+
+    ``skip``: output topics nobody subscribes to.
+    """
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     views = views_from_bag(BagReader(bag))
     also = ("disparity", "height") if params.get("heights") else ()
@@ -40,6 +43,7 @@ def run_live(
         rate=rate,
         log=lambda s: None,
         also=also,
+        skip=skip,
     )
     assert run.discovered, "node outputs not discovered"
     assert run.code == 0, run.log
@@ -172,6 +176,39 @@ def test_streaming_through_the_live_node(tmp_path: Path) -> None:
     assert sorted(on) == sorted(off) and ("disparity", 0) in on
     for key, arr in off.items():
         assert np.array_equal(on[key], arr, equal_nan=True), key
+
+
+def test_a_block_topic_nobody_subscribes_to_gets_nothing(tmp_path: Path) -> None:
+    """Blocks are volatile: on a side with no subscriber the node sends none, and says so.
+
+    The same streamed pair as above with nobody on ``right/normalized_block``: the left blocks
+    all arrive, no right block is sent (its CDR copy and DDS write saved), the 1 Hz summary
+    counts every right block as ``blocks_unsubscribed``, and the heights, made from the blocks
+    the pipeline keeps, not from the published ones, are those of the offline run to the bit.
+    """
+    bag = BAGS / "airborne_foreaft"
+    params = {"scene_lines": 768, "heights": True}
+    out, counts, log = run_live(
+        bag, tmp_path / "output", rate=20.0, skip=("right/normalized_block",), **params
+    )
+    assert counts["stereo_pair"] == 1 and "right/normalized_block" not in counts, log
+    process_bag(bag, tmp_path / "offline", progress=False, overrides=params)
+    off = BagReader(tmp_path / "offline")
+    n_off = {t: sum(1 for _ in off.messages(topics=[t])) for t in off.topics()}
+    assert n_off["right/normalized_block"] >= 2
+    assert counts["left/normalized_block"] == n_off["left/normalized_block"], log
+    summaries = [
+        {kv.key: kv.value for kv in st.values}
+        for m in BagReader(out).messages(topics=["/diagnostics"])
+        for st in m.msg.status
+        if st.name == "parproj_node: summary"
+    ]
+    assert summaries and summaries[-1]["blocks_unsubscribed"] == str(
+        n_off["right/normalized_block"]
+    ), summaries[-1:]
+    (on_d,) = [m.msg for m in BagReader(out).messages(topics=["disparity"])]
+    (off_d,) = [m.msg for m in off.messages(topics=["disparity"])]
+    assert np.array_equal(image_to_array(on_d.image), image_to_array(off_d.image), equal_nan=True)
 
 
 # ---- heights (issue 12) -------------------------------------------------------------------------
