@@ -74,6 +74,9 @@ class SideStream:
     next_block: int = 0
     done: bool = False
     prefetched: bool = False
+    #: Complete when its stream opened, and blocks of it still to emit: they go out as the
+    #: other side's do (:data:`~parproj_ros.core.streaming.PACED_LEAD_BLOCKS` ahead).
+    paced: bool = False
 
     def needed_from(self) -> int:
         """First line any block still to come needs."""

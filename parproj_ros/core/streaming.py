@@ -60,6 +60,13 @@ TILE_ROWS = 512
 #: reliable writer resending lost fragments; ``python -m tools.bench``), which half a scene,
 #: the former bound, took for a stop.
 STALE_MIN_S = 2.0
+#: A side complete when its stream opens (fore/aft cameras: the fore scene of pair k+1 is
+#: complete when the aft one begins) has its blocks emitted as the other side's are, this many
+#: ahead, not all at once: at the IKONOS width its 55 blocks took 0.7-0.8 s in the input that
+#: opened the stream, and the pair's first streamed DSM tile waited for all of them
+#: (docs/stream_start.md). Ahead, so that a tile's left window, wider than the right one by
+#: the disparities, is there when the right one is (4 blocks: 1024 columns).
+PACED_LEAD_BLOCKS = 4
 #: Lines of margin around the lines a tile's affine map reaches: the widest kernel's support
 #: (imaging/kernels.py; bicubic: 2) and one more, whatever kernel is configured.
 LINE_MARGIN = 1 + max_support_lines()
@@ -389,7 +396,8 @@ class Streamer:
 
         A side whose scene is still arriving gets parameters extrapolated from the latest
         navigation; a side whose scene is already complete (fore/aft cameras: the aft camera
-        sees the same ground later) keeps its parameters and has all its blocks emitted at once.
+        sees the same ground later) keeps its parameters, and its blocks are emitted as the
+        other side's are (paced, :data:`PACED_LEAD_BLOCKS` ahead).
         When navigation lags behind the strips (separate topics, no ordering between them), the
         decision is held (:attr:`PairLedger.held_until`: pair -> the decision time, the first
         line of the later scene) until navigation reaches that time; a scene still arriving
@@ -582,10 +590,16 @@ class Streamer:
         data: NDArray[np.generic],
         first: int,
         complete: bool,
+        limit: int | None = None,
     ) -> Outputs:
+        """Render and emit ``side``'s next blocks that ``received`` lines complete.
+
+        ``complete``: every line is there (the scene is complete); ``limit``: emit none of
+        index ``limit`` or more (a paced side).
+        """
         out = Outputs()
         ready = []
-        for b in side.blocks[side.next_block :]:
+        for b in side.blocks[side.next_block : limit]:
             if not complete and b.max_line >= received:
                 break
             ready.append(b)
@@ -652,6 +666,26 @@ class Streamer:
             out.extend(self._emit_blocks(stream, side, opened.lines, data, first, False))
             if side.next_block > 0:  # keep every line until the stream has really begun
                 asm.release(side.needed_from())
+        out.extend(self._emit_paced(stream))
+        return out
+
+    def _emit_paced(self, stream: StreamPair, flush: bool = False) -> Outputs:
+        """The blocks of ``stream``'s paced sides (complete at its opening) now due.
+
+        Due: up to :data:`PACED_LEAD_BLOCKS` beyond the other side's emitted blocks, or all
+        of them (``flush``: the other side is complete too).
+        """
+        out = Outputs()
+        for side in stream.sides.values():
+            if not side.paced:
+                continue
+            other = next(s for s in stream.sides.values() if s is not side)
+            limit = None if flush else other.next_block + PACED_LEAD_BLOCKS
+            sc = stream.scenes[side.side]
+            out.extend(
+                self._emit_blocks(stream, side, sc.lines, sc.image, sc.released, True, limit)
+            )
+            side.paced = side.next_block < len(side.blocks)
         return out
 
     def _close(self, stream: StreamPair, scene: Scene, prefetched: bool = False) -> Outputs | None:
@@ -686,11 +720,19 @@ class Streamer:
                 )
             )
             return out
-        out.extend(self._emit_blocks(stream, side, scene.lines, scene.image, scene.released, True))
         side.done = True
         side.prefetched = prefetched
         stream.scenes[side.side] = scene
-        if not all(s.done for s in stream.sides.values()):
+        # A side complete when its stream opens is paced: its blocks go out with the other
+        # side's (:meth:`_emit_paced`), not all in the input that opened the stream.
+        side.paced = prefetched
+        both = all(s.done for s in stream.sides.values())
+        if not prefetched:
+            out.extend(
+                self._emit_blocks(stream, side, scene.lines, scene.image, scene.released, True)
+            )
+        out.extend(self._emit_paced(stream, flush=both))
+        if not both:
             return out
         self.ledger.end_stream(stream.index)
         results = []

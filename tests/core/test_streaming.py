@@ -259,3 +259,49 @@ def test_two_open_scenes_wait_for_late_navigation(nav_delay_s: float) -> None:
     )
     assert (streamed, whole) == (2, 0), issues
     assert len([i for i in issues if "decision held" in i.message]) == 2, issues
+
+
+def test_a_side_complete_at_the_opening_is_paced_with_the_other() -> None:
+    """Fore/aft cameras: the fore (left) scene of a pair is complete when the aft one begins.
+
+    Its blocks used to go out all in the input that opened the stream (55 at the IKONOS
+    width: 0.7-0.8 s before the pair's first DSM tile could be made, docs/stream_start.md).
+    Now they go out as the right side's do, at most PACED_LEAD_BLOCKS ahead, each once and in
+    order, and all of them before the pair.
+    """
+    from parproj_ros.core.pipeline import PipelineConfig
+    from parproj_ros.core.streaming import PACED_LEAD_BLOCKS
+    from parproj_ros.ros import conversions as conv
+    from parproj_ros.sim.synthetic import StripMessages, acquisition, make_platform, nav_message
+
+    plat = make_platform(2048, 256)
+    strips = StripMessages(plat, 128)
+    pipe = Pipeline(PipelineConfig(views=plat.views, scene_lines=2048))
+    sent: dict[tuple[str, str], list[tuple[int, bool]]] = {}  # (pair, side) -> (index, last)
+    lead: dict[str, list[int]] = {}  # pair -> left minus right blocks out, per input with any
+    for e in acquisition(plat, 2, 128, 50.0):
+        if e.kind == "nav":
+            out = pipe.add_navigation(conv.odometry_to_sample(nav_message(plat, e.t_s)))
+        else:
+            m = strips.get(e)
+            out = pipe.add_strip(
+                ("left", "right")[e.view],
+                stamp_to_ns(m.header.stamp),
+                m.header.frame_id,
+                conv.image_to_array(m),
+            )
+        for b in out.blocks:
+            sent.setdefault((b.pair_id, b.side), []).append((b.index, b.last))
+        for pid in {b.pair_id for b in out.blocks}:
+            left, right = (sent.get((pid, s), []) for s in ("left", "right"))
+            if not (right and right[-1][1]):  # the right side still streams
+                lead.setdefault(pid, []).append(len(left) - len(right))
+        for pair in out.pairs:  # every block of the pair is out before it
+            assert all(sent[(pair.pair_id, s)][-1][1] for s in ("left", "right")), pair.pair_id
+    assert len(lead) == 2, sorted(sent)
+    for (pid, side), got in sent.items():
+        idx = [i for i, _ in got]
+        assert idx == list(range(len(idx))) and len(idx) > PACED_LEAD_BLOCKS, (pid, side)
+    for pid, ahead in lead.items():
+        # The left side (complete) leads the right one by at most the lead, over many inputs.
+        assert max(ahead) == PACED_LEAD_BLOCKS and len(ahead) >= 4, (pid, ahead)
