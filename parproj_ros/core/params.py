@@ -649,6 +649,17 @@ PARAMS: tuple[Param, ...] = (
         concern="runtime",
     ),
     Param(
+        "tile_thread",
+        "bool",
+        True,
+        "streamed DSM tiles (heights on) are matched and gridded on a thread of their own, so "
+        "the worker goes on taking strips and rendering blocks meanwhile (at the IKONOS rate "
+        "the worker is the bottleneck: the tiles took half a second a pair on it), and OpenCV "
+        "then uses 1 thread (a pair made whole meanwhile too); false: on the worker, between "
+        "inputs. The same tiles either way; a tile may come with a later input",
+        concern="runtime",
+    ),
+    Param(
         "prefault_mb",
         "double",
         -1.0,

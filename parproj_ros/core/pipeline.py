@@ -67,7 +67,7 @@ from .results import (
 from .streaming import Streamer
 from .terrain import terrain_from_heights
 from .tiepoints import TieRefinement, refine_with_tie_points
-from .tiles import TileStage
+from .tiles import TileStage, TileThread
 from .trajectory import NavSample, TrajectoryBuffer
 
 #: The facade's names: the pipeline, its settings and what it returns.
@@ -109,7 +109,9 @@ class Pipeline:
         self.streamer = Streamer(config, self.assemblers, self.feed, self.gcps, self.ledger)
         self.heights = HeightsStage(options_of(config)) if config.dense.enabled else None
         #: Streamed DSM tiles while the blocks arrive (core/tiles.py), with heights on.
-        self.tiles = TileStage(config, self.ledger.streams) if TileStage.applies(config) else None
+        self.tiles: TileStage | TileThread | None = (
+            TileStage(config, self.ledger.streams) if TileStage.applies(config) else None
+        )
         self.fusion = (
             FusionStage(config.dense.fuse_mb)
             if config.dense.enabled and config.dense.fuse_mb > 0
@@ -126,6 +128,20 @@ class Pipeline:
         for asm in self.assemblers.values():
             asm.pool.allocate = renderer.allocate
 
+    def use_tile_thread(self) -> None:
+        """Make the streamed DSM tiles on a thread of their own (:class:`TileThread`).
+
+        The node's: its pipeline thread goes on with strips and blocks meanwhile. Call before
+        the first strip; :meth:`close` stops the thread. Nothing to do without tiles.
+        """
+        if isinstance(self.tiles, TileStage):
+            self.tiles = TileThread(self.tiles)
+
+    def close(self) -> None:
+        """Stop the tile thread, if any (no input may be fed after)."""
+        if self.tiles is not None:
+            self.tiles.close()
+
     def set_block_sink(self, sink: Callable[[BlockResult], None] | None) -> None:
         """Hand each streamed block to ``sink`` as soon as it is rendered (the node publishes it).
 
@@ -138,10 +154,11 @@ class Pipeline:
         if sink is None or self.heights is None:
             self.streamer.block_sink = sink
             return
-        heights, tiles, to = self.heights, self.tiles, sink
+        heights, to = self.heights, sink
 
         def keep_and_sink(blk: BlockResult) -> None:
             to(blk)
+            tiles = self.tiles  # the stage, or its thread (use_tile_thread)
             try:
                 if heights.options.quicklook_only and tiles is not None:
                     # Nothing keeps the full-resolution block: the quick-look levels take

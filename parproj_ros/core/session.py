@@ -129,7 +129,8 @@ class Session:
         return []
 
     def close(self) -> None:
-        """Stop the render process, if any (no input may be fed after)."""
+        """Stop the render process and the tile thread, if any (no input may be fed after)."""
+        self.pipeline.close()
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None

@@ -33,9 +33,11 @@ the tiles made so far and an ERROR naming the pair, the tiles published and why.
 from __future__ import annotations
 
 import math
+import queue
+import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -90,6 +92,13 @@ QUICKLOOK_TILE_COLS = 512
 RANGE_EDGE_SHARE = 0.01
 #: Widenings of one pair's range at most (each costs a tile matched again).
 MAX_WIDENINGS = 4
+#: OpenCV's threads while a :class:`TileThread` runs (``cv2.setNumThreads`` is process-wide).
+#: The tile thread and the node's worker are already two compute threads on the machine's two
+#: cores; OpenCV's own pool of two more on top spun for the cores: live at the IKONOS width
+#: with the quick-look at 1/8 (2 pairs), node CPU 0.73-1.08 CPU s per sensor s and tile
+#: latency max 1.47-2.86 s with OpenCV's 2 threads, 0.66-0.77 and 1.22-1.63 s with 1
+#: (docs/quicklook_bench.md). A pair a node makes whole meanwhile matches on 1 thread too.
+TILE_THREAD_OPENCV_THREADS = 1
 #: The left-right check of the quick-look levels when the heights' own is "flip".
 QUICKLOOK_LR_CHECK: Literal["flip", "reduced", "none"] = "reduced"
 
@@ -340,11 +349,29 @@ class TileLevel:
         )
 
     # ---- blocks in ----------------------------------------------------------------------
-    def keep(self, blk: BlockResult, geo: _Geometry | None, *, borrowed: bool = False) -> None:
+    def takes(self, pair_id: str) -> bool:
+        """Whether this level would hold a block of ``pair_id`` (not shed, not off)."""
+        return pair_id in self.pairs or not (pair_id in self.off or self.shed)
+
+    def prepare(self, blk: BlockResult, *, borrowed: bool = False) -> NDArray[np.generic]:
+        """A block's pixels as this level holds them: reduced, or a copy of borrowed ones."""
+        if self.factor > 1:
+            return reduce_block(blk.image, self.factor, self.options.nodata)
+        return blk.image.copy() if borrowed else blk.image
+
+    def keep(
+        self,
+        blk: BlockResult,
+        geo: _Geometry | None,
+        *,
+        borrowed: bool = False,
+        image: NDArray[np.generic] | None = None,
+    ) -> None:
         """Hold a block's columns (reduced at the quick-look level); ``geo`` for a new pair.
 
         ``borrowed``: the block's pixels are valid during the call only (the full resolution
         then holds a copy; a quick-look level holds its reduction, a new array anyway).
+        ``image``: the pixels already prepared (:meth:`prepare`), held as they are.
         """
         tiles = self.pairs.get(blk.pair_id)
         if tiles is None:
@@ -366,18 +393,18 @@ class TileLevel:
             tiles = _PairTiles(g, spans, {"left": _Side(), "right": _Side()})
             self.pairs[blk.pair_id] = tiles
         side = tiles.sides[blk.side]
-        img = blk.image
-        if self.factor > 1:
-            img = reduce_block(img, self.factor, self.options.nodata)
-        elif borrowed:
-            img = img.copy()
-        side.add(img)
+        side.add(self.prepare(blk, borrowed=borrowed) if image is None else image)
         side.done = side.done or blk.last
 
     # ---- tiles out ----------------------------------------------------------------------
-    def emit(self, out: Outputs) -> None:
-        """Append to ``out`` the tiles now covered, and end the pairs complete or broken."""
-        live = {s.geometry.pair_id for s in self.streams.values()}
+    def emit(self, out: Outputs, live: set[str] | None = None) -> None:
+        """Append to ``out`` the tiles now covered, and end the pairs complete or broken.
+
+        ``live``: the pairs whose streams are under way (default: read from the ledger's
+        streams; another thread than the pipeline's is given them).
+        """
+        if live is None:
+            live = {s.geometry.pair_id for s in self.streams.values()}
         for pid in list(self.pairs):
             tiles = self.pairs[pid]
             while tiles.next_tile < len(tiles.spans):
@@ -829,6 +856,139 @@ class TileStage:
         for level in self.levels:
             level.emit(out)
         return out
+
+    def close(self) -> None:
+        """Nothing to stop (:class:`TileThread` has a thread)."""
+
+
+class TileThread:
+    """A :class:`TileStage` run on a thread of its own: the node's pipeline thread goes on.
+
+    At the IKONOS rate the pipeline thread is the node's bottleneck: it takes the strips,
+    waits for the render process block by block and, on the same thread, matched and gridded
+    the tiles (0.5-0.7 s a pair at 1/8), while the render process stood idle. Here the
+    blocks' columns (their quick-look reductions, or copies) are prepared on the caller's
+    thread, as the borrowed pixels require, and handed with every call to a thread that
+    holds them and makes the tiles (OpenCV's matcher, resize and remap give the GIL back).
+    Each call of the pipeline collects the tiles and issues made since; a call that makes a
+    streamed pair first waits for the thread to finish everything handed to it, so the
+    pair's tiles all come before (or with) it, as in :class:`TileStage`. The same tiles as
+    :class:`TileStage`, to the bit; only the call that returns them may be a later one.
+
+    An exception in the thread is reported as an ERROR: the tiles of the pairs under way
+    stop, later pairs get theirs. Same interface as :class:`TileStage`; :meth:`close` at the
+    end.
+    """
+
+    def __init__(self, stage: TileStage) -> None:
+        self.stage = stage
+        self.levels = stage.levels
+        self.quicklook = stage.quicklook
+        self._queue: queue.Queue[tuple[str, Any] | None] = queue.Queue()
+        self._done: list[Outputs] = []
+        self._live: set[str] = set()  # the streams under way at the last call
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="parproj_tiles", daemon=True)
+        # OpenCV's threads (process-wide), restored by close(): see TILE_THREAD_OPENCV_THREADS.
+        self._opencv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(TILE_THREAD_OPENCV_THREADS)
+        self._thread.start()
+
+    def held_bytes(self) -> int:
+        """Bytes of the columns held for tiles still to come (:meth:`TileStage.held_bytes`)."""
+        return self.stage.held_bytes()
+
+    def keep(
+        self, blk: BlockResult, pairs: list[PairResult] | None = None, *, borrowed: bool = False
+    ) -> None:
+        """Prepare a streamed block's columns here and hand them to the thread."""
+        images: list[NDArray[np.generic] | None] = [
+            level.prepare(blk, borrowed=borrowed) if level.takes(blk.pair_id) else None
+            for level in self.levels
+        ]
+        if all(img is None for img in images):
+            return
+        geo = self.stage._geometry(blk.pair_id, pairs or [])
+        self._queue.put(("keep", (replace(blk, image=blk.image[:, :0]), geo, images)))
+
+    def shed_quicklook(self, shed: bool) -> list[Issue]:
+        """Shed or resume the quick-look levels (on the thread; what changed comes later)."""
+        if any(level.factor > 1 and level.shed != shed for level in self.levels):
+            self._queue.put(("shed", shed))
+        return []
+
+    def __call__(self, out: Outputs, *, blocks: bool = True) -> Outputs:
+        """Add to ``out`` the tiles and issues made since the last call.
+
+        ``blocks``: hand ``out.blocks`` to the thread first. When ``out`` holds pairs, or a
+        stream ended since the last call (complete, or broken), wait until the thread has done
+        all it was handed: the pairs' last tiles, or the status of a broken one.
+        """
+        if blocks:
+            for blk in out.blocks:
+                self.keep(blk, out.pairs)
+        live = {s.geometry.pair_id for s in list(self.stage.streams.values())}
+        ended = bool(self._live - live)
+        self._live = live
+        self._queue.put(("emit", live))
+        if out.pairs or ended:
+            self._queue.join()
+        with self._lock:
+            done, self._done = self._done, []
+        for made in done:
+            out.tiles += made.tiles
+            out.issues += made.issues
+        return out
+
+    def _run(self) -> None:
+        """The thread: hold blocks, make tiles, shed, in the order handed."""
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                made = Outputs()
+                kind, arg = item
+                if kind == "keep":
+                    blk, geo, images = arg
+                    for level, img in zip(self.levels, images, strict=True):
+                        if img is not None:
+                            level.keep(blk, geo, image=img)
+                elif kind == "emit":
+                    for level in self.levels:
+                        level.emit(made, arg)
+                else:
+                    made.issues += self.stage.shed_quicklook(bool(arg))
+            except Exception as err:  # a bug: say so, drop the pairs under way, go on
+                pids = sorted({pid for level in self.levels for pid in level.pairs})
+                for level in self.levels:
+                    level.off.update(level.pairs)
+                    level.pairs.clear()
+                made = Outputs()
+                made.issues.append(
+                    Issue(
+                        Level.ERROR,
+                        "heights",
+                        f"internal error making DSM tiles ({type(err).__name__}: {err}): the "
+                        f"tiles of {', '.join(pids) or 'no pair'} stop there (those published "
+                        "stay valid); later pairs get theirs",
+                    )
+                )
+            finally:
+                self._queue.task_done()
+            if made.tiles or made.issues:
+                with self._lock:
+                    self._done.append(made)
+
+    def close(self) -> None:
+        """Stop the thread once it has done what it was handed (waits at most 30 s).
+
+        OpenCV's thread count is set back to what it was.
+        """
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join(timeout=30.0)
+        cv2.setNumThreads(self._opencv_threads)
 
 
 def tiles_of_pair(

@@ -79,6 +79,8 @@ class ParprojNode(Node):
         self.pipeline = self.session.pipeline
         if bool(vals["render_process"]):
             issues += self.session.start_renderer()
+        if bool(vals["tile_thread"]):
+            self.pipeline.use_tile_thread()
         # Streamed blocks are published as each is rendered (the render process renders the
         # next one meanwhile), not gathered until the input's other outputs are made.
         self.pipeline.set_block_sink(self._publish_block)

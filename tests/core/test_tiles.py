@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import replace
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 from testkit.paths import BAGS
@@ -653,3 +654,86 @@ def test_quicklook_only_pair_with_the_quicklook_shed_says_it_has_no_heights() ->
                and "heights" in i.message]  # fmt: skip
     assert said.level == Level.WARN and "none was made of this pair (shed" in said.message
     assert not any("stand for them" in i.message for i in out.issues)
+
+
+def _threaded(quicklook: int, **run: Any) -> tuple[list[tuple[str, Outputs]], Outputs]:
+    """:func:`_run` with the node's set-up: a block sink (borrowed pixels, scribbled over
+    after each call) and the tiles on their thread (``Pipeline.use_tile_thread``)."""
+    from parproj_ros.core.results import BlockResult
+    from parproj_ros.core.tiles import TileThread
+
+    pipe = _pipeline(quicklook)
+    pipe.set_block_sink(lambda blk: None)
+    pipe.use_tile_thread()
+    assert isinstance(pipe.tiles, TileThread)
+    inner = pipe.streamer.block_sink
+    assert inner is not None
+
+    def borrowed(blk: BlockResult) -> None:
+        buf = blk.image.copy()
+        inner(replace(blk, image=buf))
+        buf[...] = 0
+
+    pipe.streamer.block_sink = borrowed
+    try:
+        return _run(pipe=pipe, **run)
+    finally:
+        pipe.close()
+        assert not pipe.tiles._thread.is_alive()
+        assert cv2.getNumThreads() == pipe.tiles._opencv_threads  # set back
+
+
+def test_the_tile_thread_makes_the_same_tiles_before_their_pair(
+    streamed: dict[str, Any],
+) -> None:
+    """The node's tiles on their own thread (full resolution and 1/4): the same tiles as the
+    stage called in the pipeline's thread, to the bit, in the same order, and every tile of
+    the pair in an output no later than the pair's own."""
+    calls, flushed = _threaded(2)
+    got = _all(calls, flushed)
+    ref = streamed["out"]
+    assert [(t.pair_id, t.index, t.factor) for t in got.tiles] == [
+        (t.pair_id, t.index, t.factor) for t in ref.tiles
+    ]
+    for a, b in zip(got.tiles, ref.tiles, strict=True):
+        assert a.dsm is not None and b.dsm is not None
+        np.testing.assert_array_equal(a.dsm.heights, b.dsm.heights)
+        np.testing.assert_array_equal(a.owned, b.owned)
+    outs = [o for _, o in calls] + [flushed]
+    (when,) = [k for k, o in enumerate(outs) if o.pairs]
+    assert all(t in got.tiles for o in outs[: when + 1] for t in o.tiles)
+    assert sum(len(o.tiles) for o in outs[: when + 1]) == len(got.tiles)
+    # The pair's heights stand on its tiles, as in the pipeline's thread.
+    assert len(got.heights) == len(ref.heights) == 1
+    np.testing.assert_array_equal(got.heights[0].dsm.heights, ref.heights[0].dsm.heights)
+
+
+def test_a_broken_stream_on_the_tile_thread_ends_with_its_status() -> None:
+    """As test_a_broken_stream_ends_with_its_tiles_and_a_status, the tiles on their thread:
+    the flush that abandons the pair waits for the thread, so the ERROR comes with it."""
+    calls, flushed = _threaded(0, drop_last_right=2)
+    tiles = [t for _, o in calls for t in o.tiles] + flushed.tiles
+    assert [t.index for t in tiles] == [0] and tiles[0].ok
+    errors = [i for i in flushed.issues if i.level == Level.ERROR and "DSM tiles" in i.message]
+    assert len(errors) == 1 and "stopped after 1 of 3" in errors[0].message, flushed.issues
+
+
+def test_an_error_on_the_tile_thread_is_reported_and_the_pair_still_made(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A bug while a tile is made on the thread (here: the matcher raising) does not stop
+    the pipeline nor lose the pair: one ERROR names the pair whose tiles stop, and the pair
+    comes as without it."""
+    from parproj_ros.core.tiles import TileLevel
+
+    def broken(*args: Any, **kwargs: Any) -> Any:
+        raise RuntimeError("matcher exploded")
+
+    monkeypatch.setattr(TileLevel, "_match", broken)
+    calls, flushed = _threaded(0)
+    out = _all(calls, flushed)
+    assert not out.tiles and len(out.pairs) == 1
+    errors = [i for i in out.issues if "internal error making DSM tiles" in i.message]
+    assert len(errors) == 1 and errors[0].level == Level.ERROR, out.issues
+    assert "RuntimeError: matcher exploded" in errors[0].message
+    assert out.pairs[0].pair_id in errors[0].message
