@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import os
@@ -269,7 +270,8 @@ def bench_live(
         rnode.create_subscription(
             cls,
             name,
-            lambda m, name=name: tiles.on_tile(name, m),
+            # (message, info): the info's source timestamp is when the node published it
+            functools.partial(tiles.on_tile, name),
             QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE),
         )
     executor = SingleThreadedExecutor(context=ctx)
@@ -571,7 +573,11 @@ def bench_live(
     }
     # Per topic, and per quick-look level of a topic whose tiles say theirs ("...@4").
     res["tiles"] = {}
+    res["tiles_received"] = {}  # the same from the bench's reception (its own load in it)
     for name in tile_topics:
+        res["tiles_received"][name] = tile_figures(
+            tiles.of(name, "received"), plat, cfg.strip_lines, strip_sent, t_sent
+        )
         came = tiles.of(name)
         res["tiles"][name] = tile_figures(came, plat, cfg.strip_lines, strip_sent, t_sent)
         for level in sorted({p[p.index("@") :] for _, p, _ in came if "@" in p}):
@@ -678,18 +684,26 @@ def tile_last_strip(plat: Platform, strip_lines: int, extent: Extent) -> tuple[i
 class _TileObserver:
     """DSM tiles the bench process receives: (topic, time received, pair id, ground)."""
 
-    got: list[tuple[str, float, str, Extent | None]] = field(default_factory=list)
+    got: list[tuple[str, float, float, str, Extent | None]] = field(default_factory=list)
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def on_tile(self, topic: str, msg: Any) -> None:
+    def on_tile(self, topic: str, msg: Any, info: Any) -> None:
+        """A tile: its publication (the writer's source timestamp) and reception times, s."""
         now = time.time()
+        src = int((info or {}).get("source_timestamp", 0) or 0)
+        published = src / 1e9 if src > 0 else now
         extent = tile_extent(msg)
         with self.lock:
-            self.got.append((topic, now, str(getattr(msg, "pair_id", "")), extent))
+            self.got.append((topic, published, now, str(getattr(msg, "pair_id", "")), extent))
 
-    def of(self, topic: str) -> list[tuple[float, str, Extent | None]]:
+    def of(self, topic: str, when: str = "published") -> list[tuple[float, str, Extent | None]]:
+        """(time, pair id, ground) of ``topic``'s tiles: ``when`` "published" or "received"."""
         with self.lock:
-            return [(t, p, e) for name, t, p, e in self.got if name == topic]
+            return [
+                (pub if when == "published" else rx, pid, ext)
+                for name, pub, rx, pid, ext in self.got
+                if name == topic
+            ]
 
 
 def tile_figures(
@@ -701,12 +715,15 @@ def tile_figures(
 ) -> dict[str, Any]:
     """Latency and real-time factor of the DSM tiles of one topic.
 
-    Each tile's latency: from the publication of the strip that completes its ground
-    (:func:`tile_last_strip`) to its reception. The real-time factor: the sensor time between
+    ``got``: (time, pair id, ground) per tile; the time is the tile's publication by the node
+    (the DDS source timestamp, as issue 26 asks: "published within 2 s of its last strip"),
+    or its reception by the bench (``tiles_received``: the bench's own load in it). Each
+    tile's latency: from the publication of the strip that completes its ground
+    (:func:`tile_last_strip`) to that time. The real-time factor: the sensor time between
     the first and the last of those strips over the time between the first and the last tile
-    received (as the node's real-time factor: a node that keeps up scores 1 whatever its
-    constant latency). ``during_pass``: tiles received before the last strip was sent.
-    ``unplaced``: tiles without a ground or whose strip was never sent.
+    (as the node's real-time factor: a node that keeps up scores 1 whatever its constant
+    latency). ``during_pass``: tiles before the last strip was sent. ``unplaced``: tiles
+    without a ground or whose strip was never sent.
     """
     lat: list[float] = []
     spans: list[tuple[float, float]] = []

@@ -320,14 +320,17 @@ def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
 
     ``heights_quicklook_realtime_factor``: of the quick-look tiles (the topic with "quick" in
     its name, else the ``@<factor>`` tiles of ``dsm_tile``); ``heights_tile_latency_max_s``:
-    the longest latency of any DSM tile received (every tile topic); and the CPU seconds per
-    sensor second of the node and its render process in that run.
+    the longest latency of any DSM tile, from its last strip's publication to the tile's
+    (every tile topic), and ``heights_tile_received_latency_max_s`` to its reception by the
+    bench; and the CPU seconds per sensor second of the node and its render process in that
+    run.
     """
     out: dict[str, Any] = {
         "heights_quicklook_realtime_factor": None,
         "heights_quicklook_realtime_factor_reason": None,
         "heights_tile_latency_max_s": None,
         "heights_tile_latency_max_s_reason": None,
+        "heights_tile_received_latency_max_s": None,
         "heights_quicklook_node_cpu_per_sensor_s": None,
         "heights_quicklook_render_cpu_per_sensor_s": None,
         "heights_quicklook_factor": None,
@@ -372,6 +375,12 @@ def quicklook_keys(ql: dict[str, Any] | None) -> dict[str, Any]:
         for k, v in tiles.items()
         if "@" not in k and v and v["latency_s"]["max"] is not None
     ]
+    received = [
+        v["latency_s"]["max"]
+        for v in (live.get("tiles_received") or {}).values()
+        if v and v["latency_s"]["max"] is not None
+    ]
+    out["heights_tile_received_latency_max_s"] = max(received) if received else None
     if maxima:
         out["heights_tile_latency_max_s"] = max(maxima)
     else:
