@@ -111,6 +111,19 @@ class SgbmParams:
             disparities of the previous one).
         subpixel_max_px: a refined disparity farther than this from SGBM's, pixels, is not
             taken (SGBM's stays: an edge, an occlusion, or too little texture to fit).
+        min_ncc: the photometric check (None: off): after the sub-pixel step, a valid pixel
+            whose left window and the right image resampled at the window's disparities
+            correlate less than this (zero-mean normalized cross-correlation, Gaussian
+            weights of ``ncc_sigma_px`` over the valid pixels) is rejected (counted as
+            ``lr_failure``), unless the two windows differ by less than ``ncc_noise_dn``
+            (a faint window: its correlation is low from noise alone). With
+            ``lr_check="reduced"`` it removes the blunders the reduced check keeps, for some
+            0.25 of a bare pass instead of the 1.07 of "flip"'s second pass
+            (docs/heights.md, run 6).
+        ncc_sigma_px: standard deviation of the photometric check's Gaussian window, pixels.
+        ncc_noise_dn: windows whose difference (left minus right resampled, less its mean)
+            has a standard deviation below this pass the photometric check, DN of the
+            8-bit stretched images.
     """
 
     block_size: int = 5
@@ -130,6 +143,9 @@ class SgbmParams:
     subpixel_sigma_px: float = 2.5
     subpixel_iterations: int = 2
     subpixel_max_px: float = 0.5
+    min_ncc: float | None = None
+    ncc_sigma_px: float = 1.5
+    ncc_noise_dn: float = 4.0
 
     def __post_init__(self) -> None:
         if self.lr_check not in ("flip", "reduced", "none"):
@@ -144,6 +160,14 @@ class SgbmParams:
             raise ValueError(
                 "subpixel_sigma_px must be > 0 px and subpixel_iterations >= 1, got "
                 f"{self.subpixel_sigma_px}, {self.subpixel_iterations}"
+            )
+        if self.min_ncc is not None and not (
+            -1.0 <= self.min_ncc <= 1.0 and self.ncc_sigma_px > 0 and self.ncc_noise_dn >= 0
+        ):
+            raise ValueError(
+                "min_ncc must be within -1..1 (or None: no photometric check), ncc_sigma_px "
+                f"> 0 px and ncc_noise_dn >= 0 DN, got {self.min_ncc}, {self.ncc_sigma_px}, "
+                f"{self.ncc_noise_dn}"
             )
         lo, hi = self.stretch_percentiles
         if not 0.0 <= lo < hi <= 100.0:
@@ -458,7 +482,101 @@ def _match_tile(
     run_parts(checks, row_parts(disp.shape[0], workers()))
     if params.subpixel == "gradient":
         disp = _refine_subpixel(lwin, rwin, disp, s, prep.shift, params)
+    if params.min_ncc is not None:
+        ncc = _window_ncc(
+            lwin, rwin, disp, s, prep.shift, params.ncc_sigma_px, params.ncc_noise_dn
+        )
+        low = ncc < np.float32(params.min_ncc)  # False where NaN (invalid pixels)
+        disp[low] = np.nan
+        code[low] = _LR
     return disp, code
+
+
+def _window_ncc(
+    lwin: UInt8Array,
+    rwin: UInt8Array,
+    disp: Float32Array,
+    s: slice,
+    shift: int,
+    sigma: float,
+    noise_dn: float = 0.0,
+) -> Float32Array:
+    """Correlation of each valid left pixel's window with the right image at its disparities.
+
+    The zero-mean normalized cross-correlation of the left window and the right window
+    resampled (linearly) at each pixel's own disparity, with Gaussian weights (standard
+    deviation ``sigma``, pixels) over the valid pixels only: 1 for a perfect match up to
+    gain and offset, near 0 or below for a mismatch (an occlusion, a blunder). Where the
+    windows' difference (less its mean) has a standard deviation below ``noise_dn``, 1: a
+    faint window (shadow, water) whose correlation is low from noise alone. By strips of
+    rows on threads, as :func:`_refine_subpixel`.
+
+    Args:
+        lwin: the left window (uint8, the matcher's input).
+        rwin: the right window, read ``shift`` columns to the left.
+        disp: disparities of the tile's columns ``s`` of the windows (NaN: invalid), pixels.
+        s: the tile's columns in the windows.
+        shift: the right window's shift, pixels.
+        sigma: the window's standard deviation, pixels.
+        noise_dn: the faint windows' limit, DN.
+
+    Returns:
+        The correlation, the shape of ``disp`` (NaN where ``disp`` is).
+    """
+    k = 2 * math.ceil(3.0 * sigma) + 1
+    rows = disp.shape[0]
+    valid = np.isfinite(disp)
+    x = np.arange(s.start, s.stop, dtype=np.float32)[None, :]
+    halo = k // 2 + 1
+    out = np.empty(disp.shape, dtype=np.float32)
+    rimg = rwin.astype(np.float32)
+
+    def filt(a: Float32Array) -> Float32Array:
+        return cast(
+            "Float32Array", cv2.GaussianBlur(a, (k, k), sigma, borderType=cv2.BORDER_CONSTANT)
+        )
+
+    def part(span: tuple[int, int]) -> None:
+        r0, r1 = span
+        ra, rb = max(0, r0 - halo), min(rows, r1 + halo)
+        w = valid[ra:rb].astype(np.float32)
+        d = disp[ra:rb] - np.float32(shift)
+        np.nan_to_num(d, copy=False, nan=0.0)
+        xr = x - d
+        yr = np.ascontiguousarray(
+            np.broadcast_to(np.arange(ra, rb, dtype=np.float32)[:, None], d.shape)
+        )
+        rp = cast(
+            "Float32Array",
+            cv2.remap(rimg, xr, yr, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE),
+        )
+        lp = lwin[ra:rb, s].astype(np.float32)
+        lp *= w
+        rp *= w
+        n = filt(w)
+        np.maximum(n, np.float32(1e-6), out=n)
+        inv_n = np.reciprocal(n)
+        ml = filt(lp) * inv_n
+        mr = filt(rp) * inv_n
+        slr = filt(lp * rp) * inv_n  # the weights are 0 or 1: w^2 = w
+        slr -= ml * mr
+        sll = filt(lp * lp) * inv_n
+        sll -= ml * ml
+        srr = filt(rp * rp) * inv_n
+        srr -= mr * mr
+        # the variance of the difference, sll + srr - 2 slr: below noise^2, a faint window
+        dvar = sll + srr
+        dvar -= 2.0 * slr
+        faint = dvar < np.float32(noise_dn * noise_dn)
+        sll *= srr
+        np.maximum(sll, np.float32(1e-6), out=sll)
+        slr /= np.sqrt(sll)
+        slr[faint] = 1.0
+        out[r0:r1] = slr[r0 - ra : r1 - ra]
+
+    run_parts(part, row_parts(rows, max(workers(), rows // 256), min_rows=32))
+    out[~valid] = np.nan
+    return out
 
 
 def _refine_subpixel(
