@@ -8,7 +8,8 @@ disparity field of about ``--range`` pixels) is matched by
 * bare ``cv2.StereoSGBM`` with the same settings on the already stretched uint8 images, one
   pass (the lower bound), and two passes (left-right and mirrored right-left, the work the
   consistency check needs); and ``match_pair`` with the check on a right pass at half
-  resolution (``lr_check="reduced"``) and without the check (``lr_check="none"``);
+  resolution (``lr_check="reduced"``), that with the photometric check (``min_ncc=0.7``), and
+  without the check (``lr_check="none"``);
 
 and the disparity map is gridded into a DSM (:func:`~parproj_ros.imaging.heights.make_dsm`)
 and ortho-resampled (:func:`~parproj_ros.imaging.heights.orthoimage`). Figures are left-image
@@ -103,6 +104,18 @@ def main(argv: list[str] | None = None) -> int:
                 args.repeat,
                 lambda: match_pair(
                     left, right, d_range=d_range, params=SgbmParams(lr_check="reduced")
+                ),
+            ),
+        ),
+        (
+            "match_pair, lr_check reduced, min_ncc 0.7",
+            best_of(
+                args.repeat,
+                lambda: match_pair(
+                    left,
+                    right,
+                    d_range=d_range,
+                    params=SgbmParams(lr_check="reduced", min_ncc=0.7),
                 ),
             ),
         ),
