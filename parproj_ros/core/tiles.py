@@ -37,7 +37,7 @@ import queue
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal
+from typing import Any, Literal, cast
 
 import cv2
 import numpy as np
@@ -118,6 +118,16 @@ def reduce_block(image: NDArray[np.generic], factor: int, nodata: float) -> NDAr
     small = cv2.resize(full, (cols, rows), interpolation=cv2.INTER_AREA)
     if full.size == 0 or float(full.min()) > nodata:
         return small
+    try:
+        # The reduced pixels holding no-data: the 255/0 mask's block means are > 0 exactly
+        # there (the least, 255 / 64 at 8, rounds to 4). 2.6 ms a block of 256 x 14010 px
+        # against 9.5 for the pass below: with draft blocks (nearest-neighbour sampling) a
+        # simulated scene's zero DN reach most blocks.
+        mask = cv2.compare(full, cast(Any, float(nodata)), cv2.CMP_EQ)
+        small[cv2.resize(mask, (cols, rows), interpolation=cv2.INTER_AREA) > 0] = nodata
+        return small
+    except cv2.error:  # a type OpenCV does not compare
+        pass
     bad = full == nodata
     band = bad.reshape(rows, factor * full.shape[1]).any(axis=1)
     if not band.any():
