@@ -142,7 +142,11 @@ class Pipeline:
         if self.tiles is not None:
             self.tiles.close()
 
-    def set_block_sink(self, sink: Callable[[BlockResult], None] | None) -> None:
+    def set_block_sink(
+        self,
+        sink: Callable[[BlockResult], None] | None,
+        wanted: Callable[[str], bool] | None = None,
+    ) -> None:
         """Hand each streamed block to ``sink`` as soon as it is rendered (the node publishes it).
 
         The blocks are then no longer in the outputs; their pixels may be borrowed, valid only
@@ -150,7 +154,18 @@ class Pipeline:
         would stop mid-input). With heights on, a copy of each block is kept for step 7 once
         ``sink`` has taken it; if there is no memory for the copy, that pair's heights are
         reported as incomplete. None: blocks come back in :attr:`Outputs.blocks` again.
+
+        ``wanted``: side -> whether anybody takes that side's blocks themselves (the node: a
+        subscriber on its block topic). With quick-look tiles only, the blocks of a side
+        nobody takes are drafts (:attr:`Streamer.draft`, :data:`~.streaming.
+        DRAFT_INTERPOLATION`): they feed the quick-look and are not published.
         """
+        quick_only = self.heights is not None and self.heights.options.quicklook_only
+        self.streamer.draft = (
+            (lambda side: not wanted(side))
+            if sink is not None and wanted is not None and quick_only and self.tiles is not None
+            else None
+        )
         if sink is None or self.heights is None:
             self.streamer.block_sink = sink
             return

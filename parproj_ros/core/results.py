@@ -298,6 +298,8 @@ class BlockResult:
         grid: the full image's output grid.
         stamp_ns: the pair's stamp (the later scene's last line), nanoseconds.
         last: whether this is the side's last block.
+        draft: rendered with nearest-neighbour sampling for the quick-look only, nobody taking
+            the block itself (:attr:`~.streaming.Streamer.draft`): not to be published.
     """
 
     pair_id: str
@@ -308,6 +310,7 @@ class BlockResult:
     grid: OutputGrid
     stamp_ns: int
     last: bool
+    draft: bool = False
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from contextlib import closing
 from dataclasses import dataclass, field
 from enum import StrEnum
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -67,6 +68,13 @@ STALE_MIN_S = 2.0
 #: (docs/stream_start.md). Ahead, so that a tile's left window, wider than the right one by
 #: the disparities, is there when the right one is (4 blocks: 1024 columns).
 PACED_LEAD_BLOCKS = 4
+#: How draft blocks are sampled (:attr:`Streamer.draft`): the quick-look averages 4 x 4 to
+#: 8 x 8 of their pixels, so nearest-neighbour sampling (at most half a pixel off, 1/16 of a
+#: reduced pixel at 1/8) is all it needs, at 2.6 ms a block of the IKONOS width against 6.1
+#: bilinear and 19 bicubic (27 warpAffine calls of 512 x 256, 1 thread). The render process
+#: took 0.49 CPU s per sensor s at the IKONOS rate with the quick-look at 1/8, half the
+#: machine's slack.
+DRAFT_INTERPOLATION = cv2.INTER_NEAREST
 #: Lines of margin around the lines a tile's affine map reaches: the widest kernel's support
 #: (imaging/kernels.py; bicubic: 2) and one more, whatever kernel is configured.
 LINE_MARGIN = 1 + max_support_lines()
@@ -369,6 +377,9 @@ class Streamer:
         #: (copy them to keep them). With the render process the next block is rendered
         #: meanwhile. None: blocks are returned in the outputs.
         self.block_sink: Callable[[BlockResult], None] | None = None
+        #: Side -> whether its next blocks may be drafts (:data:`DRAFT_INTERPOLATION`): they
+        #: only feed the quick-look tiles, nobody takes the blocks themselves. None: never.
+        self.draft: Callable[[str], bool] | None = None
 
     def undecided(self, scene: Scene) -> bool:
         """Whether ``scene``'s pair waits for navigation to decide (:func:`undecided`)."""
@@ -606,6 +617,9 @@ class Streamer:
         if not ready:
             return out
         interp = interpolation_flag(self.config.output)
+        draft = self.draft is not None and self.draft(side.side)
+        if draft:
+            interp = DRAFT_INTERPOLATION
         nodata = self.config.output.nodata
         sink = self.block_sink
         rendered: Generator[tuple[Block, NDArray[np.generic] | None], None, None]
@@ -639,6 +653,7 @@ class Streamer:
                     side.grid,
                     stream.stamp_ns,
                     side.next_block == len(side.blocks),
+                    draft,
                 )
                 if sink is None:
                     out.blocks.append(blk)

@@ -83,7 +83,7 @@ class ParprojNode(Node):
             self.pipeline.use_tile_thread()
         # Streamed blocks are published as each is rendered (the render process renders the
         # next one meanwhile), not gathered until the input's other outputs are made.
-        self.pipeline.set_block_sink(self._publish_block)
+        self.pipeline.set_block_sink(self._publish_block, self._blocks_wanted)
         self.blocks_unsubscribed = 0  # streamed blocks not sent: no subscriber (volatile)
         if said := prefault(config, float(vals["prefault_mb"]), self.pipeline.assemblers):
             self.log("info", said)
@@ -306,12 +306,13 @@ class ParprojNode(Node):
         A block topic nobody subscribes to gets nothing: it is volatile, so no subscriber,
         present or later, could receive the block (image_transport's lazy publishing); its
         CDR copy and DDS write (7 MB a block at the IKONOS width) are saved, and the
-        summary's ``blocks_unsubscribed`` counts the blocks not sent.
+        summary's ``blocks_unsubscribed`` counts the blocks not sent. A draft block (quick-look
+        only, rendered so because nobody subscribed, :attr:`BlockResult.draft`) is never sent.
         """
         if self.reporter.closed:
             return
         topic = contract.normalized_block_topic(blk.side)
-        if self.pubs[topic].get_subscription_count() == 0:
+        if blk.draft or self.pubs[topic].get_subscription_count() == 0:
             self.blocks_unsubscribed += 1
             return
         try:
@@ -320,6 +321,10 @@ class ParprojNode(Node):
             self.internal_error(
                 f"block {blk.index} of pair {blk.pair_id} ({topic}; only that block is lost)", err
             )
+
+    def _blocks_wanted(self, side: str) -> bool:
+        """Whether anybody subscribes to ``side``'s blocks (else they may be drafts)."""
+        return int(self.pubs[contract.normalized_block_topic(side)].get_subscription_count()) > 0
 
     # ---- health, stop ----------------------------------------------------------------------
     def worker_problem(self) -> str | None:

@@ -737,3 +737,39 @@ def test_an_error_on_the_tile_thread_is_reported_and_the_pair_still_made(
     assert len(errors) == 1 and errors[0].level == Level.ERROR, out.issues
     assert "RuntimeError: matcher exploded" in errors[0].message
     assert out.pairs[0].pair_id in errors[0].message
+
+
+def test_blocks_nobody_takes_are_drafts_for_the_quicklook_only() -> None:
+    """Quick-look tiles only and nobody taking a side's blocks (the node: no subscriber on its
+    block topic): that side's blocks are drafts, sampled nearest-neighbour (3x less render
+    time), flagged so that the node does not publish them; the other side's are not. The
+    quick-look tiles from drafts stand within half a full-resolution pixel of disparity of
+    those from the configured resampling: a sample moves by half a pixel at most, and the
+    quick-look averages 4 x 4 of them."""
+    from parproj_ros.core.results import BlockResult
+
+    got: list[BlockResult] = []
+    pipe = _pipeline(quicklook=-2)
+    pipe.set_block_sink(got.append, wanted=lambda side: side == "left")
+    out = _all(*_run(pipe=pipe))
+    ref = _all(*_run(quicklook=-2))
+    assert {b.side for b in got if b.draft} == {"right"}
+    assert {b.side for b in got if not b.draft} == {"left"}
+    assert [t.index for t in out.tiles] == [t.index for t in ref.tiles] and out.tiles
+    (pair,) = out.pairs
+    bound = 0.5 * abs(pair.height_per_disparity_px)  # metres: half a full-resolution pixel
+    diffs = []
+    for a, b in zip(out.tiles, ref.tiles, strict=True):
+        assert a.dsm is not None and b.dsm is not None and a.dsm.grid == b.dsm.grid
+        both = np.isfinite(a.dsm.heights) & np.isfinite(b.dsm.heights)
+        assert both.mean() > 0.9 * np.isfinite(b.dsm.heights).mean()
+        diffs.append((a.dsm.heights - b.dsm.heights)[both])
+    d = np.concatenate(diffs)
+    assert abs(float(np.median(d))) <= 0.5 * bound and _nmad(d) <= bound, (
+        float(np.median(d)), _nmad(d), bound)  # fmt: skip
+    # Without ``wanted`` (offline, or nobody asked) no block is a draft.
+    pipe = _pipeline(quicklook=-2)
+    plain: list[BlockResult] = []
+    pipe.set_block_sink(plain.append)
+    _run(pipe=pipe)
+    assert plain and not any(b.draft for b in plain)

@@ -35,7 +35,9 @@ def run_live(
     """
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     views = views_from_bag(BagReader(bag))
-    also = ("disparity", "height") if params.get("heights") else ()
+    # Heights: a disparity and a height image per pair (none with quick-look tiles only).
+    full = params.get("heights") and int(str(params.get("heights_quicklook", 0))) >= 0
+    also = ("disparity", "height") if full else ()
     run = run_through_node(
         bag,
         out,
@@ -209,6 +211,43 @@ def test_a_block_topic_nobody_subscribes_to_gets_nothing(tmp_path: Path) -> None
     (on_d,) = [m.msg for m in BagReader(out).messages(topics=["disparity"])]
     (off_d,) = [m.msg for m in off.messages(topics=["disparity"])]
     assert np.array_equal(image_to_array(on_d.image), image_to_array(off_d.image), equal_nan=True)
+
+
+def test_quicklook_only_with_no_block_subscriber_renders_drafts(tmp_path: Path) -> None:
+    """Quick-look tiles only, nobody on either block topic: the node renders its blocks as
+    drafts (nearest-neighbour, core/streaming.DRAFT_INTERPOLATION) and sends none of them;
+    its quick-look tiles are those of the offline run (configured resampling) within half a
+    full-resolution pixel of disparity (NMAD and median of the heights' differences)."""
+    bag = BAGS / "airborne_foreaft"
+    params = {"scene_lines": 768, "heights": True, "heights_quicklook": -2}
+    skip = ("left/normalized_block", "right/normalized_block")
+    out, counts, log = run_live(bag, tmp_path / "output", rate=20.0, skip=skip, **params)
+    assert counts["stereo_pair"] == 1 and not set(skip) & set(counts), log
+    process_bag(bag, tmp_path / "offline", progress=False, overrides=params)
+    off = BagReader(tmp_path / "offline")
+    blocks = sum(1 for _ in off.messages(topics=list(skip)))
+    summaries = [
+        {kv.key: kv.value for kv in st.values}
+        for m in BagReader(out).messages(topics=["/diagnostics"])
+        for st in m.msg.status
+        if st.name == "parproj_node: summary"
+    ]
+    assert blocks >= 4 and summaries[-1]["blocks_unsubscribed"] == str(blocks), summaries[-1:]
+    topic = "dsm_quicklook_tile"
+    on = {m.msg.pair_id: m.msg for m in BagReader(out).messages(topics=[topic])}
+    ref = {m.msg.pair_id: m.msg for m in off.messages(topics=[topic])}
+    assert sorted(on) == sorted(ref) and ref, (sorted(on), sorted(ref))
+    (sp,) = [m.msg for m in off.messages(topics=["stereo_pair"])]
+    bound = 0.5 * abs(sp.height_per_disparity_px)  # metres: half a full-resolution pixel
+    d = []
+    for pid, msg in ref.items():
+        a, b = image_to_array(on[pid].heights), image_to_array(msg.heights)
+        both = np.isfinite(a) & np.isfinite(b)
+        assert both.sum() >= 0.9 * np.isfinite(b).sum(), pid
+        d.append((a - b)[both])
+    diff = np.concatenate(d)
+    nmad = 1.4826 * float(np.median(np.abs(diff - np.median(diff))))
+    assert abs(float(np.median(diff))) <= 0.5 * bound and nmad <= bound, (nmad, bound)
 
 
 # ---- heights (issue 12) -------------------------------------------------------------------------
