@@ -742,8 +742,17 @@ def test_a_block_that_cannot_be_published(node_in_process: Any) -> None:
         if len(sent) == 1:
             raise RuntimeError("writer gone")
 
-    node.pubs["left/normalized_block"].publish = publish
+    pub = node.pubs["left/normalized_block"]
+    pub.publish = publish
     grid = OutputGrid(1.0, 0.0, 0.0, 8, 4)
+    blk0 = BlockResult(
+        "p0", "left", 0, 0, np.arange(8, dtype=np.uint16).reshape(4, 2), grid, 5, False
+    )
+    # Nobody subscribed: nothing is built nor sent (volatile), the block is counted.
+    before = node.blocks_unsubscribed
+    node._publish_block(blk0)
+    assert not sent and node.blocks_unsubscribed == before + 1
+    pub.get_subscription_count = lambda: 1  # a subscriber from now on
     blk = BlockResult(
         "p0", "left", 0, 0, np.arange(8, dtype=np.uint16).reshape(4, 2), grid, 5, False
     )
