@@ -622,16 +622,7 @@ def test_quicklook_only_sink_takes_borrowed_blocks() -> None:
         keep(blk, pairs, borrowed=borrowed)
 
     stage.keep = spy  # type: ignore[method-assign]
-    # The borrowed pixels are scribbled over once the pipeline's call returns.
-    inner = pipe.streamer.block_sink
-    assert inner is not None
-
-    def borrowed(blk: BlockResult) -> None:
-        buf = blk.image.copy()
-        inner(replace(blk, image=buf))
-        buf[...] = 0
-
-    pipe.streamer.block_sink = borrowed
+    _scribble_after_the_sink(pipe)
     out = _all(*_run(pipe=pipe))
     ref = _all(*_run(quicklook=-2))
     assert seen and not out.blocks and out.tiles
@@ -656,16 +647,11 @@ def test_quicklook_only_pair_with_the_quicklook_shed_says_it_has_no_heights() ->
     assert not any("stand for them" in i.message for i in out.issues)
 
 
-def _threaded(quicklook: int, **run: Any) -> tuple[list[tuple[str, Outputs]], Outputs]:
-    """:func:`_run` with the node's set-up: a block sink (borrowed pixels, scribbled over
-    after each call) and the tiles on their thread (``Pipeline.use_tile_thread``)."""
+def _scribble_after_the_sink(pipe: Pipeline) -> None:
+    """Hand the pipeline's block sink borrowed pixels that are scribbled over right after
+    each call, as the render process's next block overwrites its output buffer."""
     from parproj_ros.core.results import BlockResult
-    from parproj_ros.core.tiles import TileThread
 
-    pipe = _pipeline(quicklook)
-    pipe.set_block_sink(lambda blk: None)
-    pipe.use_tile_thread()
-    assert isinstance(pipe.tiles, TileThread)
     inner = pipe.streamer.block_sink
     assert inner is not None
 
@@ -675,6 +661,18 @@ def _threaded(quicklook: int, **run: Any) -> tuple[list[tuple[str, Outputs]], Ou
         buf[...] = 0
 
     pipe.streamer.block_sink = borrowed
+
+
+def _threaded(quicklook: int, **run: Any) -> tuple[list[tuple[str, Outputs]], Outputs]:
+    """:func:`_run` with the node's set-up: a block sink (borrowed pixels, scribbled over
+    after each call) and the tiles on their thread (``Pipeline.use_tile_thread``)."""
+    from parproj_ros.core.tiles import TileThread
+
+    pipe = _pipeline(quicklook)
+    pipe.set_block_sink(lambda blk: None)
+    pipe.use_tile_thread()
+    assert isinstance(pipe.tiles, TileThread)
+    _scribble_after_the_sink(pipe)
     try:
         return _run(pipe=pipe, **run)
     finally:
