@@ -481,9 +481,19 @@ def tile_stages(
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m tools.bench.dsm [--quick] [--quicklook L]``: :func:`tile_stages` as JSON."""
+    """``python -m tools.bench.dsm [--quick] [--quicklook L] [--live [--pairs N]]``.
+
+    :func:`tile_stages` as JSON; ``--live``: instead, the live quick-look run of the full
+    benchmark (:func:`bench_quicklook` with the form's own quick-look factor, ``--pairs``
+    pairs, default the form's) and its ``--json`` keys (:func:`quicklook_keys`), with the
+    tiles' latencies; exit 1 when the run gave no figure.
+    """
     import argparse
+    import dataclasses
     import json
+    import os
+    import tempfile
+    from pathlib import Path
 
     from .config import FULL, QUICK
 
@@ -496,10 +506,32 @@ def main(argv: list[str] | None = None) -> int:
         choices=range(-3, 4),
         help="heights_quicklook of the tiles (default -3: 1/8 only; 0: full resolution)",
     )
+    p.add_argument("--live", action="store_true", help="the live quick-look run over DDS")
+    p.add_argument("--pairs", type=int, default=0, help="with --live: pairs (default: the form's)")
     args = p.parse_args(argv)
-    res = tile_stages(QUICK if args.quick else FULL, args.quicklook)
-    print(json.dumps(res, indent=1))
-    return 0 if res["tiles_ok"] else 1
+    cfg = QUICK if args.quick else FULL
+    if not args.live:
+        res = tile_stages(cfg, args.quicklook)
+        print(json.dumps(res, indent=1))
+        return 0 if res["tiles_ok"] else 1
+    if args.pairs > 0:
+        cfg = dataclasses.replace(cfg, pairs=args.pairs)
+    domain = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0) or None
+    with tempfile.TemporaryDirectory() as wd:
+        ql = bench_quicklook(cfg, Path(wd), domain_id=domain, factor=cfg.quicklook_factor)
+    keys = quicklook_keys(ql)
+    live = ql.get("live") or {}
+    keys["pairs"] = cfg.pairs
+    keys["pairs_shed"] = live.get("pairs_shed")
+    keys["node_peak_rss_mb"] = live.get("node_peak_rss_mb")
+    keys["node_queue_max"] = live.get("node_queue_max")
+    keys["tiles"] = {
+        k: {"tiles": v["tiles"], "latency_s": v["latency_s"]}
+        for k, v in (live.get("tiles") or {}).items()
+        if v
+    }
+    print(json.dumps(keys, indent=1))
+    return 0 if keys["heights_quicklook_realtime_factor"] is not None else 1
 
 
 if __name__ == "__main__":
