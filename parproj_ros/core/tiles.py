@@ -918,7 +918,10 @@ class TileThread:
         ]
         if all(img is None for img in images):
             return
-        geo = self.stage._geometry(blk.pair_id, pairs or [])
+        # The geometry only for a pair a level does not hold yet (as TileStage.keep): not per
+        # block on the worker's path.
+        new = any(blk.pair_id not in level.pairs for level in self.levels)
+        geo = self.stage._geometry(blk.pair_id, pairs or []) if new else None
         self._queue.put(("keep", (replace(blk, image=blk.image[:, :0]), geo, images)))
 
     def shed_quicklook(self, shed: bool) -> list[Issue]:
