@@ -29,8 +29,10 @@ what was wrong and what was done (:mod:`parproj_ros.core.results`).
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,7 +43,7 @@ from .config import ViewConfig as ViewConfig
 from .fusion import FusionStage
 from .gcp_store import GcpStore
 from .heights import HeightsStage, options_of
-from .ledger import PairLedger
+from .ledger import PairLedger, StreamPair
 from .navigation import NavigationFeed
 from .normalization import (
     cut_into_segments,
@@ -112,6 +114,7 @@ class Pipeline:
         self.tiles: TileStage | TileThread | None = (
             TileStage(config, self.ledger.streams) if TileStage.applies(config) else None
         )
+        self._draft_live: set[str] = set()  # the streams under way at the last collection
         self.fusion = (
             FusionStage(config.dense.fuse_mb)
             if config.dense.enabled and config.dense.fuse_mb > 0
@@ -127,6 +130,7 @@ class Pipeline:
         self.streamer.renderer = renderer
         for asm in self.assemblers.values():
             asm.pool.allocate = renderer.allocate
+            asm.pool.fence = renderer.drain  # drafts still reading lines about to move
 
     def use_tile_thread(self) -> None:
         """Make the streamed DSM tiles on a thread of their own (:class:`TileThread`).
@@ -138,7 +142,12 @@ class Pipeline:
             self.tiles = TileThread(self.tiles)
 
     def close(self) -> None:
-        """Stop the tile thread, if any (no input may be fed after)."""
+        """Stop the tile thread, if any (no input may be fed after).
+
+        Draft blocks still in the render process are collected first.
+        """
+        if self.streamer.renderer is not None:
+            self.streamer.renderer.drain()
         if self.tiles is not None:
             self.tiles.close()
 
@@ -161,11 +170,9 @@ class Pipeline:
         DRAFT_INTERPOLATION`): they feed the quick-look and are not published.
         """
         quick_only = self.heights is not None and self.heights.options.quicklook_only
-        self.streamer.draft = (
-            (lambda side: not wanted(side))
-            if sink is not None and wanted is not None and quick_only and self.tiles is not None
-            else None
-        )
+        drafts = sink is not None and wanted is not None and quick_only and self.tiles is not None
+        self.streamer.draft = (lambda side: not wanted(side)) if drafts and wanted else None
+        self.streamer.drafts = _Drafts(self, sink) if drafts and sink is not None else None
         if sink is None or self.heights is None:
             self.streamer.block_sink = sink
             return
@@ -196,12 +203,30 @@ class Pipeline:
         """
         if self.heights is None:
             return out
+        self._collect_drafts(out)
         if self.tiles is not None:  # the tiles the blocks now cover (core/tiles.py)
             # The quick-look, shed or resumed by the node's admission under overload.
             out.issues += self.tiles.shed_quicklook(self.ledger.admission.quicklook_shed)
             out = self.tiles(out)
         out = self.heights(out)
         return out if self.fusion is None else self.fusion(out)
+
+    def _collect_drafts(self, out: Outputs) -> None:
+        """The draft blocks the render process has reduced since (:attr:`Streamer.drafts`).
+
+        All of them, waiting, when ``out`` makes a pair or a stream ended since the last call
+        (the pair's last tiles, or a broken pair's status, come with it); else those done.
+        """
+        renderer = self.streamer.renderer
+        if renderer is None or self.streamer.drafts is None:
+            return
+        live = {s.geometry.pair_id for s in self.ledger.streams.values()}
+        ended = bool(self._draft_live - live)
+        self._draft_live = live
+        if out.pairs or ended:
+            renderer.drain()
+        else:
+            renderer.poll()
 
     @property
     def nav(self) -> TrajectoryBuffer:
@@ -586,3 +611,40 @@ class Pipeline:
             )
         out.pairs.append(pair)
         return out
+
+
+class _Drafts:
+    """The pipeline's :class:`~.streaming.DraftReducer`: its tile levels take the reductions.
+
+    Args:
+        pipeline: whose tile stage (or thread) holds them.
+        sink: the block sink, given each draft block (its pixels none: a broadcast).
+    """
+
+    #: Pairs whose tile geometry is kept for their drafts still in the render process.
+    GEOMETRIES = 8
+
+    def __init__(self, pipeline: Pipeline, sink: Callable[[BlockResult], None]) -> None:
+        self.pipeline = pipeline
+        self.sink = sink
+        self._geo: OrderedDict[str, Any] = OrderedDict()
+
+    def factors(self, stream: StreamPair) -> tuple[int, ...]:
+        tiles = self.pipeline.tiles
+        if tiles is None:
+            return ()
+        pid = stream.geometry.pair_id
+        factors = tuple(level.factor if level.takes(pid) else 0 for level in tiles.levels)
+        if any(factors) and pid not in self._geo:
+            # Built here, while the stream is under way: its last drafts may be collected
+            # after it ended.
+            self._geo[pid] = TileStage.stream_geometry(stream)
+            while len(self._geo) > self.GEOMETRIES:
+                self._geo.popitem(last=False)
+        return factors
+
+    def deliver(self, blk: BlockResult, reductions: list[NDArray[np.generic] | None]) -> None:
+        self.sink(blk)
+        tiles = self.pipeline.tiles
+        if tiles is not None:
+            tiles.keep_reduced(blk, reductions, self._geo.get(blk.pair_id))

@@ -17,6 +17,14 @@ other, so the worker and the child no longer wait for each other block by block.
 buffer the child cannot see (not from :meth:`allocate`), a block larger than an output
 buffer, or a child that died: the block is rendered in the calling thread, as without this
 module, and :attr:`fallbacks` counts it.
+
+Draft blocks (quick-look only, nobody taking the blocks themselves) are not waited for at all
+(:meth:`RenderProcess.submit_reduced`): the child renders each and reduces it for the
+quick-look levels, writes the reductions into a shared ring and answers; the caller collects
+the answers when it next polls (:meth:`RenderProcess.poll`) or must have them
+(:meth:`RenderProcess.drain`: before a pair is made, before its line buffer moves lines, before
+the next full block). At the IKONOS rate, waiting for the child block by block and reducing
+each draft took 35 % of the node's worker (py-spy, docs/quicklook_bench.md).
 """
 
 from __future__ import annotations
@@ -24,8 +32,9 @@ from __future__ import annotations
 import multiprocessing as mp
 import threading
 import weakref
-from collections import OrderedDict
-from collections.abc import Generator, Sequence
+from collections import OrderedDict, deque
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass
 from multiprocessing import shared_memory
 from typing import Any
 
@@ -43,26 +52,54 @@ ATTACHED_MAX = 8
 #: child took 51-60 % of a core with 2 threads and 41-48 % with 1, the worker waiting on it
 #: 31-33 % and 20-24 % (bench/BENCHMARKS.md, 2026-11-24).
 RENDER_THREADS = 1
+#: The shared ring the child writes draft blocks' reductions into, bytes (a block of 256
+#: columns of a 14010-row uint16 grid reduced by 8 is 110 KiB; by 2, 1.7 MiB).
+RING_BYTES = 32 * 2**20
+#: Draft blocks asked for and not yet collected, at most (then the oldest is waited for).
+DRAFTS_IN_FLIGHT = 64
+#: Alignment of a reduction in the ring, bytes.
+_ALIGN = 64
+
+#: The reductions of a draft block, one per factor asked (None for a factor of 0).
+Reductions = list[NDArray[np.generic] | None]
 
 
-def _child(conn: Any, out_names: list[str]) -> None:
-    """The render loop: (output, segment, offset, shape, dtype, first line, block, ...)."""
+def _reduced_shapes(height: int, cols: int, factors: Sequence[int]) -> list[tuple[int, int]]:
+    """The shape of each reduction :func:`~..imaging.resample.reduce_block` makes (0: none)."""
+    return [(height // f, cols // f) if f > 0 else (0, 0) for f in factors]
+
+
+def _ring_bytes(shapes: Sequence[tuple[int, int]], itemsize: int) -> list[int]:
+    """Byte offsets of each reduction from the start of the draft's space, and the total."""
+    offsets = [0]
+    for r, c in shapes:
+        offsets.append(offsets[-1] + -(-r * c * itemsize // _ALIGN) * _ALIGN)
+    return offsets
+
+
+def _child(conn: Any, out_names: list[str], ring_name: str) -> None:
+    """The render loop: (output, segment, offset, shape, dtype, first line, block, ...).
+
+    Output -1: a draft, reduced by each of the request's factors into the ring at its offset.
+    """
     import cv2
 
-    from ..imaging.resample import render_block
+    from ..imaging.resample import reduce_block, render_block
 
     cv2.setNumThreads(RENDER_THREADS)
 
     # Attached segments are registered with the parent's resource tracker (a spawned child
     # shares it) under the names the parent registered: the parent's unlink unregisters them.
     outs = [shared_memory.SharedMemory(name=n) for n in out_names]
+    ring = shared_memory.SharedMemory(name=ring_name)
+    scratch = np.empty(0, dtype=np.uint8)  # a draft's full-resolution pixels
     segs: OrderedDict[str, shared_memory.SharedMemory] = OrderedDict()
     try:
         while True:
             req = conn.recv()
             if req is None:
                 return
-            slot, name, offset, shape, dtype, first, block, height, nodata, interp = req
+            slot, name, offset, shape, dtype, first, block, height, nodata, interp = req[:10]
             try:
                 seg = segs.get(name)
                 if seg is None:
@@ -72,10 +109,25 @@ def _child(conn: Any, out_names: list[str]) -> None:
                         segs.popitem(last=False)[1].close()
                 segs.move_to_end(name)
                 data = np.ndarray(shape, dtype=dtype, buffer=seg.buf, offset=offset)
-                out = np.ndarray((height, block.cols), dtype=dtype, buffer=outs[slot].buf)
+                if slot >= 0:
+                    out = np.ndarray((height, block.cols), dtype=dtype, buffer=outs[slot].buf)
+                else:
+                    need = height * block.cols * data.itemsize
+                    if scratch.nbytes < need:
+                        scratch = np.empty(need, dtype=np.uint8)
+                    out = scratch[:need].view(dtype).reshape(height, block.cols)
                 render_block(
                     block, data, first, None, nodata=nodata, interpolation=interp, out=out
                 )
+                if slot < 0:
+                    factors, at = req[10], req[11]
+                    shapes = _reduced_shapes(height, block.cols, factors)
+                    offsets = _ring_bytes(shapes, out.itemsize)
+                    for f, shp, off in zip(factors, shapes, offsets, strict=False):
+                        if f > 0:
+                            dst = np.ndarray(shp, dtype=dtype, buffer=ring.buf, offset=at + off)
+                            dst[...] = reduce_block(out, f, nodata)
+                            del dst
                 del data, out
                 conn.send(None)
             except Exception as err:
@@ -87,6 +139,23 @@ def _child(conn: Any, out_names: list[str]) -> None:
             seg.close()
         for out_shm in outs:
             out_shm.close()
+        ring.close()
+
+
+@dataclass
+class _Draft:
+    """A draft block asked of the child: what to collect, and how to render it if it fails."""
+
+    block: Any
+    data: NDArray[np.generic]  # the lines it reads: held, so their array is not reused
+    first_line: int
+    height: int
+    nodata: float
+    interpolation: int
+    factors: tuple[int, ...]
+    at: int  # byte offset of its reductions in the ring
+    nbytes: int  # bytes it takes in the ring
+    deliver: Callable[[Reductions | None], None]
 
 
 class RenderProcess:
@@ -98,16 +167,18 @@ class RenderProcess:
     def __init__(self) -> None:
         ctx = mp.get_context("spawn")  # no fork of a process with DDS threads
         self._outs: list[shared_memory.SharedMemory] = []
+        self._ring: shared_memory.SharedMemory | None = None
         try:
             for _ in range(2):
                 self._outs.append(shared_memory.SharedMemory(create=True, size=OUTPUT_BYTES))
+            self._ring = shared_memory.SharedMemory(create=True, size=RING_BYTES)
         except BaseException:
             self._free_outputs()
             raise
         self._conn, child_conn = ctx.Pipe()
         self._proc = ctx.Process(
             target=_child,
-            args=(child_conn, [o.name for o in self._outs]),
+            args=(child_conn, [o.name for o in self._outs], self._ring.name),
             daemon=True,
             name="parproj_render",
         )
@@ -123,7 +194,10 @@ class RenderProcess:
         self._lock = threading.Lock()
         self.rendered = 0  # blocks rendered by the child
         self.fallbacks = 0  # blocks rendered in the calling thread instead
+        self.drafts = 0  # draft blocks rendered and reduced by the child
         self.error: str | None = None  # why the child stopped being used, if it did
+        self._pending: deque[_Draft] = deque()  # drafts asked for, in the order asked
+        self._ring_head = 0  # where the next draft's reductions go in the ring
 
     @property
     def alive(self) -> bool:
@@ -175,8 +249,10 @@ class RenderProcess:
         (copy them to keep them); None: render that block yourself (counted in
         :attr:`fallbacks`). ``data`` (the lines from ``first_line``) must not change until the
         iterator is exhausted or closed: close it (``contextlib.closing``) when leaving early,
-        so the block still in the child is waited for.
+        so the block still in the child is waited for. Drafts still in the child are collected
+        first (:meth:`drain`).
         """
+        self.drain()
         where = self._locate(data) if self.alive else None
         if where is None or height * max((b.cols for b in blocks), default=0) * data.itemsize > (
             OUTPUT_BYTES
@@ -229,8 +305,134 @@ class RenderProcess:
             if in_flight:  # left early: the child's answer must not be read as the next one's
                 reply()
 
+    def submit_reduced(
+        self,
+        block: Any,
+        data: NDArray[np.generic],
+        first_line: int,
+        height: int,
+        *,
+        nodata: float,
+        interpolation: int,
+        factors: Sequence[int],
+        deliver: Callable[[Reductions | None], None],
+    ) -> bool:
+        """Ask the child for a draft block reduced by each of ``factors``; do not wait.
+
+        ``deliver(reductions)`` is called on the caller's thread by a later :meth:`poll` or
+        :meth:`drain` (in the order asked): one array per factor, None for a factor of 0; or
+        None, the child could not (counted in :attr:`fallbacks`): render it yourself. ``data``
+        (the lines from ``first_line``) is held until then and must not change: call
+        :meth:`drain` before writing over them. False: not asked (a line buffer the child
+        cannot see, a block too large, no child): render it yourself now.
+        """
+        where = self._locate(data) if self.alive else None
+        if where is None or height * int(block.cols) * data.itemsize > OUTPUT_BYTES:
+            return False
+        facs = tuple(int(f) for f in factors)
+        if not any(f > 0 for f in facs):
+            return False
+        nbytes = _ring_bytes(_reduced_shapes(height, int(block.cols), facs), data.itemsize)[-1]
+        at = self._ring_space(nbytes)
+        if at is None:
+            return False
+        try:
+            self._conn.send(
+                (-1, *where, data.shape, data.dtype.str, first_line, block, height,
+                 float(nodata), int(interpolation), facs, at)
+            )  # fmt: skip
+        except OSError as err:
+            self.error = f"render process gone: {type(err).__name__}: {err}"
+            return False
+        self._pending.append(
+            _Draft(block, data, first_line, height, float(nodata), int(interpolation), facs,
+                   at, nbytes, deliver)
+        )  # fmt: skip
+        self._ring_head = at + nbytes
+        return True
+
+    def _ring_space(self, nbytes: int) -> int | None:
+        """Where ``nbytes`` of reductions go in the ring; None: larger than the ring.
+
+        Collects the oldest drafts (waiting for them) until there is room and fewer than
+        :data:`DRAFTS_IN_FLIGHT` are pending.
+        """
+        size = RING_BYTES
+        if nbytes >= size:
+            return None
+        while True:
+            if not self._pending:
+                self._ring_head = 0
+                return 0
+            if len(self._pending) < DRAFTS_IN_FLIGHT:
+                # In use: from the oldest's start (tail) to the newest's end (head), wrapped
+                # when head < tail. Strict bounds, so that head == tail never means full.
+                tail, head = self._pending[0].at, self._ring_head
+                if head > tail:
+                    if head + nbytes <= size:
+                        return head
+                    if nbytes < tail:
+                        return 0
+                elif head + nbytes < tail:
+                    return head
+            self._answer()
+
+    @property
+    def pending(self) -> int:
+        """Draft blocks asked for and not yet collected."""
+        return len(self._pending)
+
+    def poll(self) -> int:
+        """Collect the drafts the child has finished (not waiting); how many."""
+        n = 0
+        try:
+            while self._pending and self.error is None and self._conn.poll(0):
+                self._answer()
+                n += 1
+        except (EOFError, OSError) as err:
+            self.error = f"render process gone: {type(err).__name__}: {err}"
+        if self.error is not None:
+            n += self.drain()
+        return n
+
+    def drain(self) -> int:
+        """Collect every draft asked for (waiting for the child); how many."""
+        n = 0
+        while self._pending:
+            self._answer()
+            n += 1
+        return n
+
+    def _answer(self) -> None:
+        """Collect the oldest draft: its reductions copied out of the ring, or None."""
+        d = self._pending.popleft()
+        images: Reductions | None = None
+        if self.error is None:
+            try:
+                answer = self._conn.recv()
+            except (EOFError, OSError) as err:
+                self.error = f"render process gone: {type(err).__name__}: {err}"
+            else:
+                if answer is None and self._ring is not None:
+                    shapes = _reduced_shapes(d.height, int(d.block.cols), d.factors)
+                    offsets = _ring_bytes(shapes, d.data.itemsize)
+                    images = [
+                        np.ndarray(shp, dtype=d.data.dtype, buffer=self._ring.buf,
+                                   offset=d.at + off).copy()
+                        if f > 0 else None
+                        for f, shp, off in zip(d.factors, shapes, offsets, strict=False)
+                    ]  # fmt: skip
+                    self.drafts += 1
+        if images is None:
+            self.fallbacks += 1
+        d.deliver(images)
+
     def close(self) -> None:
-        """Stop the child and free the output buffer (line buffers go with their arrays)."""
+        """Stop the child and free the output buffer (line buffers go with their arrays).
+
+        Drafts still pending are collected (delivered) first.
+        """
+        self.drain()
         try:
             self._conn.send(None)
         except (OSError, BrokenPipeError):
@@ -245,6 +447,8 @@ class RenderProcess:
     def _free_outputs(self) -> None:
         for out in self._outs:
             _free(out)
+        if self._ring is not None:
+            _free(self._ring)
 
 
 def _free(shm: shared_memory.SharedMemory) -> None:

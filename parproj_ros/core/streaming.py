@@ -24,6 +24,7 @@ from collections.abc import Callable, Generator, Mapping
 from contextlib import closing
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -33,7 +34,14 @@ from ..geometry import GeometryError, PushbroomModel, parameters_from_navigation
 from ..geometry.navigation import virtual_points
 from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd
 from ..imaging.kernels import max_support_lines
-from ..imaging.resample import OutputGrid, SceneGeometry, Tile, plan_tiles, render_block
+from ..imaging.resample import (
+    OutputGrid,
+    SceneGeometry,
+    Tile,
+    plan_tiles,
+    reduce_block,
+    render_block,
+)
 from .config import PipelineConfig
 from .gcp_store import GcpStore
 from .ledger import Block, PairLedger, SideStream, StreamPair
@@ -344,6 +352,21 @@ def side_end(stream: StreamPair, scene: Scene) -> SideEnd:
     return SideEnd.ABANDON
 
 
+class DraftReducer(Protocol):
+    """Where draft blocks go when the render process reduces them (:attr:`Streamer.drafts`).
+
+    The pipeline's: its quick-look tile levels.
+    """
+
+    def factors(self, stream: StreamPair) -> tuple[int, ...]:
+        """The reduction each tile level holds of ``stream``'s blocks (0: that level none)."""
+        ...
+
+    def deliver(self, blk: BlockResult, reductions: list[NDArray[np.generic] | None]) -> None:
+        """A draft block's reductions, one per level (``blk.image`` holds no pixels)."""
+        ...
+
+
 class Streamer:
     """The streaming of two-view pairs: the decisions, recorded in the ledger.
 
@@ -380,6 +403,10 @@ class Streamer:
         #: Side -> whether its next blocks may be drafts (:data:`DRAFT_INTERPOLATION`): they
         #: only feed the quick-look tiles, nobody takes the blocks themselves. None: never.
         self.draft: Callable[[str], bool] | None = None
+        #: With the render process, draft blocks are reduced there and not waited for: their
+        #: reductions go to this (the block sink is not called for them). None: drafts go
+        #: through the block sink at full resolution, as other blocks.
+        self.drafts: DraftReducer | None = None
 
     def undecided(self, scene: Scene) -> bool:
         """Whether ``scene``'s pair waits for navigation to decide (:func:`undecided`)."""
@@ -620,6 +647,9 @@ class Streamer:
         draft = self.draft is not None and self.draft(side.side)
         if draft:
             interp = DRAFT_INTERPOLATION
+            if self.renderer is not None and self.drafts is not None:
+                self._emit_drafts(stream, side, ready, data, first, self.drafts)
+                return out
         nodata = self.config.output.nodata
         sink = self.block_sink
         rendered: Generator[tuple[Block, NDArray[np.generic] | None], None, None]
@@ -660,6 +690,61 @@ class Streamer:
                 else:
                     sink(blk)
         return out
+
+    def _emit_drafts(
+        self,
+        stream: StreamPair,
+        side: SideStream,
+        ready: list[Block],
+        data: NDArray[np.generic],
+        first: int,
+        to: DraftReducer,
+    ) -> None:
+        """``ready`` as draft blocks reduced in the render process, not waited for.
+
+        Each block's reductions reach ``to`` when the render process's answers are collected
+        (:meth:`RenderProcess.poll`, :meth:`RenderProcess.drain`); a block the process cannot
+        render is rendered and reduced here, then or at once. The block handed over holds no
+        pixels (a read-only broadcast of the no-data value, of the block's shape).
+        """
+        renderer = self.renderer
+        assert renderer is not None
+        factors = to.factors(stream)
+        nodata = self.config.output.nodata
+        grid = side.grid
+        for b in ready:
+            side.next_block += 1
+            blk = BlockResult(
+                stream.geometry.pair_id,
+                side.side,
+                side.next_block - 1,
+                b.col0,
+                np.broadcast_to(np.asarray(nodata, dtype=data.dtype), (grid.height, b.cols)),
+                grid,
+                stream.stamp_ns,
+                side.next_block == len(side.blocks),
+                True,
+            )
+
+            def deliver(
+                reductions: list[NDArray[np.generic] | None] | None,
+                b: Block = b,
+                blk: BlockResult = blk,
+            ) -> None:
+                if reductions is None:  # the process could not: here
+                    img = render_block(
+                        b, data, first, grid, nodata=nodata, interpolation=DRAFT_INTERPOLATION
+                    )
+                    reductions = [reduce_block(img, f, nodata) if f > 0 else None for f in factors]
+                to.deliver(blk, reductions)
+
+            if not any(f > 0 for f in factors):
+                to.deliver(blk, [None] * len(factors))  # no level takes it: nothing to render
+            elif not renderer.submit_reduced(
+                b, data, first, grid.height, nodata=nodata, interpolation=DRAFT_INTERPOLATION,
+                factors=factors, deliver=deliver,
+            ):  # fmt: skip
+                deliver(None)
 
     def advance(self, view: str) -> Outputs:
         """Emit the blocks of ``view``'s streamed scene that its lines received so far complete.

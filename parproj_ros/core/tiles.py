@@ -37,7 +37,7 @@ import queue
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from typing import Any, Literal, cast
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -52,7 +52,7 @@ from ..imaging.dense import (
     to_uint8,
 )
 from ..imaging.heights import Dsm, DsmGrid, GroundMapping, make_dsm, orthoimage
-from ..imaging.resample import OutputGrid
+from ..imaging.resample import OutputGrid, reduce_block
 from .config import PipelineConfig
 from .heights import (
     MATCHER_MODES,
@@ -101,43 +101,6 @@ MAX_WIDENINGS = 4
 TILE_THREAD_OPENCV_THREADS = 1
 #: The left-right check of the quick-look levels when the heights' own is "flip".
 QUICKLOOK_LR_CHECK: Literal["flip", "reduced", "none"] = "reduced"
-
-
-def reduce_block(image: NDArray[np.generic], factor: int, nodata: float) -> NDArray[np.generic]:
-    """``image`` reduced by ``factor`` as :func:`~.terrain.reduce_image` reduces it, faster.
-
-    The same pixels to the bit (block means by ``cv2.INTER_AREA``; a reduced pixel whose block
-    holds a no-data pixel is no-data; the last rows and columns that do not fill a block are
-    dropped), but the no-data test costs one pass over the block when it has none (its
-    minimum above ``nodata``, or no pixel equal to it), and otherwise one over the reduced
-    rows that hold some: :func:`reduce_image` built and reduced a float mask of every pixel
-    (at the IKONOS size, 1.5 of the 3.4 CPU seconds of a pair's 1/8 tiles).
-    """
-    rows, cols = image.shape[0] // factor, image.shape[1] // factor
-    full = np.asarray(image[: rows * factor, : cols * factor])
-    small = cv2.resize(full, (cols, rows), interpolation=cv2.INTER_AREA)
-    if full.size == 0 or float(full.min()) > nodata:
-        return small
-    try:
-        # The reduced pixels holding no-data: the 255/0 mask's block means are > 0 exactly
-        # there (the least, 255 / 64 at 8, rounds to 4). 2.6 ms a block of 256 x 14010 px
-        # against 9.5 for the pass below: with draft blocks (nearest-neighbour sampling) a
-        # simulated scene's zero DN reach most blocks.
-        mask = cv2.compare(full, cast(Any, float(nodata)), cv2.CMP_EQ)
-        small[cv2.resize(mask, (cols, rows), interpolation=cv2.INTER_AREA) > 0] = nodata
-        return small
-    except cv2.error:  # a type OpenCV does not compare
-        pass
-    bad = full == nodata
-    band = bad.reshape(rows, factor * full.shape[1]).any(axis=1)
-    if not band.any():
-        return small
-    hit = np.flatnonzero(band)
-    blocks = bad.reshape(rows, factor, cols, factor)[hit].any(axis=(1, 3))
-    sub = small[hit]
-    sub[blocks] = nodata
-    small[hit] = sub
-    return small
 
 
 @dataclass(frozen=True)
@@ -781,18 +744,23 @@ class TileStage:
             and config.scenes.lines > 0
         )
 
+    @staticmethod
+    def stream_geometry(s: StreamPair) -> _Geometry:
+        """What the tiles need of a stream's geometry."""
+        geo = s.geometry
+        return _Geometry(
+            geo.pair_id,
+            geo.normalization,
+            s.sides["left"].result.affine,
+            geo.left_grid,
+            geo.right_grid,
+            s.stamp_ns,
+        )
+
     def _geometry(self, pair_id: str, pairs: list[PairResult]) -> _Geometry | None:
         for s in self.streams.values():
             if s.geometry.pair_id == pair_id:
-                geo = s.geometry
-                return _Geometry(
-                    pair_id,
-                    geo.normalization,
-                    s.sides["left"].result.affine,
-                    geo.left_grid,
-                    geo.right_grid,
-                    s.stamp_ns,
-                )
+                return self.stream_geometry(s)
         for p in pairs:  # the stream began and ended within one call
             if p.pair_id == pair_id:
                 return _Geometry(
@@ -857,6 +825,17 @@ class TileStage:
             if blk.pair_id not in level.pairs and geo is None:
                 geo = self._geometry(blk.pair_id, pairs or [])
             level.keep(blk, geo, borrowed=borrowed)
+
+    def keep_reduced(
+        self,
+        blk: BlockResult,
+        reductions: list[NDArray[np.generic] | None],
+        geo: _Geometry | None,
+    ) -> None:
+        """Hold a draft block's reductions, one per level as :attr:`levels` (None: none)."""
+        for level, img in zip(self.levels, reductions, strict=True):
+            if img is not None:
+                level.keep(blk, geo, image=img)
 
     def __call__(self, out: Outputs, *, blocks: bool = True) -> Outputs:
         """Add to ``out`` the tiles now covered (``blocks``: hold ``out.blocks`` first)."""
@@ -923,6 +902,17 @@ class TileThread:
         new = any(blk.pair_id not in level.pairs for level in self.levels)
         geo = self.stage._geometry(blk.pair_id, pairs or []) if new else None
         self._queue.put(("keep", (replace(blk, image=blk.image[:, :0]), geo, images)))
+
+    def keep_reduced(
+        self,
+        blk: BlockResult,
+        reductions: list[NDArray[np.generic] | None],
+        geo: _Geometry | None,
+    ) -> None:
+        """Hand a draft block's reductions to the thread (:meth:`TileStage.keep_reduced`)."""
+        if all(img is None for img in reductions):
+            return
+        self._queue.put(("keep", (replace(blk, image=blk.image[:, :0]), geo, reductions)))
 
     def shed_quicklook(self, shed: bool) -> list[Issue]:
         """Shed or resume the quick-look levels (on the thread; what changed comes later)."""

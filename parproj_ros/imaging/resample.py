@@ -351,3 +351,43 @@ def render_block(
                 borderValue=border,
             )
     return out
+
+
+def reduce_block(image: NDArray[np.generic], factor: int, nodata: float) -> NDArray[np.generic]:
+    """``image`` reduced by ``factor`` as ``core.terrain.reduce_image`` reduces it, faster.
+
+    (Here, not in ``core.tiles``, so that the render process reduces draft blocks with only
+    this module imported.)
+
+    The same pixels to the bit (block means by ``cv2.INTER_AREA``; a reduced pixel whose block
+    holds a no-data pixel is no-data; the last rows and columns that do not fill a block are
+    dropped), but the no-data test costs one pass over the block when it has none (its
+    minimum above ``nodata``, or no pixel equal to it), and otherwise one over the reduced
+    rows that hold some: ``reduce_image`` built and reduced a float mask of every pixel
+    (at the IKONOS size, 1.5 of the 3.4 CPU seconds of a pair's 1/8 tiles).
+    """
+    rows, cols = image.shape[0] // factor, image.shape[1] // factor
+    full = np.asarray(image[: rows * factor, : cols * factor])
+    small = cv2.resize(full, (cols, rows), interpolation=cv2.INTER_AREA)
+    if full.size == 0 or float(full.min()) > nodata:
+        return small
+    try:
+        # The reduced pixels holding no-data: the 255/0 mask's block means are > 0 exactly
+        # there (the least, 255 / 64 at 8, rounds to 4). 2.6 ms a block of 256 x 14010 px
+        # against 9.5 for the pass below: with draft blocks (nearest-neighbour sampling) a
+        # simulated scene's zero DN reach most blocks.
+        mask = cv2.compare(full, cast(Any, float(nodata)), cv2.CMP_EQ)
+        small[cv2.resize(mask, (cols, rows), interpolation=cv2.INTER_AREA) > 0] = nodata
+        return small
+    except cv2.error:  # a type OpenCV does not compare
+        pass
+    bad = full == nodata
+    band = bad.reshape(rows, factor * full.shape[1]).any(axis=1)
+    if not band.any():
+        return small
+    hit = np.flatnonzero(band)
+    blocks = bad.reshape(rows, factor, cols, factor)[hit].any(axis=(1, 3))
+    sub = small[hit]
+    sub[blocks] = nodata
+    small[hit] = sub
+    return small

@@ -343,6 +343,7 @@ class ParprojNode(Node):
                 *self.admission.counts.items(),
                 *self.pipeline.ledger.counts().items(),
                 ("blocks_unsubscribed", self.blocks_unsubscribed),
+                *self._render_values(),
                 ("queue", self.worker.qsize()),
                 ("queue_max", self.worker.take_peak()),
                 ("nav_samples", len(self.pipeline.nav)),
@@ -353,6 +354,21 @@ class ParprojNode(Node):
                 ("busy_with", busy[0] if busy else ""),
             ],
         )
+
+    def _render_values(self) -> list[tuple[str, object]]:
+        """The render process's counts for the summary.
+
+        Blocks rendered there, draft blocks rendered and reduced there, blocks rendered in the
+        worker instead (the process failed, or a line buffer it cannot see).
+        """
+        r = self.session.renderer
+        if r is None:
+            return [("render_blocks", 0), ("render_drafts", 0), ("render_fallbacks", 0)]
+        return [
+            ("render_blocks", r.rendered),
+            ("render_drafts", r.drafts),
+            ("render_fallbacks", r.fallbacks),
+        ]
 
     def flush(self, timeout_s: float | None = None, abort: Callable[[], bool] = bool) -> bool:
         """Close the open scenes (end of a pass) and wait until the worker has published them.

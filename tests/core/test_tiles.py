@@ -31,6 +31,7 @@ from testkit.paths import BAGS
 from parproj_ros.core.heights import HeightsStage, assemble_tiles, heights_from_tiles, options_of
 from parproj_ros.core.params import PARAMS
 from parproj_ros.core.pipeline import Pipeline
+from parproj_ros.core.render_process import RenderProcess
 from parproj_ros.core.results import Level, Outputs
 from parproj_ros.core.tiles import TILE_COLS, TileStage, tiles_of_pair
 from parproj_ros.imaging.heights import Dsm, DsmGrid
@@ -771,3 +772,106 @@ def test_blocks_nobody_takes_are_drafts_for_the_quicklook_only() -> None:
     pipe.set_block_sink(plain.append)
     _run(pipe=pipe)
     assert plain and not any(b.draft for b in plain)
+
+
+def _drafted(
+    renderer: RenderProcess | None, fences: list[int] | None = None
+) -> tuple[list[tuple[str, Outputs]], Outputs, int]:
+    """The node's quick-look-only set-up (1/4), nobody taking either side's blocks: drafts,
+    rendered and reduced in ``renderer``'s process (None: in this thread), tiles on their
+    thread. The outputs, and the draft blocks the sink was given. ``fences``: the drafts
+    still pending each time a line buffer moved its lines (after the pipeline's fence)."""
+    pipe = _pipeline(-2)
+    if renderer is not None:
+        pipe.use_render_process(renderer)
+        if fences is not None:
+            for asm in pipe.assemblers.values():
+
+                def fence(rp: RenderProcess = renderer, wait: Any = asm.pool.fence) -> None:
+                    wait()  # the pipeline's own fence
+                    fences.append(rp.pending)
+
+                asm.pool.fence = fence
+    drafts = []
+    pipe.set_block_sink(lambda blk: drafts.append(blk.draft), wanted=lambda side: False)
+    pipe.use_tile_thread()
+    try:
+        calls, flushed = _run(pipe=pipe)
+    finally:
+        pipe.close()
+    assert all(drafts)
+    return calls, flushed, len(drafts)
+
+
+def _same_tiles(a: Outputs, b: Outputs) -> None:
+    assert [(t.pair_id, t.index) for t in a.tiles] == [(t.pair_id, t.index) for t in b.tiles]
+    assert a.tiles
+    for x, y in zip(a.tiles, b.tiles, strict=True):
+        assert x.dsm is not None and y.dsm is not None
+        np.testing.assert_array_equal(x.dsm.heights, y.dsm.heights)
+
+
+def test_drafts_reduced_in_the_render_process_are_those_of_the_worker() -> None:
+    """With the render process, a draft block is rendered and reduced there and not waited
+    for (core/render_process.RenderProcess.submit_reduced): the quick-look tiles are those
+    of the drafts rendered and reduced in the worker, to the bit; every tile comes no later
+    than its pair; a line buffer moves its lines only once no draft reads them."""
+    ref_calls, ref_flushed, n_ref = _drafted(None)
+    rp = RenderProcess()
+    fences: list[int] = []
+    try:
+        calls, flushed, n = _drafted(rp, fences)
+        assert rp.alive and rp.error is None
+    finally:
+        rp.close()
+    assert n == n_ref >= 4 and (rp.drafts, rp.fallbacks, rp.rendered) == (n, 0, 0)
+    assert rp.pending == 0 and fences and not any(fences)
+    _same_tiles(_all(calls, flushed), _all(ref_calls, ref_flushed))
+    seen: set[tuple[str, int]] = set()
+    for _, o in [*calls, ("flush", flushed)]:
+        seen |= {(t.pair_id, t.index) for t in o.tiles}
+        for p in o.pairs:
+            assert {i for pid, i in seen if pid == p.pair_id}, p.pair_id
+
+
+def test_the_draft_ring_wraps_and_waits(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A ring of 40 kB (three reductions of this pair's blocks) and at most 2 drafts in
+    flight: the drafts wrap around the ring and wait for the oldest; the same tiles."""
+    from parproj_ros.core import render_process as rpm
+
+    ref_calls, ref_flushed, _ = _drafted(None)
+    monkeypatch.setattr(rpm, "RING_BYTES", 40_000)
+    monkeypatch.setattr(rpm, "DRAFTS_IN_FLIGHT", 2)
+    starts: list[tuple[int, int]] = []
+    space = RenderProcess._ring_space
+
+    def spy(self: RenderProcess, nbytes: int) -> int | None:
+        at = space(self, nbytes)
+        starts.append((-1 if at is None else at, self.pending))
+        return at
+
+    monkeypatch.setattr(RenderProcess, "_ring_space", spy)
+    rp = RenderProcess()
+    try:
+        calls, flushed, n = _drafted(rp)
+    finally:
+        rp.close()
+    assert (rp.drafts, rp.fallbacks) == (n, 0)
+    assert any(at == 0 and pending > 0 for at, pending in starts), starts  # wrapped
+    assert max(pending for _, pending in starts) <= 1  # the third waited
+    _same_tiles(_all(calls, flushed), _all(ref_calls, ref_flushed))
+
+
+def test_drafts_of_a_dead_render_process_are_made_in_the_worker() -> None:
+    """The render process killed before the pass: its drafts are rendered and reduced in
+    the worker, the same tiles."""
+    ref_calls, ref_flushed, _ = _drafted(None)
+    rp = RenderProcess()
+    rp._proc.kill()
+    rp._proc.join(5)
+    try:
+        calls, flushed, _ = _drafted(rp)
+    finally:
+        rp.close()
+    assert not rp.alive and rp.drafts == 0
+    _same_tiles(_all(calls, flushed), _all(ref_calls, ref_flushed))

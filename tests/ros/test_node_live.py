@@ -233,6 +233,10 @@ def test_quicklook_only_with_no_block_subscriber_renders_drafts(tmp_path: Path) 
         if st.name == "parproj_node: summary"
     ]
     assert blocks >= 4 and summaries[-1]["blocks_unsubscribed"] == str(blocks), summaries[-1:]
+    # Every draft rendered and reduced in the render process, none waited for block by block
+    # nor rendered in the worker (core/render_process.RenderProcess.submit_reduced).
+    last = summaries[-1]
+    assert (last["render_drafts"], last["render_fallbacks"]) == (str(blocks), "0"), last
     topic = "dsm_quicklook_tile"
     on = {m.msg.pair_id: m.msg for m in BagReader(out).messages(topics=[topic])}
     ref = {m.msg.pair_id: m.msg for m in off.messages(topics=[topic])}
