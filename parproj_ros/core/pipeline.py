@@ -130,7 +130,7 @@ class Pipeline:
         self.streamer.renderer = renderer
         for asm in self.assemblers.values():
             asm.pool.allocate = renderer.allocate
-            asm.pool.fence = renderer.drain  # drafts still reading lines about to move
+            asm.pool.fence = renderer.drain_over  # drafts still reading lines about to move
 
     def use_tile_thread(self) -> None:
         """Make the streamed DSM tiles on a thread of their own (:class:`TileThread`).

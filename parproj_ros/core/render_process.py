@@ -59,6 +59,8 @@ RING_BYTES = 32 * 2**20
 DRAFTS_IN_FLIGHT = 64
 #: Alignment of a reduction in the ring, bytes.
 _ALIGN = 64
+#: Lines beyond a block's own (which hold its kernel's margin) counted as read by its draft.
+_READ_MARGIN = 8
 
 #: The reductions of a draft block, one per factor asked (None for a factor of 0).
 Reductions = list[NDArray[np.generic] | None]
@@ -156,6 +158,7 @@ class _Draft:
     at: int  # byte offset of its reductions in the ring
     nbytes: int  # bytes it takes in the ring
     deliver: Callable[[Reductions | None], None]
+    reads: tuple[int, int]  # the addresses of the lines it reads: [first byte, end)
 
 
 class RenderProcess:
@@ -344,9 +347,14 @@ class RenderProcess:
         except OSError as err:
             self.error = f"render process gone: {type(err).__name__}: {err}"
             return False
+        # The lines the block reads (its tiles' lines and kernel margin, and a few more).
+        row = data.strides[0]
+        lo = min(max(int(block.min_line) - first_line - _READ_MARGIN, 0), data.shape[0])
+        hi = min(max(int(block.max_line) - first_line + 1 + _READ_MARGIN, lo), data.shape[0])
+        base = int(data.__array_interface__["data"][0])
         self._pending.append(
             _Draft(block, data, first_line, height, float(nodata), int(interpolation), facs,
-                   at, nbytes, deliver)
+                   at, nbytes, deliver, (base + lo * row, base + hi * row))
         )  # fmt: skip
         self._ring_head = at + nbytes
         return True
@@ -394,6 +402,29 @@ class RenderProcess:
         if self.error is not None:
             n += self.drain()
         return n
+
+    def reading(self, dest: NDArray[np.generic]) -> bool:
+        """Whether a draft still pending reads any byte of ``dest``."""
+        lo = int(dest.__array_interface__["data"][0])
+        hi = lo + int(dest.nbytes)
+        return any(a < hi and lo < b for a, b in (d.reads for d in self._pending))
+
+    def drain_over(self, dest: NDArray[np.generic]) -> int:
+        """Collect drafts, oldest first, until none pending reads ``dest``; how many.
+
+        The fence of the line buffers (:attr:`~..imaging.assembly.BufferPool.fence`): lines
+        about to be written over. A draft reads the lines of its block only, so at the IKONOS
+        rate most moves wait for none.
+        """
+        lo = int(dest.__array_interface__["data"][0])
+        hi = lo + int(dest.nbytes)
+        last = -1
+        for k, d in enumerate(self._pending):
+            if d.reads[0] < hi and lo < d.reads[1]:
+                last = k
+        for _ in range(last + 1):
+            self._answer()
+        return last + 1
 
     def drain(self) -> int:
         """Collect every draft asked for (waiting for the child); how many."""

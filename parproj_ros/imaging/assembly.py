@@ -101,7 +101,7 @@ def _private(nbytes: int) -> NDArray[np.uint8]:
     return np.empty(nbytes, dtype=np.uint8)
 
 
-def _nothing() -> None:
+def _nothing(dest: NDArray[np.generic]) -> None:
     """The default :attr:`BufferPool.fence`."""
 
 
@@ -125,9 +125,10 @@ class BufferPool:
         self.keep = int(keep)
         #: Makes a uint8 array of n bytes (shared memory for a render process, say).
         self.allocate: Callable[[int], NDArray[np.uint8]] = _private
-        #: Called before a line buffer moves retained lines within its array (another
-        #: process may still be reading them: the render process's drafts). Default: nothing.
-        self.fence: Callable[[], object] = _nothing
+        #: Called with the lines a line buffer is about to write over when it moves its
+        #: retained lines within its array (another process may still be reading them: the
+        #: render process's drafts); returns once nobody does. Default: nothing.
+        self.fence: Callable[[NDArray[np.generic]], object] = _nothing
         self._arrays: list[NDArray[np.uint8]] = []  # raw bytes, viewed as the type asked for
         self.reused = 0  # arrays handed out again
         self.allocated = 0  # arrays allocated
@@ -224,7 +225,7 @@ class _LineBuffer:
         keep = self.end - self.start
         if self.start > 0 and self.start >= max(keep, n):
             # The front is free and large enough: move the retained lines there (no overlap).
-            self.pool.fence()
+            self.pool.fence(self.buf[:keep])
             self.buf[:keep] = self.buf[self.start : self.end]
             self.start, self.end = 0, keep
         if self.end + n > self.buf.shape[0]:

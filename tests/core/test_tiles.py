@@ -779,17 +779,20 @@ def _drafted(
 ) -> tuple[list[tuple[str, Outputs]], Outputs, int]:
     """The node's quick-look-only set-up (1/4), nobody taking either side's blocks: drafts,
     rendered and reduced in ``renderer``'s process (None: in this thread), tiles on their
-    thread. The outputs, and the draft blocks the sink was given. ``fences``: the drafts
-    still pending each time a line buffer moved its lines (after the pipeline's fence)."""
+    thread. The outputs, and the draft blocks the sink was given. ``fences``: whether a
+    draft still pending read the lines a line buffer was about to write over, each time it
+    moved them (after the pipeline's fence)."""
     pipe = _pipeline(-2)
     if renderer is not None:
         pipe.use_render_process(renderer)
         if fences is not None:
             for asm in pipe.assemblers.values():
 
-                def fence(rp: RenderProcess = renderer, wait: Any = asm.pool.fence) -> None:
-                    wait()  # the pipeline's own fence
-                    fences.append(rp.pending)
+                def fence(
+                    dest: np.ndarray, rp: RenderProcess = renderer, wait: Any = asm.pool.fence
+                ) -> None:
+                    wait(dest)  # the pipeline's own fence
+                    fences.append(rp.reading(dest))
 
                 asm.pool.fence = fence
     drafts = []
@@ -835,13 +838,15 @@ def test_drafts_reduced_in_the_render_process_are_those_of_the_worker() -> None:
 
 
 def test_the_draft_ring_wraps_and_waits(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A ring of 40 kB (three reductions of this pair's blocks) and at most 2 drafts in
-    flight: the drafts wrap around the ring and wait for the oldest; the same tiles."""
+    """A ring of 40 kB (three reductions of 12.6 kB, this pair's blocks at 1/4), at most 3
+    drafts in flight, none collected by a poll: the drafts wrap around the ring and wait for
+    the oldest; the same tiles."""
     from parproj_ros.core import render_process as rpm
 
     ref_calls, ref_flushed, _ = _drafted(None)
     monkeypatch.setattr(rpm, "RING_BYTES", 40_000)
-    monkeypatch.setattr(rpm, "DRAFTS_IN_FLIGHT", 2)
+    monkeypatch.setattr(rpm, "DRAFTS_IN_FLIGHT", 3)
+    monkeypatch.setattr(RenderProcess, "poll", lambda self: 0)
     starts: list[tuple[int, int]] = []
     space = RenderProcess._ring_space
 
@@ -858,7 +863,7 @@ def test_the_draft_ring_wraps_and_waits(monkeypatch: pytest.MonkeyPatch) -> None
         rp.close()
     assert (rp.drafts, rp.fallbacks) == (n, 0)
     assert any(at == 0 and pending > 0 for at, pending in starts), starts  # wrapped
-    assert max(pending for _, pending in starts) <= 1  # the third waited
+    assert max(pending for _, pending in starts) == 2, starts  # the fourth waited
     _same_tiles(_all(calls, flushed), _all(ref_calls, ref_flushed))
 
 

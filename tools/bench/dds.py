@@ -529,6 +529,12 @@ def bench_live(
             "strips_received_by_node": got,
             "dropped_strips": sent_strips - got if obs.summary else None,
             "node_queue_max": obs.queue_max,
+            # The render process's counts (blocks, drafts reduced there, rendered in the worker).
+            "node_render": {
+                k: int(obs.summary[k])
+                for k in ("render_blocks", "render_drafts", "render_fallbacks")
+                if k in obs.summary
+            },
             "node_issues": obs.issues[:20],
             "held_back_s": throttled,
             "publisher_max_lag_s": lag_max,

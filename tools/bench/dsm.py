@@ -525,6 +525,8 @@ def main(argv: list[str] | None = None) -> int:
     keys["pairs_shed"] = live.get("pairs_shed")
     keys["node_peak_rss_mb"] = live.get("node_peak_rss_mb")
     keys["node_queue_max"] = live.get("node_queue_max")
+    keys["node_render"] = live.get("node_render")
+    keys["node_cpu"] = live.get("cpu_per_sensor_s")
     keys["tiles"] = {
         k: {"tiles": v["tiles"], "latency_s": v["latency_s"]}
         for k, v in (live.get("tiles") or {}).items()
