@@ -62,6 +62,11 @@ WHOLE_IMAGE_WORKING_SET_MB = 64.0
 #: Least time between two returns of the free heap to the system by :meth:`PairAdmission.sample`
 #: (each costs milliseconds, and the pages given back cost 2.2 ms per MB to touch again), s.
 TRIM_INTERVAL_S = 1.0
+#: :meth:`PairAdmission.sample` reads the memory at most this often, seconds. Each reading
+#: gives the GIL back twice (``/proc/self/statm``, ``mallinfo2``) and the worker then waits
+#: for the executor to finish taking a strip (rclpy holds the GIL for it): at the IKONOS rate
+#: the readings after every input were 10 % of the worker's samples (py-spy, 10 pairs, 1/8).
+SAMPLE_INTERVAL_S = 0.05
 #: Resident memory samples (two per pair: at its decision and at its publication) over which
 #: the working set is the largest.
 WORKING_SET_SAMPLES = 4
@@ -237,6 +242,7 @@ class PairAdmission:
         self.floor_pairs = float(floor_pairs)
         self.floor = int(floor_mb * 2**20)
         self._trimmed = 0.0  # monotonic time of sample()'s last malloc_trim
+        self._sampled = -math.inf  # monotonic time of sample()'s last reading
         #: Bytes of raw scene data held (line buffers, queued strips), read apart from the rest.
         self.raw_held = raw_held
         #: Bytes the streamed DSM tiles hold, read apart from the rest too.
@@ -379,10 +385,14 @@ class PairAdmission:
         :data:`HEADROOM` are for those. When the resident memory is over the budget less the
         headroom, the free heap is given back (``malloc_trim``, at most every
         :data:`TRIM_INTERVAL_S`): a fragmented heap otherwise grew the resident memory pair by
-        pair after a burst.
+        pair after a burst. At most every :data:`SAMPLE_INTERVAL_S`: a peak shorter than that
+        may be missed (the floor and the headroom again).
         """
-        rss, _, rest = self._memory()
         now = time.monotonic()
+        if now - self._sampled < SAMPLE_INTERVAL_S:
+            return
+        self._sampled = now
+        rss, _, rest = self._memory()
         if rss > self.usable and now - self._trimmed >= TRIM_INTERVAL_S:
             self._trimmed = now  # the free heap kept beyond what the budget leaves: given back
             malloc_trim()

@@ -111,16 +111,19 @@ def _child(conn: Any, out_names: list[str], ring_name: str) -> None:
                         segs.popitem(last=False)[1].close()
                 segs.move_to_end(name)
                 data = np.ndarray(shape, dtype=dtype, buffer=seg.buf, offset=offset)
+                stride = 1 if slot >= 0 else int(req[12])
                 if slot >= 0:
                     out = np.ndarray((height, block.cols), dtype=dtype, buffer=outs[slot].buf)
                 else:
-                    need = height * block.cols * data.itemsize
+                    shape_s = (height // stride, block.cols // stride)
+                    need = shape_s[0] * shape_s[1] * data.itemsize
                     if scratch.nbytes < need:
                         scratch = np.empty(need, dtype=np.uint8)
-                    out = scratch[:need].view(dtype).reshape(height, block.cols)
+                    out = scratch[:need].view(dtype).reshape(shape_s)
                 render_block(
-                    block, data, first, None, nodata=nodata, interpolation=interp, out=out
-                )
+                    block, data, first, None, nodata=nodata, interpolation=interp, out=out,
+                    stride=stride,
+                )  # fmt: skip
                 if slot < 0:
                     factors, at = req[10], req[11]
                     shapes = _reduced_shapes(height, block.cols, factors)
@@ -128,7 +131,7 @@ def _child(conn: Any, out_names: list[str], ring_name: str) -> None:
                     for f, shp, off in zip(factors, shapes, offsets, strict=False):
                         if f > 0:
                             dst = np.ndarray(shp, dtype=dtype, buffer=ring.buf, offset=at + off)
-                            dst[...] = reduce_block(out, f, nodata)
+                            dst[...] = reduce_block(out, f // stride, nodata)
                             del dst
                 del data, out
                 conn.send(None)
@@ -318,9 +321,13 @@ class RenderProcess:
         nodata: float,
         interpolation: int,
         factors: Sequence[int],
+        stride: int = 1,
         deliver: Callable[[Reductions | None], None],
     ) -> bool:
         """Ask the child for a draft block reduced by each of ``factors``; do not wait.
+
+        The child samples it every ``stride`` pixels (``render_block``'s), then reduces that
+        by ``factor // stride`` (each factor a multiple of ``stride``).
 
         ``deliver(reductions)`` is called on the caller's thread by a later :meth:`poll` or
         :meth:`drain` (in the order asked): one array per factor, None for a factor of 0; or
@@ -342,7 +349,7 @@ class RenderProcess:
         try:
             self._conn.send(
                 (-1, *where, data.shape, data.dtype.str, first_line, block, height,
-                 float(nodata), int(interpolation), facs, at)
+                 float(nodata), int(interpolation), facs, at, int(stride))
             )  # fmt: skip
         except OSError as err:
             self.error = f"render process gone: {type(err).__name__}: {err}"

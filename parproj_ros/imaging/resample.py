@@ -9,6 +9,7 @@ the kernel the ``interpolation`` parameter names, a row of
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -313,29 +314,46 @@ def render_block(
     nodata: float,
     interpolation: int,
     out: NDArray[np.generic] | None = None,
+    stride: int = 1,
 ) -> NDArray[np.generic]:
     """Resample one column block from the retained lines ``data`` (line ``first_line`` first).
 
     ``block``: a streamed column block (``core.streaming``): its ``cols`` and ``tiles``.
+    ``stride``: every ``stride``-th row and column only, each sampled at the centre of its
+    ``stride`` x ``stride`` pixels (``height // stride`` x ``cols // stride``; the last rows
+    and columns that do not fill a stride are dropped, as :func:`reduce_block` drops them).
 
-    Into ``out`` (grid height x block columns, of the data's type) when given, else a new array.
+    Into ``out`` (grid height x block columns, of the data's type, or the strided shape) when
+    given, else a new array.
     """
+    s = int(stride)
     if out is None:
         if grid is None:
             raise ValueError("render_block needs the grid or the output array")
-        out = np.empty((grid.height, block.cols), dtype=data.dtype)
+        out = np.empty((grid.height // s, block.cols // s), dtype=data.dtype)
     src = cast("NDArray[Any]", data)
     flags = interpolation | cv2.WARP_INVERSE_MAP
     border = float(nodata)
+    c = (s - 1) / 2.0  # a strided pixel's centre, full-resolution pixels from its first
     for t in block.tiles:
         m = t.affine.copy()
         m[1, 2] -= first_line
-        dst = out[t.row0 : t.row0 + t.rows, t.col0 - block.col0 : t.col0 - block.col0 + t.cols]
+        tc = t.col0 - block.col0
+        # The strided pixels whose centres lie on the tile.
+        r0, r1 = math.ceil((t.row0 - c) / s), math.ceil((t.row0 + t.rows - c) / s)
+        c0, c1 = math.ceil((tc - c) / s), math.ceil((tc + t.cols - c) / s)
+        r0, r1, c0, c1 = max(r0, 0), min(r1, out.shape[0]), max(c0, 0), min(c1, out.shape[1])
+        if r1 <= r0 or c1 <= c0:
+            continue
+        if s > 1:  # strided (X, Y) -> the tile's full-resolution (x, y) -> the source
+            a = np.array([[s, 0.0, s * c0 + c - tc], [0.0, s, s * r0 + c - t.row0], [0, 0, 1]])
+            m = m @ a
+        dst = out[r0:r1, c0:c1]
         if dst.flags.c_contiguous:  # a tile as wide as the block: written in place
             cv2.warpAffine(
                 src,
                 m,
-                (t.cols, t.rows),
+                (c1 - c0, r1 - r0),
                 dst=cast("NDArray[Any]", dst),
                 flags=flags,
                 borderMode=cv2.BORDER_CONSTANT,
@@ -345,7 +363,7 @@ def render_block(
             dst[...] = cv2.warpAffine(
                 src,
                 m,
-                (t.cols, t.rows),
+                (c1 - c0, r1 - r0),
                 flags=flags,
                 borderMode=cv2.BORDER_CONSTANT,
                 borderValue=border,

@@ -738,20 +738,24 @@ def test_an_error_on_the_tile_thread_is_reported_and_the_pair_still_made(
     assert out.pairs[0].pair_id in errors[0].message
 
 
-def test_blocks_nobody_takes_are_drafts_for_the_quicklook_only() -> None:
+@pytest.mark.parametrize("quicklook", [-2, -3])
+def test_blocks_nobody_takes_are_drafts_for_the_quicklook_only(quicklook: int) -> None:
     """Quick-look tiles only and nobody taking a side's blocks (the node: no subscriber on its
     block topic): that side's blocks are drafts, sampled nearest-neighbour (3x less render
-    time), flagged so that the node does not publish them; the other side's are not. The
-    quick-look tiles from drafts stand within half a full-resolution pixel of disparity of
-    those from the configured resampling: a sample moves by half a pixel at most, and the
-    quick-look averages 4 x 4 of them."""
+    time; at 1/8 every 2nd row and column, core/streaming.draft_stride), flagged so that the
+    node does not publish them; the other side's are not. The quick-look tiles from drafts
+    stand within half a full-resolution pixel of disparity of those from the configured
+    resampling: a sample moves by half a pixel at most, and a reduced pixel averages 4 x 4
+    of them."""
     from parproj_ros.core.results import BlockResult
+    from parproj_ros.core.streaming import draft_stride
 
+    assert draft_stride((2**-quicklook,)) == (1 if quicklook == -2 else 2)
     got: list[BlockResult] = []
-    pipe = _pipeline(quicklook=-2)
+    pipe = _pipeline(quicklook=quicklook)
     pipe.set_block_sink(got.append, wanted=lambda side: side == "left")
     out = _all(*_run(pipe=pipe))
-    ref = _all(*_run(quicklook=-2))
+    ref = _all(*_run(quicklook=quicklook))
     assert {b.side for b in got if b.draft} == {"right"}
     assert {b.side for b in got if not b.draft} == {"left"}
     assert [t.index for t in out.tiles] == [t.index for t in ref.tiles] and out.tiles
@@ -767,7 +771,7 @@ def test_blocks_nobody_takes_are_drafts_for_the_quicklook_only() -> None:
     assert abs(float(np.median(d))) <= 0.5 * bound and _nmad(d) <= bound, (
         float(np.median(d)), _nmad(d), bound)  # fmt: skip
     # Without ``wanted`` (offline, or nobody asked) no block is a draft.
-    pipe = _pipeline(quicklook=-2)
+    pipe = _pipeline(quicklook=quicklook)
     plain: list[BlockResult] = []
     pipe.set_block_sink(plain.append)
     _run(pipe=pipe)

@@ -124,3 +124,36 @@ def test_row_blocks_equal_whole() -> None:
     # Row blocks plan their own tiles: same maps within the tolerance, so values may differ by
     # at most 1 DN where a tile boundary moved.
     assert np.abs(parts.astype(int) - whole.astype(int)).max() <= 1 + 2047 * 0.01
+
+
+def test_a_strided_block_samples_the_centres_of_its_pixels() -> None:
+    """render_block(stride=s): row Y, column X sampled where the full-resolution block's
+    pixels (sY .. sY+s-1, sX .. sX+s-1) have their centre. On a source linear in line and
+    sample, bilinear sampling is exact: the strided block equals the s x s means of the
+    full-resolution one (float32 rounding); rows and columns that do not fill a stride are
+    dropped; with s = 3 (centres on pixels) nearest-neighbour gives the full block's
+    [1::3, 1::3]."""
+    from types import SimpleNamespace
+
+    from parproj_ros.imaging.resample import Tile, render_block
+
+    lines, samples = np.mgrid[0:400, 0:300].astype(np.float32)
+    src = 3.0 * lines + 0.7 * samples + 10.0
+    c, s_ = np.cos(0.02), np.sin(0.02)
+    tiles = []
+    for r0 in range(0, 101, 50):  # three row tiles of 50, 50, 23 rows; two column tiles
+        for c0 in (40, 72):
+            a = np.array([[c, -s_, 20.0 + c0 - 40 + 0.3 * r0], [s_, c, 15.0 + r0 + 0.01 * c0]])
+            tiles.append(Tile(r0, c0, 23 if r0 == 100 else 50, 32, a, 0.0))
+    block = SimpleNamespace(col0=40, cols=64, tiles=tiles)
+    grid = SimpleNamespace(height=123)
+    kw = {"nodata": 0.0}
+    full = render_block(block, src, 0, grid, interpolation=cv2.INTER_LINEAR, **kw)  # type: ignore[arg-type]
+    half = render_block(block, src, 0, grid, interpolation=cv2.INTER_LINEAR, stride=2, **kw)  # type: ignore[arg-type]
+    assert half.shape == (61, 32)
+    means = full[:122].reshape(61, 2, 32, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(half, means, atol=2e-2)
+    full_nn = render_block(block, src, 0, grid, interpolation=cv2.INTER_NEAREST, **kw)  # type: ignore[arg-type]
+    third = render_block(block, src, 0, grid, interpolation=cv2.INTER_NEAREST, stride=3, **kw)  # type: ignore[arg-type]
+    assert third.shape == (41, 21)
+    np.testing.assert_array_equal(third, full_nn[1:123:3, 1:64:3][:41, :21])
