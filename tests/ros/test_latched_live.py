@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,16 @@ def test_a_late_subscriber_gets_the_latched_results(tmp_path: Path) -> None:
             1, 180.0, lambda: proc.proc.poll() is None, also=(contract.DSM,)
         ), proc.output()[-3000:]
         wait_until(lambda: recorder.counts[contract.DSM_CLOUD] >= 1, 10.0)
+        # The node done publishing them (no count moved for 1.5 s): the live lists complete.
+        seen = [{t: recorder.counts[t] for t in LATE}, time.monotonic()]
+
+        def settled() -> bool:
+            now = {t: recorder.counts[t] for t in LATE}
+            if now != seen[0]:
+                seen[:] = [now, time.monotonic()]
+            return time.monotonic() - float(seen[1]) >= 1.5
+
+        assert wait_until(settled, 30.0)
         live = {t: list(recorder.messages[t]) for t in LATE}
         assert all(live[t] for t in LATE), {t: len(v) for t, v in live.items()}
 
@@ -110,7 +121,12 @@ def test_a_late_subscriber_gets_the_latched_results(tmp_path: Path) -> None:
         }
         with lock:
             for t in LATE:  # the same messages, field for field, in the order published
-                assert _same(got[t], live[t]), t
+                # The live recorder subscribes volatile: at a full-speed replay it may miss a
+                # first message published while its match was still settling (seen once in 5
+                # CI runs), which the late, transient-local subscriber then holds in addition.
+                n = len(live[t])
+                assert len(got[t]) >= n >= 1 and _same(got[t][-n:], live[t]), (
+                    t, len(got[t]), n)  # fmt: skip
         assert proc.proc.poll() is None  # the node still runs: nothing was published again
         late_ex.shutdown()
         ex.shutdown()
