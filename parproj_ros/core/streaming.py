@@ -380,6 +380,24 @@ def side_end(stream: StreamPair, scene: Scene) -> SideEnd:
     return SideEnd.ABANDON
 
 
+def _next_block(
+    stream: StreamPair, side: SideStream, b: Block, image: NDArray[np.generic], draft: bool
+) -> BlockResult:
+    """``side``'s next block ``b`` with its pixels ``image``, counted as emitted."""
+    side.next_block += 1
+    return BlockResult(
+        stream.geometry.pair_id,
+        side.side,
+        side.next_block - 1,
+        b.col0,
+        image,
+        side.grid,
+        stream.stamp_ns,
+        side.next_block == len(side.blocks),
+        draft,
+    )
+
+
 class DraftReducer(Protocol):
     """Where draft blocks go when the render process reduces them (:attr:`Streamer.drafts`).
 
@@ -701,18 +719,7 @@ class Streamer:
                     )
                 elif sink is None:
                     img = img.copy()  # a view of the render process's output buffer
-                side.next_block += 1
-                blk = BlockResult(
-                    stream.geometry.pair_id,
-                    side.side,
-                    side.next_block - 1,
-                    b.col0,
-                    img,
-                    side.grid,
-                    stream.stamp_ns,
-                    side.next_block == len(side.blocks),
-                    draft,
-                )
+                blk = _next_block(stream, side, b, img, draft)
                 if sink is None:
                     out.blocks.append(blk)
                 else:
@@ -743,18 +750,8 @@ class Streamer:
         nodata = self.config.output.nodata
         grid = side.grid
         for b in ready:
-            side.next_block += 1
-            blk = BlockResult(
-                stream.geometry.pair_id,
-                side.side,
-                side.next_block - 1,
-                b.col0,
-                np.broadcast_to(np.asarray(nodata, dtype=data.dtype), (grid.height, b.cols)),
-                grid,
-                stream.stamp_ns,
-                side.next_block == len(side.blocks),
-                True,
-            )
+            none = np.broadcast_to(np.asarray(nodata, dtype=data.dtype), (grid.height, b.cols))
+            blk = _next_block(stream, side, b, none, True)
 
             def deliver(
                 reductions: list[NDArray[np.generic] | None] | None,
