@@ -122,11 +122,14 @@ def test_a_late_subscriber_gets_the_latched_results(tmp_path: Path) -> None:
         with lock:
             for t in LATE:  # the same messages, field for field, in the order published
                 # The live recorder subscribes volatile: at a full-speed replay it may miss a
-                # first message published while its match was still settling (seen once in 5
-                # CI runs), which the late, transient-local subscriber then holds in addition.
-                n = len(live[t])
-                assert len(got[t]) >= n >= 1 and _same(got[t][-n:], live[t]), (
-                    t, len(got[t]), n)  # fmt: skip
+                # message published while its match was still settling (seen in 2 of 7 CI
+                # runs), which the late, transient-local subscriber then holds in addition.
+                # So: every message the recorder got is among the late one's, in order.
+                n, k = len(live[t]), 0
+                for m in got[t]:
+                    if k < n and _same(m, live[t][k]):
+                        k += 1
+                assert len(got[t]) >= n >= 1 and k == n, (t, len(got[t]), n, k)
         assert proc.proc.poll() is None  # the node still runs: nothing was published again
         late_ex.shutdown()
         ex.shutdown()
