@@ -149,14 +149,11 @@ def _child(conn: Any, out_names: list[str], ring_name: str) -> None:
 
 @dataclass
 class _Draft:
-    """A draft block asked of the child: what to collect, and how to render it if it fails."""
+    """A draft block asked of the child: what to collect, and whom to give it to."""
 
     block: Any
     data: NDArray[np.generic]  # the lines it reads: held, so their array is not reused
-    first_line: int
     height: int
-    nodata: float
-    interpolation: int
     factors: tuple[int, ...]
     at: int  # byte offset of its reductions in the ring
     nbytes: int  # bytes it takes in the ring
@@ -360,8 +357,8 @@ class RenderProcess:
         hi = min(max(int(block.max_line) - first_line + 1 + _READ_MARGIN, lo), data.shape[0])
         base = int(data.__array_interface__["data"][0])
         self._pending.append(
-            _Draft(block, data, first_line, height, float(nodata), int(interpolation), facs,
-                   at, nbytes, deliver, (base + lo * row, base + hi * row))
+            _Draft(block, data, height, facs, at, nbytes, deliver,
+                   (base + lo * row, base + hi * row))
         )  # fmt: skip
         self._ring_head = at + nbytes
         return True
@@ -410,11 +407,19 @@ class RenderProcess:
             n += self.drain()
         return n
 
-    def reading(self, dest: NDArray[np.generic]) -> bool:
-        """Whether a draft still pending reads any byte of ``dest``."""
+    def _last_reading(self, dest: NDArray[np.generic]) -> int:
+        """Index of the newest pending draft that reads any byte of ``dest``; -1: none."""
         lo = int(dest.__array_interface__["data"][0])
         hi = lo + int(dest.nbytes)
-        return any(a < hi and lo < b for a, b in (d.reads for d in self._pending))
+        last = -1
+        for k, d in enumerate(self._pending):
+            if d.reads[0] < hi and lo < d.reads[1]:
+                last = k
+        return last
+
+    def reading(self, dest: NDArray[np.generic]) -> bool:
+        """Whether a draft still pending reads any byte of ``dest``."""
+        return self._last_reading(dest) >= 0
 
     def drain_over(self, dest: NDArray[np.generic]) -> int:
         """Collect drafts, oldest first, until none pending reads ``dest``; how many.
@@ -423,15 +428,10 @@ class RenderProcess:
         about to be written over. A draft reads the lines of its block only, so at the IKONOS
         rate most moves wait for none.
         """
-        lo = int(dest.__array_interface__["data"][0])
-        hi = lo + int(dest.nbytes)
-        last = -1
-        for k, d in enumerate(self._pending):
-            if d.reads[0] < hi and lo < d.reads[1]:
-                last = k
-        for _ in range(last + 1):
+        n = self._last_reading(dest) + 1
+        for _ in range(n):
             self._answer()
-        return last + 1
+        return n
 
     def drain(self) -> int:
         """Collect every draft asked for (waiting for the child); how many."""

@@ -449,9 +449,9 @@ class Streamer:
         #: Side -> whether its next blocks may be drafts (:data:`DRAFT_INTERPOLATION`): they
         #: only feed the quick-look tiles, nobody takes the blocks themselves. None: never.
         self.draft: Callable[[str], bool] | None = None
-        #: With the render process, draft blocks are reduced there and not waited for: their
-        #: reductions go to this (the block sink is not called for them). None: drafts go
-        #: through the block sink at full resolution, as other blocks.
+        #: Takes the draft blocks' reductions (:meth:`_emit_drafts`: in the render process,
+        #: not waited for, when there is one; else here), instead of the block sink taking
+        #: the drafts at full resolution. None: drafts go through the block sink.
         self.drafts: DraftReducer | None = None
 
     def undecided(self, scene: Scene) -> bool:
