@@ -7,6 +7,9 @@ sums are added block by block in row order) and the ortho-image are the same to 
 
 from __future__ import annotations
 
+import re
+import threading
+import time
 from collections.abc import Iterator
 
 import cv2
@@ -43,6 +46,45 @@ def test_run_parts_keeps_the_order(cv2_threads: None) -> None:
     cv2.setNumThreads(2)
     spans = row_parts(1000, 8, 1)
     assert run_parts(lambda p: p[1] - p[0], spans) == [b - a for a, b in spans]
+
+
+def test_run_parts_keeps_its_threads_between_calls(cv2_threads: None) -> None:
+    cv2.setNumThreads(2)
+    spans = row_parts(400, 4, 1)
+    seen: set[threading.Thread] = set()  # the objects: a new thread may reuse a name
+
+    def who(p: tuple[int, int]) -> int:
+        seen.add(threading.current_thread())
+        time.sleep(0.01)  # long enough for the pool thread to take parts too
+        return p[0]
+
+    for _ in range(5):
+        assert run_parts(who, spans) == [a for a, _ in spans]
+    # the caller and one pool thread, the same one in every call
+    assert len(seen) == 2 and threading.current_thread() in seen
+
+
+def test_run_parts_within_a_part_and_a_failing_part(cv2_threads: None) -> None:
+    cv2.setNumThreads(2)
+    spans = row_parts(100, 4, 1)
+    inner = [run_parts(lambda p: p[1] - p[0], row_parts(b - a, 3, 1)) for a, b in spans]
+    # a part that runs parts itself (in its own thread: no wait on the pool from the pool)
+    got = run_parts(
+        lambda p: run_parts(lambda q: q[1] - q[0], row_parts(p[1] - p[0], 3, 1)), spans
+    )
+    assert got == inner
+    ended: list[int] = []
+
+    def fail_second(p: tuple[int, int]) -> int:
+        time.sleep(0.005)
+        ended.append(p[0])
+        if p == spans[1]:
+            raise ValueError(f"part {p}")
+        return p[0]
+
+    with pytest.raises(ValueError, match=re.escape(f"part {spans[1]}")):
+        run_parts(fail_second, spans)
+    assert sorted(ended) == [a for a, _ in spans]  # every part ran to its end before the raise
 
 
 def _pair(size: int = 256, shift: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
