@@ -305,10 +305,16 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
     """Fill, in place, the NaN cells within ``max_cells`` of a cell with a height.
 
     Each takes the height of its nearest such cell (Euclidean distance; among equally near
-    ones, the first in a fixed order of offsets). Up to :data:`_SHIFT_FILL_CELLS` by shifted
-    copies of the grid (a handful of array slices), beyond by scipy's exact distance
+    ones, the first in a fixed order of offsets). Up to :data:`_SHIFT_FILL_CELLS` by those
+    offsets taken in turn on the holes near a height (on Marseille 1-2's 1.8 M cells some
+    2 ms, against 12 ms for shifted copies of the whole grid), beyond by scipy's exact distance
     transform. Returns the filled cells.
     """
+    if not heights.flags.c_contiguous:
+        work = np.ascontiguousarray(heights)
+        filled_cells = _fill_nearest(work, max_cells)
+        heights[...] = work
+        return filled_cells
     holes = ~np.isfinite(heights)
     if max_cells > _SHIFT_FILL_CELLS:
         from scipy.ndimage import distance_transform_edt
@@ -321,22 +327,28 @@ def _fill_nearest(heights: Float32Array, max_cells: float) -> BoolArray:
     offsets = sorted(
         ((dr * dr + dc * dc, dr, dc) for dr in range(-r, r + 1) for dc in range(-r, r + 1)),
     )
-    src = heights.copy()
-    has = ~holes
-    todo = holes.copy()
     rows, cols = heights.shape
+    has = ~holes
+    # Only the holes with a height within r cells (in rows and columns) can be filled: on a
+    # DSM they are its edge and its gaps, a few % of the grid, handled as flat indices.
+    near = cv2.dilate(has.view(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+    cand = np.flatnonzero(holes & near.view(bool))
+    ci, cj = np.divmod(cand, cols)
+    todo = np.ones(cand.size, dtype=bool)
+    flat_h, flat_has = heights.ravel(), has.ravel()
     for d2, dr, dc in offsets:
         if d2 == 0 or d2 > max_cells * max_cells:
             continue
-        # cell (i, j) takes src[i + dr, j + dc]
-        ti = slice(max(0, -dr), rows - max(0, dr))
-        tj = slice(max(0, -dc), cols - max(0, dc))
-        si = slice(max(0, dr), rows - max(0, -dr))
-        sj = slice(max(0, dc), cols - max(0, -dc))
-        take = todo[ti, tj] & has[si, sj]
-        np.copyto(heights[ti, tj], src[si, sj], where=take)
-        todo[ti, tj] &= ~take
-    out: BoolArray = holes & ~todo
+        # hole (i, j) takes the height of (i + dr, j + dc), the first such cell in this order
+        si, sj = ci + dr, cj + dc
+        at = np.flatnonzero(todo & (si >= 0) & (si < rows) & (sj >= 0) & (sj < cols))
+        src = si[at] * cols + sj[at]
+        take = flat_has[src]
+        at, src = at[take], src[take]
+        flat_h[cand[at]] = flat_h[src]  # a source has a height: it is never a hole written here
+        todo[at] = False
+    out: BoolArray = np.zeros(heights.shape, dtype=bool)
+    out.ravel()[cand[~todo]] = True
     return out
 
 

@@ -327,18 +327,21 @@ def test_full_size_pair_as_the_pipeline_would_call_it() -> None:
     assert err["completeness"] >= 0.95 and raw["completeness"] >= 0.90, (raw, err)
 
 
+@pytest.mark.parametrize("shape", [(60, 70), (1, 9), (5, 2), (2, 1)])
 @pytest.mark.parametrize("max_cells", [1.0, 1.5, 2.0, 3.0, 4.0])
-def test_nearest_fill_is_the_distance_transforms(max_cells: float) -> None:
-    """Shifted copies (up to 3 cells) fill the cells the exact distance transform fills, each
-    with the height of a cell at the smallest distance (ties: any of them)."""
+def test_nearest_fill_is_the_distance_transforms(max_cells: float, shape: tuple[int, int]) -> None:
+    """The offsets (up to 3 cells) fill the cells the exact distance transform fills, each
+    with the height of a cell at the smallest distance (ties: any of them); also on grids
+    narrower than the offsets (shifted copies of the grid had failed there)."""
     from scipy.ndimage import distance_transform_edt
 
     from parproj_ros.imaging.heights import _fill_nearest
 
     rng = np.random.default_rng(3)
-    h = rng.uniform(0.0, 100.0, (60, 70)).astype(np.float32)
+    h = rng.uniform(0.0, 100.0, shape).astype(np.float32)
     h[rng.random(h.shape) < 0.5] = np.nan
     h[20:30, 20:32] = np.nan  # a large hole: its middle stays empty
+    h.flat[0] = 1.0  # at least one height
     holes = ~np.isfinite(h)
     dist = distance_transform_edt(holes)
     got = h.copy()
