@@ -112,6 +112,27 @@ def test_heights_hook_times_and_restores() -> None:
     assert len(times) == 1 and times[0] >= 0.0
 
 
+def test_captured_steps_are_timed_again_on_their_inputs(monkeypatch: pytest.MonkeyPatch) -> None:
+    from parproj_ros.core import heights as core_heights
+
+    original = core_heights.measure_heights
+    seen: list[tuple[Any, ...]] = []
+
+    def fake(*args: Any) -> str:  # the step as the stage calls it (module global)
+        seen.append(args)
+        return "done"
+
+    monkeypatch.setattr(core_heights, "measure_heights", fake)
+    calls: list[tuple[Any, ...]] = []
+    with realpairs._captured_steps(calls):
+        assert core_heights.measure_heights("pair", "l", "r") == "done"
+    assert core_heights.measure_heights is fake and calls == [("pair", "l", "r")]
+    seen.clear()
+    t = realpairs.step_best_s(calls, repeat=3)
+    assert seen == [("pair", "l", "r")] * 3 and math.isfinite(t) and t >= 0.0
+    assert original is not fake
+
+
 def test_bare_sgbm_time_is_finite() -> None:
     rng = np.random.default_rng(0)
     left = rng.integers(1, 2000, (64, 96)).astype(np.uint16)
@@ -134,7 +155,7 @@ def test_done_when_verdicts() -> None:
                     row("left+right", "s2p_dsm_12", 0.70, 0.95),
                     row("left+right (GeoTIFF)", "s2p_dsm_12", 0.70, 0.94, 0.6),
                 ],
-                "speed": {"ratio": 2.0},
+                "speed": {"ratio": 2.0, "ratio_best": 1.2},
             },
             {
                 "case": "marseille_123",
@@ -163,7 +184,8 @@ def test_done_when_verdicts() -> None:
     assert got["marseille_12: completeness"] == ("95.0 %", True)
     # median 0.6 m is off by more than 0.5 m; the 0.14 m shift is within half a cell
     assert got["marseille_12: GeoTIFF lands on s2p"] == ("median +0.60 m, shift 0.14 m", False)
-    assert got["marseille_12: heights step / bare SGBM"] == ("2.00", False)
+    assert got["marseille_12: heights step (first call) / bare SGBM"] == ("2.00", False)
+    assert got["marseille_12: heights step (best of 3) / bare SGBM"] == ("1.20", True)
     assert got["marseille_123: fused completeness vs best pair"] == ("99.0 %", True)
     assert got["marseille_123: fused NMAD vs best pair (s2p_dsm_123)"] == ("0.52 m", True)
     assert got["marseille_123: pair levels agree"] == ("0.65 m", False)

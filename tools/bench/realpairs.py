@@ -280,6 +280,44 @@ def _timed_heights(times: list[float]) -> Any:
         stage.__call__ = original
 
 
+@contextmanager
+def _captured_steps(calls: list[tuple[Any, ...]]) -> Any:
+    """Keep the arguments of every ``measure_heights`` call of the heights stage."""
+    from parproj_ros.core import heights as core_heights
+
+    original = core_heights.measure_heights
+
+    def spy(*args: Any) -> Any:
+        calls.append(args)
+        return original(*args)
+
+    core_heights.measure_heights = spy  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        core_heights.measure_heights = original
+
+
+def step_best_s(calls: list[tuple[Any, ...]], repeat: int = 3) -> float:
+    """Seconds of the heights step on the inputs the pipeline gave it, best of ``repeat``.
+
+    Timed as :func:`bare_sgbm_s` times the bare pass (each call again on its own inputs, the
+    best of ``repeat``, summed over the calls): not the first call in the process, which also
+    pays for first touches of memory and thread starts.
+    """
+    from parproj_ros.core.heights import measure_heights
+
+    total = 0.0
+    for args in calls:
+        best = math.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            measure_heights(*args)
+            best = min(best, time.perf_counter() - t0)
+        total += best
+    return total
+
+
 def normalized_pairs(
     out_bag: Path,
 ) -> dict[str, tuple[NDArray[Any], NDArray[Any], tuple[int, int]]]:
@@ -358,10 +396,12 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     from parproj_ros.apps.cli import main as cli_main
 
     times: list[float] = []
+    calls: list[tuple[Any, ...]] = []
     out = work / "speed_out"
     said = io.StringIO()
-    with _timed_heights(times), redirect_stdout(said), redirect_stderr(said):
-        rc = cli_main(["process", str(bag), "-o", str(out), "--heights", "-q", "--force"])
+    with _timed_heights(times), _captured_steps(calls), redirect_stdout(said):
+        with redirect_stderr(said):
+            rc = cli_main(["process", str(bag), "-o", str(out), "--heights", "-q", "--force"])
     if rc != 0 or not times:
         return {"error": f"in-process process exit {rc}, heights step timed {len(times)} times"}
     pairs = normalized_pairs(out)
@@ -371,6 +411,7 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     matched = {k: match_pair_s(lft, rgt, rng) for k, (lft, rgt, rng) in pairs.items()}
     match = sum(matched.values())
     step = float(sum(times))
+    best = step_best_s(calls) if calls else math.nan
     res = {
         "pairs": len(pairs),
         "mpx": mpx,
@@ -379,6 +420,8 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "heights_s_per_mpx": step / mpx if mpx else None,
         "sgbm_s_per_mpx": sgbm / mpx if mpx else None,
         "ratio": step / sgbm if sgbm else None,
+        "heights_best_s": best,
+        "ratio_best": best / sgbm if sgbm and math.isfinite(best) else None,
         "ranges": {k: list(v[2]) for k, v in pairs.items()},
         "sgbm_s_by_pair": per_pair,
         "match_pair_s": match,
@@ -388,7 +431,8 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     }
     log(
         f"  heights step {step:.2f} s for {mpx:.2f} Mpx ({res['heights_s_per_mpx']:.2f} s/Mpx), "
-        f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f}; match_pair alone {match:.2f} s"
+        f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f} (the step best of 3 as the bare pass: "
+        f"{best:.2f} s, x{best / sgbm if sgbm else math.nan:.2f}); match_pair alone {match:.2f} s"
     )
     return res
 
@@ -712,10 +756,19 @@ def verdicts(doc: dict[str, Any]) -> list[tuple[str, str, str, bool]]:
         if sp.get("ratio") is not None:
             out.append(
                 (
-                    f"{name}: heights step / bare SGBM",
+                    f"{name}: heights step (first call) / bare SGBM",
                     f"{sp['ratio']:.2f}",
                     f"<= {b['heights_over_sgbm']}",
                     sp["ratio"] <= b["heights_over_sgbm"],
+                )
+            )
+        if sp.get("ratio_best") is not None:
+            out.append(
+                (
+                    f"{name}: heights step (best of 3) / bare SGBM",
+                    f"{sp['ratio_best']:.2f}",
+                    f"<= {b['heights_over_sgbm']}",
+                    sp["ratio_best"] <= b["heights_over_sgbm"],
                 )
             )
     return out
@@ -748,8 +801,8 @@ def markdown(doc: dict[str, Any]) -> str:
     lines += [
         "",
         "| case | import s | process s | dsm s | fuse s | heights step s/Mpx | bare SGBM s/Mpx "
-        "| heights / SGBM | match_pair / SGBM |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| heights / SGBM (first call) | heights / SGBM (best of 3) | match_pair / SGBM |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case in doc["cases"]:
         s = case.get("seconds", {})
@@ -758,7 +811,8 @@ def markdown(doc: dict[str, Any]) -> str:
             f"| {case['case']} | {_f(s.get('import'), '.1f')} | {_f(s.get('process'), '.1f')} "
             f"| {_f(s.get('dsm'), '.1f')} | {_f(s.get('fuse'), '.1f')} "
             f"| {_f(sp.get('heights_s_per_mpx'), '.2f')} | {_f(sp.get('sgbm_s_per_mpx'), '.2f')} "
-            f"| {_f(sp.get('ratio'), '.2f')} | {_f(sp.get('match_pair_over_sgbm'), '.2f')} |"
+            f"| {_f(sp.get('ratio'), '.2f')} | {_f(sp.get('ratio_best'), '.2f')} "
+            f"| {_f(sp.get('match_pair_over_sgbm'), '.2f')} |"
         )
     for case in doc["cases"]:
         fu = case.get("fusion")
