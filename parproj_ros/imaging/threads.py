@@ -97,7 +97,10 @@ def run_parts(fn: Callable[[tuple[int, int]], T], parts: list[tuple[int, int]]) 
 
     futures = [_shared_pool(n - 1).submit(runner) for _ in range(n - 1)]
     runner()
-    wait(futures)
+    # a runner still queued (the pool busy with another caller's parts) has nothing left to
+    # take: it is dropped, not waited for; a running one is finishing one of these parts
+    # (concurrent.futures.wait would wait for the pool to dequeue a cancelled one)
+    wait([f for f in futures if not f.cancel()])
     if errors:
         raise errors[min(errors)]
     return cast("list[T]", results)

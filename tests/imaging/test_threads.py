@@ -87,6 +87,32 @@ def test_run_parts_within_a_part_and_a_failing_part(cv2_threads: None) -> None:
     assert sorted(ended) == [a for a, _ in spans]  # every part ran to its end before the raise
 
 
+def test_a_caller_does_not_wait_for_another_callers_parts(cv2_threads: None) -> None:
+    """With the pool's one thread busy with B's part, A runs all its parts and returns."""
+    cv2.setNumThreads(2)  # the pool: 1 thread
+    go, entered = threading.Event(), threading.Semaphore(0)
+
+    def blocked(p: tuple[int, int]) -> int:
+        entered.release()
+        assert go.wait(30.0)
+        return p[0]
+
+    b_out: list[list[int]] = []
+    b = threading.Thread(target=lambda: b_out.append(run_parts(blocked, [(0, 1), (1, 2)])))
+    b.start()
+    for _ in range(2):  # B's caller and the pool thread are both inside B's parts
+        assert entered.acquire(timeout=30.0)
+    a_out: list[list[int]] = []
+    a = threading.Thread(target=lambda: a_out.append(run_parts(lambda p: p[1], [(0, 5), (5, 9)])))
+    a.start()
+    a.join(30.0)
+    done_while_b_blocked = not a.is_alive() and not go.is_set()
+    go.set()
+    a.join(30.0)
+    b.join(30.0)
+    assert done_while_b_blocked and a_out == [[5, 9]] and b_out == [[0, 1]]
+
+
 def _pair(size: int = 256, shift: float = 6.0) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(5)
     tex = cv2.GaussianBlur(rng.uniform(0, 2047, (size, size + 32)).astype(np.float32), (0, 0), 1)
