@@ -46,6 +46,28 @@ MATCHER_MODES = {
 #: Search ranges wider than this share of the image width are first narrowed on a reduced pair.
 REFINE_SHARE = 0.25
 
+#: A DSM cell side below the ground sample distance divided by this is refused: each pixel
+#: gives one point, so at most 1 cell in 10^2 = 100 could get a height (less than the 1 % of
+#: cells ``parproj dsm`` exports), and the grid takes that many times the pixels' memory
+#: (``heights_cell_m`` 0.0001 m on the Ventoux pair asked for 36.6 TiB).
+MAX_CELLS_PER_GSD = 10.0
+
+
+def cell_problem(cell_m: float, gsd_m: float) -> str | None:
+    """Why a DSM cell side of ``cell_m`` metres cannot serve the pair; None when it can.
+
+    ``gsd_m``: the pair's ground sample distance, metres; ``cell_m`` 0 means the GSD.
+    """
+    if cell_m <= 0 or not math.isfinite(gsd_m) or cell_m * MAX_CELLS_PER_GSD >= gsd_m:
+        return None
+    return (
+        f"heights_cell_m {cell_m:g} m is {gsd_m / cell_m:.3g} times finer than the pair's "
+        f"ground sample distance ({gsd_m:.3g} m): at most one cell in "
+        f"{(gsd_m / cell_m) ** 2:.3g} could get a height (the disparity and height images are "
+        f"kept); set heights_cell_m to 0 (the ground sample distance) or "
+        f"at least {gsd_m / MAX_CELLS_PER_GSD:.3g} m"
+    )
+
 
 @dataclass(frozen=True)
 class HeightsOptions:
@@ -189,6 +211,24 @@ def measure_heights(
         return failed(res.status, res.message, res.d_range)
     height = (a * res.disparity + b).astype(np.float32)
     mapping = GroundMapping.of_pair(pair, "left")
+    problem = cell_problem(opt.cell_m, mapping.ground_sample_distance)
+    if problem is not None:
+        kept = HeightsResult(
+            pair.pair_id,
+            pair.stamp_ns,
+            res.status,
+            problem,
+            res.d_range,
+            res.valid_share,
+            res.disparity,
+            height,
+            None,
+            None,
+            a,
+            b,
+            terrain=terrain,
+        )
+        return kept, [Issue(Level.WARN, where, f"no DSM: {problem}")]
     dsm = make_dsm(
         res.disparity,
         a,
