@@ -128,8 +128,11 @@ def test_captured_steps_are_timed_again_on_their_inputs(monkeypatch: pytest.Monk
         assert core_heights.measure_heights("pair", "l", "r") == "done"
     assert core_heights.measure_heights is fake and calls == [("pair", "l", "r")]
     seen.clear()
-    t = realpairs.step_best_s(calls, repeat=3)
-    assert seen == [("pair", "l", "r")] * 3 and math.isfinite(t) and t >= 0.0
+    bares: list[Any] = []
+    t, b = realpairs.step_best_s(calls, lambda pair: bares.append(pair) or 0.25, repeat=3)
+    assert seen == [("pair", "l", "r")] * 3 and bares == ["pair"] * 3
+    assert math.isfinite(t) and t >= 0.0 and b == 0.25
+    assert math.isnan(realpairs.step_best_s(calls, None, repeat=1)[1])
     assert original is not fake
 
 
@@ -185,7 +188,7 @@ def test_done_when_verdicts() -> None:
     # median 0.6 m is off by more than 0.5 m; the 0.14 m shift is within half a cell
     assert got["marseille_12: GeoTIFF lands on s2p"] == ("median +0.60 m, shift 0.14 m", False)
     assert got["marseille_12: heights step (first call) / bare SGBM"] == ("2.00", False)
-    assert got["marseille_12: heights step (best of 3) / bare SGBM"] == ("1.20", True)
+    assert got["marseille_12: heights step / bare SGBM (in turns, best of 5)"] == ("1.20", True)
     assert got["marseille_123: fused completeness vs best pair"] == ("99.0 %", True)
     assert got["marseille_123: fused NMAD vs best pair (s2p_dsm_123)"] == ("0.52 m", True)
     assert got["marseille_123: pair levels agree"] == ("0.65 m", False)
