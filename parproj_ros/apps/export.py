@@ -16,6 +16,7 @@ row says so (``status`` "empty"), and ``parproj dsm`` exits 1 with a line saying
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any, Literal
 
@@ -113,6 +114,11 @@ def export_dsms(
             f"{out_bag}: no DSM: the bag has no dsm topic (processed without heights); make "
             "one with: parproj process INPUT_BAG -o OUT --heights, then parproj dsm OUT"
         )
+    rec = reader.recovery
+    if not rec.complete:
+        warnings.warn(
+            f"{out_bag}: {rec.describe()}; the DSMs complete in it are exported", stacklevel=2
+        )
     disparities = disparities_by_stamp(reader)
     rows: list[dict[str, Any]] = []
     for item in reader.messages(topics=[contract.DSM]):
@@ -178,6 +184,12 @@ def export_dsms(
                 folder, name, heights, grid, disparity=disp, truth=surface, ortho=ortho
             )
             files += [p.name for p in written]
+    if not rows and not rec.complete:
+        raise NoHeightsError(
+            f"{out_bag}: no DSM: no complete dsm message in the bag, which is "
+            f"{rec.describe()}; copy it again, or run parproj process INPUT_BAG -o OUT "
+            "--heights again"
+        )
     if not rows:
         raise NoHeightsError(
             f"{out_bag}: no DSM: the dsm topic has no message (no pair got heights: the WARN "

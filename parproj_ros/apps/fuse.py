@@ -20,6 +20,7 @@ tangent-plane frame with WGS84 ellipsoidal heights, or the frame as it is):
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,6 +109,11 @@ def read_dsms(bags: Sequence[Path]) -> list[PairDsm]:
         reader = BagReader(bag)
         if contract.DSM not in reader.topics():
             raise BagError("no dsm topic: process the bag with --heights", bag)
+        if not reader.recovery.complete:
+            warnings.warn(
+                f"{bag}: {reader.recovery.describe()}; the DSMs complete in it are used",
+                stacklevel=2,
+            )
         for item in reader.messages(topics=[contract.DSM]):
             m = item.msg
             heights, grid, _ = elevation_grid_from_msg(m)
@@ -156,10 +162,17 @@ def fuse_bags(
     dsms = read_dsms(bags)
     if len(dsms) < 2:
         found = ", ".join(d.name for d in dsms) or "none"
+        cut = [str(b) for b in bags if not BagReader(b).recovery.complete]
+        advice = (
+            f"{', '.join(cut)} cut off or damaged (note above): copy it again, or process its "
+            "input again with --heights"
+            if cut
+            else "fuse needs the DSMs of two or more pairs of one area: import three or more "
+            "images with --pairs all, then process --heights"
+        )
         raise NotEnoughDsmsError(
             f"fewer than two DSMs to fuse (found {len(dsms)}: {found}) in "
-            f"{', '.join(str(b) for b in bags)}; fuse needs the DSMs of two or more pairs of "
-            "one area: import three or more images with --pairs all, then process --heights"
+            f"{', '.join(str(b) for b in bags)}; {advice}"
         )
     frames = []
     for d in dsms:

@@ -14,6 +14,7 @@ For every StereoPair of an output bag it reports:
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -189,6 +190,11 @@ def evaluate_bag(
     if truth_bag:
         check_truth_frame(Path(out_bag), Path(truth_bag))
     reader = BagReader(out_bag)
+    if not reader.recovery.complete:
+        warnings.warn(
+            f"{out_bag}: {reader.recovery.describe()}; the outputs complete in it are evaluated",
+            stacklevel=2,
+        )
     truth: list[GroundPoint] = (
         truth_from_bag(BagReader(truth_bag))
         if truth_bag

@@ -791,6 +791,12 @@ class Recovery:
             return None
         return max(0, self.messages_expected - self.messages_read)
 
+    def describe(self) -> str:
+        """What was lost, in words: the error, and the messages lost when the count is known."""
+        lost = self.messages_lost
+        count = "" if lost is None else f"{lost} of {self.messages_expected} messages lost, "
+        return f"cut off or damaged ({self.error}): {count}{self.messages_read} complete read"
+
     def _fail(self, error: str) -> None:
         self.complete = False
         self.error = error if self.error is None else f"{self.error}; {error}"

@@ -8,6 +8,7 @@ heights in about 1.5 s.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import pytest
@@ -81,3 +82,71 @@ def test_dsm_cell_far_below_the_gsd_is_named(
     )  # fmt: skip
     assert code == 0, err
     assert abs(dsm_cell(tmp_path / "edge") - edge) < 1e-6
+
+
+def cut_copy(bag: Path, dest: Path, share: float) -> Path:
+    """A copy of ``bag`` with its MCAP file cut to ``share`` of its bytes."""
+    shutil.copytree(bag, dest)
+    mcap = next(dest.glob("*.mcap"))
+    with mcap.open("r+b") as f:
+        f.truncate(int(mcap.stat().st_size * share))
+    return dest
+
+
+def topic_counts(bag: Path) -> dict[str, int]:
+    """Messages per topic that a reader recovers from ``bag``."""
+    counts: dict[str, int] = {}
+    for item in BagReader(bag).messages():
+        counts[item.topic] = counts.get(item.topic, 0) + 1
+    return counts
+
+
+def test_cut_output_bag_is_named_by_dsm_fuse_and_evaluate(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An output bag cut off (copied half, disk full): the cut named, never 'no pair got heights'.
+
+    Before: ``dsm`` on the half bag said "the dsm topic has no message (no pair got heights:
+    the WARN lines of parproj process say why)" and advised --z-avg; ``evaluate`` exited 0 and
+    ``fuse`` advised importing three images, neither naming the cut; on a bag cut after its DSM,
+    ``dsm`` and ``fuse`` exported it with no word of the messages lost.
+    """
+    half = cut_copy(processed, tmp_path / "half", 0.5)
+    counts = topic_counts(half)
+    assert contract.DSM not in counts and counts.get(contract.STEREO_PAIR) == 1
+    rec = BagReader(half).recovery
+    assert not rec.complete and rec.messages_expected is not None
+    lost = f"{rec.messages_lost} of {rec.messages_expected} messages lost"
+
+    code, _, err = run(["dsm", str(half), "-o", str(tmp_path / "d")], capsys)
+    assert code == 1, err
+    assert "no pair got heights" not in err and "Traceback" not in err
+    assert f"parproj dsm: {half}: no DSM: no complete dsm message in the bag, which is cut" in err
+    assert lost in err
+    assert not (tmp_path / "d").exists()
+
+    code, out, err = run(["evaluate", str(half), "--no-matching"], capsys)
+    assert code == 0, err  # the pair, complete, is evaluated
+    assert f"parproj evaluate: note: {half}: cut off or damaged" in err and lost in err
+    assert "1 pairs" in out
+
+    code, _, err = run(["fuse", str(half), str(processed), "-o", str(tmp_path / "f")], capsys)
+    assert code == 1, err
+    assert f"parproj fuse: note: {half}: cut off or damaged" in err and lost in err
+    assert f"{half} cut off or damaged (note above)" in err
+    assert "import three or more images" not in err
+
+    # cut after its DSM: exported, with a note naming what was lost
+    late = cut_copy(processed, tmp_path / "late", 0.8)
+    assert topic_counts(late).get(contract.DSM) == 1
+    rec = BagReader(late).recovery
+    assert not rec.complete
+    code, out, err = run(["dsm", str(late), "-o", str(tmp_path / "d2")], capsys)
+    assert code == 0, err
+    assert err.strip().splitlines() == [
+        f"parproj dsm: note: {late}: {rec.describe()}; the DSMs complete in it are exported"
+    ]
+    assert (tmp_path / "d2" / "left_right_dsm.tif").is_file()
+    code, out, err = run(["fuse", str(late), str(processed), "-o", str(tmp_path / "f2")], capsys)
+    assert code == 0, err
+    assert f"parproj fuse: note: {late}: {rec.describe()}; the DSMs complete in it are used" in err
