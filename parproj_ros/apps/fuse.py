@@ -63,6 +63,7 @@ class FuseResult:
         weights: each input's weight in the mean (1 / a^2, or 1 each).
         notes: what was done besides the fusion (frames converted).
         stamp_ns: the latest input DSM's stamp, nanoseconds (the fused DSM's).
+        aligned: the pairs' level offsets were removed (not ``--no-align``).
     """
 
     fused: FusedDsm
@@ -72,6 +73,7 @@ class FuseResult:
     weights: list[float]
     notes: list[str]
     stamp_ns: int = 0
+    aligned: bool = True
 
 
 @dataclass(frozen=True)
@@ -104,7 +106,7 @@ def read_dsms(bags: Sequence[Path]) -> list[PairDsm]:
     out: list[PairDsm] = []
     labels = [b.name for b in bags]
     if len(set(labels)) < len(labels):  # out/, out/, out/ of three folders: name the folders
-        labels = [f"{b.parent.name}/{b.name}" for b in bags]
+        labels = [f"{b.resolve().parent.name}/{b.name}" for b in bags]
     for bag, label in zip(bags, labels, strict=True):
         reader = BagReader(bag)
         if contract.DSM not in reader.topics():
@@ -160,6 +162,19 @@ def fuse_bags(
         InputError: DSMs of different frames.
     """
     dsms = read_dsms(bags)
+    for i, d in enumerate(dsms):
+        for e in dsms[:i]:
+            if (
+                e.frame_id == d.frame_id
+                and e.grid == d.grid
+                and e.heights.shape == d.heights.shape
+                and np.array_equal(e.heights, d.heights, equal_nan=True)
+            ):
+                warnings.warn(
+                    f"{d.name} is the same DSM as {e.name} (same frame, grid and heights: one "
+                    "bag given twice, or a copy): it is fused with itself, which adds nothing",
+                    stacklevel=2,
+                )
     if len(dsms) < 2:
         found = ", ".join(d.name for d in dsms) or "none"
         cut = [str(b) for b in bags if not BagReader(b).recovery.complete]
@@ -222,7 +237,9 @@ def fuse_bags(
     comp = [float(np.isfinite(sample_bilinear(h, g, x, y)).mean()) for h, g in inputs]
     names = [d.name for d in dsms]
     stamp = max(d.stamp_ns for d in dsms)
-    return FuseResult(fused, frames[0], names, comp, weights or [1.0] * len(dsms), notes, stamp)
+    return FuseResult(
+        fused, frames[0], names, comp, weights or [1.0] * len(dsms), notes, stamp, align
+    )
 
 
 def _matrix(m: Any) -> list[list[float | None]]:
@@ -357,7 +374,7 @@ def export_fused(
         "cells_by_count": hist,
         "spread_median_m": float(np.median(spread)) if spread.size else None,
         "split_cells": f.split_cells,
-        "aligned": bool(np.any(f.offsets != 0.0)),
+        "aligned": res.aligned,
         "offsets_m": [round(float(o), 3) for o in f.offsets],
         "median_before_m": _matrix(f.median_before),
         "median_after_m": _matrix(f.median_after),

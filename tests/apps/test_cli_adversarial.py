@@ -8,6 +8,8 @@ heights in about 1.5 s.
 
 from __future__ import annotations
 
+import contextlib
+import json
 import shutil
 from pathlib import Path
 
@@ -40,6 +42,15 @@ def processed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """``bags/ventoux`` processed with heights (its DSM's cell: the pair's GSD)."""
     out = tmp_path_factory.mktemp("vx") / "out"
     assert cli.main(["process", str(BAG), "-o", str(out), "-q", "--heights"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def unfilled(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The same with ``--heights-fill none``: another DSM of the pair (its holes not filled)."""
+    out = tmp_path_factory.mktemp("vx") / "unfilled"
+    argv = ["process", str(BAG), "-o", str(out), "-q", "--heights", "--heights-fill", "none"]
+    assert cli.main(argv) == 0
     return out
 
 
@@ -102,7 +113,7 @@ def topic_counts(bag: Path) -> dict[str, int]:
 
 
 def test_cut_output_bag_is_named_by_dsm_fuse_and_evaluate(
-    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    processed: Path, unfilled: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """An output bag cut off (copied half, disk full): the cut named, never 'no pair got heights'.
 
@@ -147,6 +158,59 @@ def test_cut_output_bag_is_named_by_dsm_fuse_and_evaluate(
         f"parproj dsm: note: {late}: {rec.describe()}; the DSMs complete in it are exported"
     ]
     assert (tmp_path / "d2" / "left_right_dsm.tif").is_file()
-    code, out, err = run(["fuse", str(late), str(processed), "-o", str(tmp_path / "f2")], capsys)
+    code, out, err = run(["fuse", str(late), str(unfilled), "-o", str(tmp_path / "f2")], capsys)
     assert code == 0, err
     assert f"parproj fuse: note: {late}: {rec.describe()}; the DSMs complete in it are used" in err
+
+
+def test_one_dsm_twice_is_named(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One bag given twice (spelled alike or not), or a copy of it: fused, and said so.
+
+    Kept exit 0: tests/apps/test_fuse.py fuses a bag with itself on purpose (the fused heights
+    equal the pair's). Before: no word of it, the inputs labelled ``/out:left+right`` when the
+    bag was given by a relative name (the folder of ``out`` is '' then), and "levels kept as
+    they are (--no-align)", not asked for (the offsets found were exactly 0).
+    """
+    spelled = processed.parent / ".." / processed.parent.name / processed.name
+    copy = tmp_path / "copy" / processed.name
+    shutil.copytree(processed, copy)
+    folder = processed.parent.name
+    for i, second in enumerate((processed, spelled, copy)):
+        out = tmp_path / f"f{i}"
+        code, stdout, err = run(["fuse", str(processed), str(second), "-o", str(out)], capsys)
+        assert code == 0, err
+        label = f"{second.resolve().parent.name}/out:left+right"
+        assert err.strip().splitlines() == [
+            f"parproj fuse: note: {label} is the same DSM as {folder}/out:left+right (same "
+            "frame, grid and heights: one bag given twice, or a copy): it is fused with itself, "
+            "which adds nothing"
+        ]
+        assert "--no-align" not in stdout
+    with contextlib.chdir(processed.parent):  # a relative name: the folder named all the same
+        code, stdout, err = run(["fuse", "out", "out", "-o", str(tmp_path / "rel")], capsys)
+    assert code == 0, err
+    assert f"  {folder}/out:left+right: " in stdout and "  /out" not in stdout
+
+
+def test_levels_aligned_are_not_reported_as_no_align(
+    processed: Path, unfilled: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two DSMs of one pair (holes filled or not) share their level: offsets 0, aligned.
+
+    Before: "levels kept as they are (--no-align)" and ``"aligned": false`` in fuse.json,
+    without --no-align (the offsets found were exactly 0).
+    """
+    code, out, err = run(
+        ["fuse", str(processed), str(unfilled), "-o", str(tmp_path / "f")], capsys
+    )
+    assert code == 0, err
+    assert "--no-align" not in out
+    assert "removed (m): out:left+right +0.00, unfilled:left+right +0.00" in out
+    assert json.loads((tmp_path / "f" / "fuse.json").read_text())["aligned"] is True
+    argv = ["fuse", str(processed), str(unfilled), "-o", str(tmp_path / "n"), "--no-align"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert "levels kept as they are (--no-align)" in out
+    assert json.loads((tmp_path / "n" / "fuse.json").read_text())["aligned"] is False

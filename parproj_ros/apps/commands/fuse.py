@@ -52,10 +52,12 @@ def run(args: argparse.Namespace) -> int:
         print("level offsets before fusion (median of row - column over shared cells, m):")
         for line in offsets_table(names, d["median_before_m"]):
             print("  " + line)
-        if d["aligned"]:
+        after = [abs(v) for row in d["median_after_m"] for v in row if v is not None]
+        if d["aligned"] and after:
             offs = ", ".join(f"{n} {o:+.2f}" for n, o in zip(names, d["offsets_m"], strict=True))
-            after = [abs(v) for row in d["median_after_m"] for v in row if v is not None]
             print(f"removed (m): {offs}; after: largest |median| {max(after):.2f} m")
+        elif d["aligned"]:
+            print("levels kept as they are: no two DSMs share a cell to measure an offset on")
         else:
             print("levels kept as they are (--no-align)")
         counts = " / ".join(str(k) for k in d["cells_by_count"])
