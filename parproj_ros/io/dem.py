@@ -148,6 +148,29 @@ def read_hgt(path: str | Path) -> FloatArray:
     return data
 
 
+#: Bytes of an SRTM tile: 1201 x 1201 (3 arc-second) or 3601 x 3601 (1 arc-second) int16.
+HGT_BYTES = (2 * 1201 * 1201, 2 * 3601 * 3601)
+
+
+def _hgt_hint(path: Path) -> str:
+    """Why GDAL cannot read the ``.hgt`` file ``path``: its name, its size ("" if neither)."""
+    hints = []
+    if re.fullmatch(r"[NS]\d{1,2}[EW]\d{1,3}", path.stem.upper()) is None:
+        hints.append(
+            "an SRTM tile must keep its name (e.g. N44E005.hgt): GDAL reads its position from it"
+        )
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = None
+    if size is not None and size not in HGT_BYTES:
+        hints.append(
+            f"it has {size} bytes, not the size of a 1201 x 1201 tile ({HGT_BYTES[0]}) or a "
+            f"3601 x 3601 one ({HGT_BYTES[1]}): cut off, or not a tile; copy or download it again"
+        )
+    return "".join(f"; {h}" for h in hints)
+
+
 def tile_origin_of(path: Path) -> tuple[int, int]:
     """(lat, lon) of an SRTM tile's south-west corner, degrees, from its name (N44E005.hgt)."""
     m = re.fullmatch(r"([NS])(\d{1,2})([EW])(\d{1,3})", path.stem.upper())
@@ -262,10 +285,7 @@ class RasterSampler:
         except Exception as err:  # RasterioIOError, CPLE_*: any failure is the file's
             hint = ""
             if Path(str(source)).suffix.lower() == ".hgt":
-                hint = (
-                    "; an SRTM tile must keep its name (e.g. N44E005.hgt): GDAL reads its "
-                    "position from it"
-                )
+                hint = _hgt_hint(Path(str(source)))
             raise DemError(
                 label, f"GDAL cannot read it as a raster ({_short(err)}){hint}"
             ) from None

@@ -214,3 +214,40 @@ def test_levels_aligned_are_not_reported_as_no_align(
     assert code == 0, err
     assert "levels kept as they are (--no-align)" in out
     assert json.loads((tmp_path / "n" / "fuse.json").read_text())["aligned"] is False
+
+
+@pytest.mark.parametrize(
+    ("name", "size", "says"),
+    [
+        ("N44E005.hgt", 0, "size"),  # empty, rightly named
+        ("N44E005.hgt", 1000, "size"),  # cut off
+        ("tile.hgt", 2 * 1201 * 1201, "name"),  # a whole tile renamed
+        ("tile.hgt", 0, "both"),
+    ],
+)
+def test_unreadable_srtm_tile_says_why(
+    processed: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    name: str,
+    size: int,
+    says: str,
+) -> None:
+    """A ``.hgt`` GDAL cannot read: the advice fits the file (its name, its size).
+
+    Before: "an SRTM tile must keep its name (e.g. N44E005.hgt)" for an empty or cut-off
+    N44E005.hgt, which has that name.
+    """
+    dem = tmp_path / name
+    dem.write_bytes(bytes(size))
+    code, _, err = run(
+        ["dsm", str(processed), "-o", str(tmp_path / "d"), "--dem", str(dem)], capsys
+    )
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"parproj dsm: {dem}: GDAL cannot read it as a raster (")
+    named = "an SRTM tile must keep its name (e.g. N44E005.hgt)" in line
+    sized = f"it has {size} bytes, not the size of a 1201 x 1201 tile (2884802) or a 3601" in line
+    assert (named, sized) == {"size": (False, True), "name": (True, False), "both": (True, True)}[
+        says
+    ]
