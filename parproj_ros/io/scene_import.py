@@ -615,15 +615,51 @@ def footprints_overlap(left: ImportedImage, right: ImportedImage) -> bool:
     return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
 
 
+def _box_at(img: ImportedImage, h: float) -> list[float] | None:
+    """Lon/lat box of the image's corners localized at height ``h`` (m); None if one fails."""
+    ll = np.array([0.0, 0.0, img.lines - 1.0, img.lines - 1.0])
+    ss = np.array([0.0, img.samples - 1.0, 0.0, img.samples - 1.0])
+    lon, lat = img.rpc.localize(ll, ss, np.full(4, h), outside="nan")
+    if not (np.all(np.isfinite(lon)) and np.all(np.isfinite(lat))):
+        return None
+    return [float(lon.min()), float(lat.min()), float(lon.max()), float(lat.max())]
+
+
+def _boxes_meet(a: Sequence[float], b: Sequence[float]) -> bool:
+    return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
+
+
 def check_overlap(left: ImportedImage, right: ImportedImage) -> None:
-    """Refuse a pair whose ground footprints (from :func:`check_image`) do not intersect."""
+    """Refuse a pair whose ground footprints (from :func:`check_image`) do not intersect.
+
+    When they would intersect at other heights within the left RPC's height range, the
+    heights used (a DEM, ``--heights``) are named as the cause, not the RPCs.
+    """
     a, b = left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"]
-    if not footprints_overlap(left, right):
+    if footprints_overlap(left, right):
+        return
+    rpc = left.rpc
+    lo, hi = rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale)
+    meet = []
+    for h in np.linspace(lo, hi, 41):
+        ba, bb = _box_at(left, float(h)), _box_at(right, float(h))
+        if ba is not None and bb is not None and _boxes_meet(ba, bb):
+            meet.append(float(h))
+    used = left.checks.get("normalized_ranges", {}).get("height")
+    if meet and used is not None:
+        u0, u1 = (v * rpc.height_scale + rpc.height_off for v in used)
         raise SceneImportError(
-            f"{left.path} and {right.path} do not overlap on the ground: footprints lon/lat "
-            f"{[round(v, 4) for v in a]} and {[round(v, 4) for v in b]}; not a stereo pair, or "
-            "a wrong RPC / crop origin"
+            f"{left.path} and {right.path} do not overlap on the ground at the heights used "
+            f"({min(u0, u1):.0f}..{max(u0, u1):.0f} m), but do at {meet[0]:.0f}..{meet[-1]:.0f}"
+            f" m (within the RPC's height range {lo:.0f}..{hi:.0f} m): the heights are off the "
+            "ground: a DEM (--dem) in feet, above another datum (--geoid-undulation, "
+            "--dem-ellipsoidal) or of another place, or --heights away from the ground"
         )
+    raise SceneImportError(
+        f"{left.path} and {right.path} do not overlap on the ground: footprints lon/lat "
+        f"{[round(v, 4) for v in a]} and {[round(v, 4) for v in b]}; not a stereo pair, or "
+        "a wrong RPC / crop origin"
+    )
 
 
 def make_frame(img: ImportedImage, heights: Heights) -> LocalTangentPlane:

@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
-from testkit.paths import BAGS
+from testkit.paths import BAGS, DATA, ROOT
 
 from parproj_ros.apps import cli
 from parproj_ros.core import contract
@@ -251,3 +253,49 @@ def test_unreadable_srtm_tile_says_why(
     assert (named, sized) == {"size": (False, True), "name": (True, False), "both": (True, True)}[
         says
     ]
+
+
+SRTM = ROOT.parent / "shared" / "data" / "ventoux" / "dem" / "N44E005.hgt"
+#: Ellipsoidal ground of the Ventoux crops: the tie points of the default import measure
+#: 512..567 m (percentiles 1-99).
+VENTOUX_GROUND_M = 540.0
+
+
+def test_heights_off_the_ground_are_named_not_the_rpc(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A DEM in feet, or ``--heights`` 1.3 km above the ground: the heights named, exit 2.
+
+    At those heights the two footprints miss each other (B/H 0.355). Before: "do not overlap
+    on the ground: footprints lon/lat [...]; not a stereo pair, or a wrong RPC / crop origin".
+    """
+    import rasterio
+
+    with rasterio.open(SRTM) as src:
+        profile = src.profile | {"driver": "GTiff"}
+        feet = (src.read(1) * 3.28084).astype(np.int16)
+    dem = tmp_path / "feet.tif"
+    with rasterio.open(dem, "w", **profile) as dst:
+        dst.write(feet, 1)
+    imgs = [str(DATA / "left_image.tif"), str(DATA / "right_image.tif")]
+    for extra, used in (
+        (["--heights", "1800", "1900"], "(1800..1900 m)"),
+        (["--dem", str(dem)], None),
+    ):
+        code, _, err = run(["import", *imgs, "-o", str(tmp_path / "i"), *extra], capsys)
+        assert code == 2, err
+        (line,) = err.strip().splitlines()
+        assert "a wrong RPC / crop origin" not in line
+        m = re.search(
+            r"do not overlap on the ground at the heights used \((\d+)\.\.(\d+) m\), but do at "
+            r"(\d+)\.\.(\d+) m \(within the RPC's height range 190\.\.1960 m\): the heights are "
+            r"off the ground: a DEM \(--dem\) in feet",
+            line,
+        )
+        assert m is not None, line
+        u0, u1, h0, h1 = (float(v) for v in m.groups())
+        assert used is None or used in line
+        assert h0 <= VENTOUX_GROUND_M <= h1 and not u0 <= VENTOUX_GROUND_M <= u1
+        if used is None:  # the feet DEM (+- the DEM margin, 100 m): over 3 x the ground's
+            assert u0 + 100 > 3.0 * (VENTOUX_GROUND_M - 100)  # ~440 m above the geoid here
+        assert not (tmp_path / "i").exists()
