@@ -126,6 +126,15 @@ def export_dsms(
         heights, grid, ortho = elevation_grid_from_msg(m)
         name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"
         frame = m.header.frame_id
+        try:
+            frame_of(frame)
+        except ValueError as err:
+            raise InputError(
+                str(out_bag),
+                f"the DSM of {m.pair_id} is in object frame {frame!r}, which cannot be placed "
+                f"({err}): process its input again (parproj process --frame-id, or the node's "
+                "frame_id parameter: a valid tangent plane, or none)",
+            ) from None
         valid = float(np.isfinite(heights).mean()) if heights.size else 0.0
         row: dict[str, Any] = {"pair_id": m.pair_id, "frame_id": frame, "valid_fraction": valid}
         rows.append(row)

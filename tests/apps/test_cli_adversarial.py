@@ -21,7 +21,7 @@ from testkit.paths import BAGS, DATA, ROOT
 from parproj_ros.apps import cli
 from parproj_ros.core import contract
 from parproj_ros.core.heights import MAX_CELLS_PER_GSD
-from parproj_ros.ros.bag import BagReader
+from parproj_ros.ros.bag import BagReader, BagWriter
 
 pytestmark = pytest.mark.ros  # bags written and read
 
@@ -299,3 +299,43 @@ def test_heights_off_the_ground_are_named_not_the_rpc(
         if used is None:  # the feet DEM (+- the DEM margin, 100 m): over 3 x the ground's
             assert u0 + 100 > 3.0 * (VENTOUX_GROUND_M - 100)  # ~440 m above the geoid here
         assert not (tmp_path / "i").exists()
+
+
+@pytest.mark.parametrize(
+    ("frame", "why"),
+    [
+        ("enu_wgs84:lat=999,lon=5,h=0", "bad origin (999.0, 5.0, 0.0)"),
+        ("enu_wgs84:lat=44,lon=5,h=inf", "not a local tangent plane frame_id"),
+        ("enu_wgs84:44,5", "not a local tangent plane frame_id"),
+    ],
+)
+def test_a_tangent_plane_that_cannot_be_is_refused(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], frame: str, why: str
+) -> None:
+    """``process --frame-id`` naming an impossible plane: exit 2; ``dsm`` of such a bag: exit 2.
+
+    Before: ``process --frame-id enu_wgs84:lat=999,lon=5,h=0`` exit 0, then ``parproj dsm``
+    of its output "internal error (a bug, not your input): ValueError: bad origin (999.0, 5.0,
+    0.0)", exit 3.
+    """
+    out = tmp_path / "o"
+    code, _, err = run(["process", str(BAG), "-o", str(out), "-q", "--frame-id", frame], capsys)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"parproj process: --frame-id: {frame!r}: {why}"), line
+    assert not out.exists()
+    # the node's frame_id parameter is not checked: a bag holding such a DSM
+    (item,) = BagReader(processed).messages(topics=[contract.DSM])
+    item.msg.header.frame_id = frame
+    bag = tmp_path / "labelled"
+    with BagWriter(bag) as bw:
+        bw.add_topics([contract.topic(contract.DSM)])
+        bw.write(contract.DSM, item.msg, item.log_time_ns)
+    code, _, err = run(["dsm", str(bag), "-o", str(tmp_path / "d")], capsys)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(
+        f"parproj dsm: {bag}: the DSM of left+right is in object frame {frame!r}, which cannot "
+        f"be placed ({why}"
+    ), line
+    assert not (tmp_path / "d").exists()

@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     out = check_output(args.output, inputs=[bag], force=args.force)
     args.outputs = [out]
     check_input_bag(bag)
+    _check_frame_id(args.frame_id)
     overrides = overrides_from(args)
     with staged_output(out, force=args.force) as work:
         summary = process_bag(
@@ -91,6 +92,27 @@ def run(args: argparse.Namespace) -> int:
         f"-> {out}{lost}"
     )
     return verdict(summary, heights=bool(overrides.get("heights")))
+
+
+def _check_frame_id(frame_id: str) -> None:
+    """Refuse a ``--frame-id`` naming a tangent plane that does not parse or cannot be.
+
+    Raises:
+        InputError: ``enu_wgs84:...`` with a latitude outside +-90 deg, a non-finite figure,
+            or another form (``parproj dsm`` could not place the outputs).
+    """
+    from ...io.files import InputError
+    from ...io.geotiff import frame_of
+    from ...io.scene_import import FRAME_PREFIX
+
+    try:
+        frame_of(frame_id)
+    except ValueError as err:
+        raise InputError(
+            "--frame-id",
+            f"{frame_id!r}: {err}; a tangent plane on WGS84 is "
+            f"{FRAME_PREFIX}:lat=LAT,lon=LON,h=H (degrees, |LAT| <= 90; metres)",
+        ) from None
 
 
 def verdict(summary: ProcessSummary, *, heights: bool) -> int:
