@@ -29,6 +29,7 @@ from typing import Any, Literal
 import numpy as np
 
 from ..core import contract
+from ..core.heights import MAX_CELLS_PER_GSD
 from ..imaging.fusion import TOLERANCE_M, FusedDsm, frame_box, fuse, reframe, sample_bilinear
 from ..imaging.heights import DsmGrid
 from ..io.files import InputError
@@ -188,6 +189,15 @@ def fuse_bags(
         raise NotEnoughDsmsError(
             f"fewer than two DSMs to fuse (found {len(dsms)}: {found}) in "
             f"{', '.join(str(b) for b in bags)}; {advice}"
+        )
+    finest = min(d.grid.cell for d in dsms)
+    if cell_m is not None and cell_m * MAX_CELLS_PER_GSD < finest:
+        raise InputError(
+            "--cell-m",
+            f"{cell_m:g} m is {finest / cell_m:.3g} times finer than the finest input DSM's "
+            f"cell ({finest:.3g} m): a grid of {(finest / cell_m) ** 2:.3g} times its cells, "
+            "interpolated between them (no detail gained); give 0 (the finest input's cell) "
+            f"or at least {finest / MAX_CELLS_PER_GSD:.3g} m",
         )
     frames = []
     for d in dsms:

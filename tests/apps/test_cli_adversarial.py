@@ -339,3 +339,24 @@ def test_a_tangent_plane_that_cannot_be_is_refused(
         f"be placed ({why}"
     ), line
     assert not (tmp_path / "d").exists()
+
+
+def test_fuse_cell_far_below_the_inputs_is_named(
+    processed: Path, unfilled: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``fuse --cell-m 0.0001`` on 0.5 m DSMs: exit 2 naming the option and the least cell.
+
+    Before: "parproj fuse: out of memory (Unable to allocate 36.4 TiB ...)", exit 3.
+    """
+    cell = dsm_cell(processed)
+    out = tmp_path / "f"
+    argv = ["fuse", str(processed), str(unfilled), "-o", str(out), "--cell-m", "0.0001"]
+    code, _, err = run(argv, capsys)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(
+        f"parproj fuse: --cell-m: 0.0001 m is {cell / 1e-4:.3g} times finer than the finest "
+        f"input DSM's cell ({cell:.3g} m)"
+    ), line
+    assert f"or at least {cell / MAX_CELLS_PER_GSD:.3g} m" in line
+    assert not out.exists()  # (a fusion at the least cell accepted takes 90 s here)
