@@ -170,19 +170,68 @@ def test_left_right_check_rejects_what_the_right_image_does_not_show(
     right[80:160, 120:200] = np.clip(texture(80, 80, seed=7), 1, 2047).astype(np.uint16)
     patch = (slice(90, 150), slice(145, 205))  # left pixels whose partners were replaced
     valid = {}
-    modes: tuple[Literal["flip", "reduced", "none"], ...] = ("flip", "reduced", "none")
-    for mode in modes:
-        res = match_pair(left, right, d_range=(0, 24), params=SgbmParams(lr_check=mode))
+    maps = {}
+    modes: tuple[tuple[Literal["flip", "reduced", "none"], int], ...] = (
+        ("flip", 1),
+        ("flip", 2),
+        ("reduced", 1),
+        ("none", 1),
+    )
+    for mode, rows in modes:
+        params = SgbmParams(lr_check=mode, lr_rows=rows)
+        res = match_pair(left, right, d_range=(0, 24), params=params)
         assert res.status == DenseStatus.OK
-        valid[mode] = np.isfinite(res.disparity[patch]).mean()
+        name = f"{mode}{rows}" if mode == "flip" else mode
+        valid[name] = np.isfinite(res.disparity[patch]).mean()
+        maps[name] = res.disparity
         ok = interior(left.shape) & np.isfinite(res.disparity)
         ok[80:160, 110:215] = False
         assert np.median(np.abs(res.disparity[ok] - truth[ok])) < 0.2
-    assert valid["flip"] < 0.2 and valid["flip"] < 0.75 * valid["none"], valid
+    # the right pass on every row, or on every other row (each row between checked against
+    # the row above it): both reject the pixels whose partners the right image lost
+    for flip in ("flip1", "flip2"):
+        assert valid[flip] < 0.2 and valid[flip] < 0.75 * valid["none"], valid
+    # and elsewhere keep the same pixels; their disparities (the mean of the left one and its
+    # partner's right one) differ by half the right ones' difference: at most one SGBM step
+    # (1/16 px) in median, and under half a pixel almost everywhere
+    a, b = maps["flip1"], maps["flip2"]
+    inner = interior(left.shape)
+    inner[80:160, 110:215] = False
+    assert (np.isfinite(a[inner]) == np.isfinite(b[inner])).mean() > 0.99
+    diff = np.abs(a - b)[inner & np.isfinite(a) & np.isfinite(b)]
+    assert np.median(diff) <= 1 / 16 and (diff < 0.5).mean() > 0.99, np.median(diff)
     # the check on a right pass at half resolution rejects them as well
     assert valid["reduced"] < 0.2 and valid["reduced"] < 0.75 * valid["none"], valid
     with pytest.raises(ValueError, match="lr_check"):
         SgbmParams(lr_check="internal")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="lr_rows"):
+        SgbmParams(lr_rows=0)
+
+
+@pytest.mark.parametrize("rows", [1, 2, 3])
+def test_the_right_pass_matches_every_lr_rows_th_row(
+    pair: tuple[np.ndarray, ...], rows: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The left pass sees the whole window, the right-to-left pass 1 row in ``lr_rows``."""
+    from parproj_ros.imaging import dense
+
+    seen: list[tuple[int, ...]] = []
+    made = dense.sgbm_matcher
+
+    class Spy:
+        def __init__(self, matcher: cv2.StereoSGBM) -> None:
+            self.matcher = matcher
+
+        def compute(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+            seen.append(a.shape)
+            return self.matcher.compute(a, b)  # type: ignore[no-any-return]
+
+    monkeypatch.setattr(dense, "sgbm_matcher", lambda *args: Spy(made(*args)))
+    left, right, _ = pair
+    res = match_pair(left, right, d_range=(0, 24), params=SgbmParams(lr_rows=rows))
+    assert res.status == DenseStatus.OK
+    (h, w), (hr, wr) = seen
+    assert (h, w) == (left.shape[0], wr) and hr == math.ceil(h / rows)
 
 
 def test_no_data_is_nan_and_counted(pair: tuple[np.ndarray, ...]) -> None:
