@@ -302,12 +302,16 @@ def load_image(
     if not 1 <= band <= info.bands:
         raise SceneImportError(f"{p}: band {band} asked for, the raster has {info.bands}")
     lo, hi, valid = raster.band_summary(p, band)
+    # another band is advice only when there is one
+    which = f"band {band}" if info.bands > 1 else "its only band"
+    advice = "choose another with --band" if info.bands > 1 else "check the file"
     if valid == 0:
-        raise SceneImportError(f"{p}: band {band} is all no-data: choose another with --band")
-    if lo == hi:
         raise SceneImportError(
-            f"{p}: band {band} is constant ({lo:g}) : nothing to match; choose another with --band"
+            f"{p}: {which} is all no-data (GDAL mask): nothing to import; {advice}"
+            + ("" if info.bands > 1 else " and its nodata value")
         )
+    if lo == hi:
+        raise SceneImportError(f"{p}: {which} is constant ({lo:g}) : nothing to match; {advice}")
     if rpc_path is not None:
         full, source = raster.read_rpc_file(rpc_path)
     else:

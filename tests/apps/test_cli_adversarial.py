@@ -360,3 +360,29 @@ def test_fuse_cell_far_below_the_inputs_is_named(
     ), line
     assert f"or at least {cell / MAX_CELLS_PER_GSD:.3g} m" in line
     assert not out.exists()  # (a fusion at the least cell accepted takes 90 s here)
+
+
+@pytest.mark.parametrize(
+    ("nodata", "says"),
+    [(7, "its only band is all no-data (GDAL mask): nothing to import; check the file and its "
+          "nodata value"),
+     (None, "its only band is constant (7) : nothing to match; check the file")],
+)  # fmt: skip
+def test_single_band_image_without_data_is_not_told_to_choose_a_band(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], nodata: int | None, says: str
+) -> None:
+    """A one-band image all no-data, or constant: exit 2, no advice to pick another band.
+
+    Before: "band 1 is all no-data: choose another with --band" for a raster of one band.
+    """
+    import rasterio
+
+    img = tmp_path / "blank.tif"
+    profile = {"driver": "GTiff", "width": 40, "height": 40, "count": 1, "dtype": "uint16"}
+    with rasterio.open(img, "w", **profile, nodata=nodata) as dst:
+        dst.write(np.full((40, 40), 7, np.uint16), 1)
+    shutil.copy(DATA / "left_image.geom", tmp_path / "blank.geom")  # an RPC beside it
+    argv = ["import", str(img), str(DATA / "right_image.tif"), "-o", str(tmp_path / "i")]
+    code, _, err = run(argv, capsys)
+    assert code == 2, err
+    assert err.strip().splitlines() == [f"parproj import: {img}: {says}"]
