@@ -183,6 +183,11 @@ class RPCModel:
         for name in ("line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale"):
             if getattr(self, name) == 0.0:
                 raise RPCFormatError(f"{name} must not be zero")
+        for name, limit in (("lat_off", 90.0), ("long_off", 360.0)):
+            if abs(getattr(self, name)) > limit:
+                raise RPCFormatError(
+                    f"{name} must be within +-{limit:g} deg, got {getattr(self, name):g}"
+                )
         object.__setattr__(self, "err_bias", float(self.err_bias))
         object.__setattr__(self, "err_rand", float(self.err_rand))
         object.__setattr__(

@@ -386,3 +386,28 @@ def test_single_band_image_without_data_is_not_told_to_choose_a_band(
     code, _, err = run(argv, capsys)
     assert code == 2, err
     assert err.strip().splitlines() == [f"parproj import: {img}: {says}"]
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "says"),
+    [("lat_off", "999", "lat_off must be within +-90 deg, got 999"),
+     ("long_off", "400", "long_off must be within +-360 deg, got 400")],
+)  # fmt: skip
+def test_rpc_offset_off_the_earth_names_the_rpc_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, value: str, says: str
+) -> None:
+    """An RPC whose ground offset is no latitude / longitude: the RPC file and key named.
+
+    Before (lat_off 999): "left_image.tif, right_image.tif, bad.geom: bad origin (999.0705378,
+    5.1953824, 1075.0)", the three inputs named and the cause left to guess.
+    """
+    text = (DATA / "left_image.geom").read_text()
+    bad = tmp_path / "bad.geom"
+    bad.write_text(re.sub(rf"(?m)^{key}:.*$", f"{key}:  {value}", text))
+    imgs = [str(DATA / "left_image.tif"), str(DATA / "right_image.tif")]
+    argv = ["import", *imgs, "-o", str(tmp_path / "i"), "--rpc-left", str(bad)]
+    code, _, err = run(argv, capsys)
+    assert code == 2, err
+    assert err.strip().splitlines() == [
+        f"parproj import: {bad}: not a readable RPC file (RPCFormatError: {bad}: {says})"
+    ]
