@@ -128,6 +128,11 @@ _COEFF_NAMES: tuple[str, ...] = (
 # ---------------------------------------------------------------------------------------------
 # The model
 
+#: Ground heights an RPC may span, metres from the ellipsoid (no ground lies 100 km away:
+#: a larger height_off or height_scale is a damaged RPC; 1e9 made every other image's check
+#: fail at the default heights, height_off +- height_scale / 2 of the first image).
+MAX_GROUND_HEIGHT_M = 1.0e5
+
 
 @dataclass(frozen=True, eq=False)
 class RPCModel:
@@ -183,6 +188,12 @@ class RPCModel:
         for name in ("line_scale", "samp_scale", "lat_scale", "long_scale", "height_scale"):
             if getattr(self, name) == 0.0:
                 raise RPCFormatError(f"{name} must not be zero")
+        if abs(self.height_off) + abs(self.height_scale) > MAX_GROUND_HEIGHT_M:
+            raise RPCFormatError(
+                f"height_off {self.height_off:g} m +- height_scale {self.height_scale:g} m "
+                f"reaches beyond {MAX_GROUND_HEIGHT_M:g} m from the ellipsoid: an RPC's "
+                "heights are the ground's"
+            )
         for name, limit in (("lat_off", 90.0), ("long_off", 360.0)):
             if abs(getattr(self, name)) > limit:
                 raise RPCFormatError(

@@ -391,15 +391,19 @@ def test_single_band_image_without_data_is_not_told_to_choose_a_band(
 @pytest.mark.parametrize(
     ("key", "value", "says"),
     [("lat_off", "999", "lat_off must be within +-90 deg, got 999"),
-     ("long_off", "400", "long_off must be within +-360 deg, got 400")],
+     ("long_off", "400", "long_off must be within +-360 deg, got 400"),
+     ("height_scale", "1e9", "height_off 1075 m +- height_scale 1e+09 m reaches beyond 100000 m "
+      "from the ellipsoid: an RPC's heights are the ground's")],
 )  # fmt: skip
-def test_rpc_offset_off_the_earth_names_the_rpc_file(
+def test_rpc_off_the_earth_names_the_rpc_file(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], key: str, value: str, says: str
 ) -> None:
-    """An RPC whose ground offset is no latitude / longitude: the RPC file and key named.
+    """An RPC whose ground offset is no latitude / longitude / ground height: file, key named.
 
     Before (lat_off 999): "left_image.tif, right_image.tif, bad.geom: bad origin (999.0705378,
-    5.1953824, 1075.0)", the three inputs named and the cause left to guess.
+    5.1953824, 1075.0)", the three inputs named and the cause left to guess; (height_scale 1e9
+    in the left RPC) "right_image.tif: RPC line denominator crosses zero over the image ...
+    (right_image.geom)": the other image's RPC blamed, at the default heights (+-5e8 m).
     """
     text = (DATA / "left_image.geom").read_text()
     bad = tmp_path / "bad.geom"
