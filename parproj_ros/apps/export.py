@@ -147,6 +147,13 @@ def export_dsms(
                 raise InputError(
                     option, f"the DSM of {m.pair_id} is in {frame!r}, not a tangent plane"
                 )
+        if truth is not None and frame_of(frame) is not None:
+            raise InputError(
+                "--scenario",
+                f"the DSM of {m.pair_id} is in {frame!r}, a real pair's tangent plane on WGS84; "
+                "a scenario's terrain is in a simulated bag's frame (map): compare a real pair "
+                "with --dem",
+            )
         if dem is not None:
             surface = enu_dem_surface(frame, dem)
         made = heights_made(m)

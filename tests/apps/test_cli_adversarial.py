@@ -415,3 +415,22 @@ def test_rpc_off_the_earth_names_the_rpc_file(
     assert err.strip().splitlines() == [
         f"parproj import: {bad}: not a readable RPC file (RPCFormatError: {bad}: {says})"
     ]
+
+
+def test_a_scenario_is_no_truth_for_a_real_pair(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``dsm --scenario`` on a real pair's DSM (tangent plane on WGS84): exit 2, nothing written.
+
+    Before: exit 0, "against truth NMAD 19.455 m, rms 30.314 m, 86.6 % complete": the
+    simulated scenario's terrain (frame map) compared with the Ventoux DSM as if one frame.
+    """
+    out = tmp_path / "d"
+    code, _, err = run(
+        ["dsm", str(processed), "-o", str(out), "--scenario", "ikonos_agile"], capsys
+    )
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith("parproj dsm: --scenario: the DSM of left+right is in 'enu_wgs84:")
+    assert line.endswith("compare a real pair with --dem")
+    assert not out.exists()
