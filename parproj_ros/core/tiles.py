@@ -57,6 +57,7 @@ from .config import PipelineConfig
 from .heights import (
     MATCHER_MODES,
     HeightsOptions,
+    cell_problem,
     options_of,
 )
 from .ledger import StreamPair
@@ -302,6 +303,8 @@ class TileLevel:
         self.shed = False
         #: Pairs this level makes no tiles of (shed while under way or at their start).
         self.off: set[str] = set()
+        #: Issues of pairs turned off at their start, for the next :meth:`emit`.
+        self.pending: list[Issue] = []
         #: Columns of a tile's span, pixels of the level.
         self.tile_cols = TILE_COLS if factor == 1 else QUICKLOOK_TILE_COLS
         # The quick-look's left-right check: "flip" (a second full pass) becomes "reduced"
@@ -358,6 +361,15 @@ class TileLevel:
                 left_grid=_reduced(geo.left_grid, self.factor),
                 right_grid=_reduced(geo.right_grid, self.factor),
             )
+            problem = cell_problem(
+                self.options.cell_m * self.factor, g.mapping().ground_sample_distance
+            )
+            if problem is not None:  # a grid of holes, too large to hold: no tiles
+                self.off.add(blk.pair_id)
+                self.pending.append(
+                    Issue(Level.WARN, f"pair {blk.pair_id}", f"no {self.label} tiles: {problem}")
+                )
+                return
             w = g.left_grid.width
             n = self.tile_cols
             spans = [(c, min(w, c + n)) for c in range(0, w, n)]
@@ -378,6 +390,8 @@ class TileLevel:
         """
         if live is None:
             live = {s.geometry.pair_id for s in self.streams.values()}
+        out.issues += self.pending
+        self.pending = []
         for pid in list(self.pairs):
             tiles = self.pairs[pid]
             while tiles.next_tile < len(tiles.spans):

@@ -434,3 +434,23 @@ def test_a_scenario_is_no_truth_for_a_real_pair(
     assert line.startswith("parproj dsm: --scenario: the DSM of left+right is in 'enu_wgs84:")
     assert line.endswith("compare a real pair with --dem")
     assert not out.exists()
+
+
+def test_streamed_dsm_tiles_refuse_a_cell_far_below_the_gsd(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The same cell on a streamed pair (DSM tiles): no tiles, said; no DSM, exit 1.
+
+    bags/airborne_foreaft with ``--scene-lines 768`` is streamed. Before: "parproj process:
+    out of memory (Unable to allocate 1.87 TiB ...)", exit 3 (the tiles' DSM grid).
+    """
+    argv = ["process", str(BAGS / "airborne_foreaft"), "-o", str(tmp_path / "o"), "-q",
+            "--no-tie-points", "--heights", "--scene-lines", "768",
+            "--heights-cell-m", "0.0001"]  # fmt: skip
+    code, _, err = run(argv, capsys)
+    assert code == 1, err
+    assert "out of memory" not in err and "Traceback" not in err
+    pair = "left_scene_0000+right_scene_0001"
+    assert "streaming: 768 x 791 px" in err  # streamed indeed
+    assert f"[warn] pair {pair}: no full-resolution tiles: heights_cell_m 0.0001 m is" in err
+    assert f"parproj process: --heights: no DSM for {pair}" in err
