@@ -208,7 +208,15 @@ def measure_heights(
         ),
     )
     if res.status != DenseStatus.OK:
-        return failed(res.status, res.message, res.d_range)
+        message = res.message
+        width = res.d_range[1] - res.d_range[0]
+        if res.status == DenseStatus.RANGE_TOO_WIDE and 4 * opt.margin_px >= width:
+            # the margin is half the range or more: it, not the heights, made it too wide
+            message += (
+                f" (heights_margin_px {opt.margin_px:g} px adds {2 * opt.margin_px:g} px of "
+                "it: lower heights_margin_px)"
+            )
+        return failed(res.status, message, res.d_range)
     height = (a * res.disparity + b).astype(np.float32)
     mapping = GroundMapping.of_pair(pair, "left")
     problem = cell_problem(opt.cell_m, mapping.ground_sample_distance)

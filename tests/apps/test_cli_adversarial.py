@@ -454,3 +454,19 @@ def test_streamed_dsm_tiles_refuse_a_cell_far_below_the_gsd(
     assert "streaming: 768 x 791 px" in err  # streamed indeed
     assert f"[warn] pair {pair}: no full-resolution tiles: heights_cell_m 0.0001 m is" in err
     assert f"parproj process: --heights: no DSM for {pair}" in err
+
+
+def test_a_margin_that_widens_the_range_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--heights-margin-px 300`` on a 310 px wide pair: the margin named, not only the heights.
+
+    Before: "disparity range (-312, 343) (656 px) is as wide as the image (310 px) ...: narrow
+    the height range" alone, with the terrain measured at -16..47 m (63 px of it).
+    """
+    argv = ["process", str(BAG), "-o", str(tmp_path / "o"), "-q", "--heights",
+            "--heights-margin-px", "300"]  # fmt: skip
+    code, _, err = run(argv, capsys)
+    assert code == 1, err
+    assert "no heights (range_too_wide): disparity range (" in err
+    assert "(heights_margin_px 300 px adds 600 px of it: lower heights_margin_px)" in err
