@@ -99,6 +99,10 @@ class BatchInput:
         return out
 
 
+class EmptyResultError(Exception):
+    """An input processed without error but with nothing to show (no pair made)."""
+
+
 def _one_line(err: BaseException) -> str:
     """``<type>: <message>`` on one line, at most 500 characters."""
     return f"{type(err).__name__}: {' '.join(str(err).split())}"[:500]
@@ -150,6 +154,22 @@ def read_pair_list(path: Path) -> list[BatchInput]:
             raise InputError(
                 where, f"unknown columns {unknown}" if unknown else f"missing {missing}"
             )
+        name = str(row["name"])
+        if (
+            name.startswith(".")
+            or any(c in name for c in "/\\\0")
+            or name in (FAILED_DIR, SUMMARY)
+        ):
+            raise InputError(
+                where,
+                f"name {name!r}: not a plain folder name (no /, \\ or leading dot; not "
+                f"{FAILED_DIR} nor {SUMMARY}): each pair's outputs go to OUTPUT/<name>",
+            )
+        if (base / str(row["left"])).resolve() == (base / str(row["right"])).resolve():
+            raise InputError(
+                where,
+                f"right {row['right']}: is the left image too: a stereo pair needs two images",
+            )
         options: dict[str, Any] = {}
         for key in ("rpc_left", "rpc_right", "dem"):
             if row.get(key):
@@ -164,7 +184,7 @@ def read_pair_list(path: Path) -> list[BatchInput]:
             options["heights"] = (lo, hi)
         out.append(
             BatchInput(
-                str(row["name"]),
+                name,
                 "pair",
                 (base / str(row["left"]), base / str(row["right"])),
                 options,
@@ -296,6 +316,11 @@ def run_input(
                     bag, work / "output", overrides=dict(overrides or {}), progress=False
                 )
                 lines += [f"[{i.level}] {i.where}: {i.message}" for i in summary.issues]
+                if summary.pairs == 0:  # an empty result is not done (parproj process: exit 1)
+                    raise EmptyResultError(
+                        f"no pair was made (the [warn] / [error] lines in {FAILED_DIR}/"
+                        f"{inp.name}.log say why)"
+                    )
                 truth = bag if contract.TRUTH_POINTS in BagReader(bag).topics() else None
                 evaluation = evaluate_bag(work / "output", truth, matching=False)
                 (work / "evaluation.json").write_text(

@@ -19,8 +19,10 @@ import pytest
 from testkit.paths import BAGS, DATA, ROOT
 
 from parproj_ros.apps import cli
+from parproj_ros.apps.batch import BatchInput, find_inputs, run_input
 from parproj_ros.core import contract
 from parproj_ros.core.heights import MAX_CELLS_PER_GSD
+from parproj_ros.io.files import InputError
 from parproj_ros.ros.bag import BagReader, BagWriter
 
 pytestmark = pytest.mark.ros  # bags written and read
@@ -470,3 +472,49 @@ def test_a_margin_that_widens_the_range_is_named(
     assert code == 1, err
     assert "no heights (range_too_wide): disparity range (" in err
     assert "(heights_margin_px 300 px adds 600 px of it: lower heights_margin_px)" in err
+
+
+@pytest.mark.parametrize(
+    ("name", "right", "says"),
+    [("../evil", "right_image.tif", "name '../evil': not a plain folder name"),
+     ("a/b", "right_image.tif", "name 'a/b': not a plain folder name"),
+     ("_failed", "right_image.tif", "name '_failed': not a plain folder name"),
+     ("same", "left_image.tif", "right left_image.tif: is the left image too")],
+)  # fmt: skip
+def test_batch_pair_list_names_and_pairs_are_checked(
+    tmp_path: Path, name: str, right: str, says: str
+) -> None:
+    """A pair list whose name leaves OUTPUT, or whose pair is one image twice: InputError.
+
+    Before: name ``../evil`` wrote (and with the task's force, would have replaced) the folder
+    ``evil`` beside OUTPUT, exit 0; one image as left and right was 'done' with 0 pairs, exit 0
+    (``parproj import`` refuses it).
+    """
+    for img in ("left_image.tif", "right_image.tif"):
+        shutil.copy(DATA / img, tmp_path / img)
+    pairs = tmp_path / "pairs.csv"
+    pairs.write_text(f"name,left,right\n{name},left_image.tif,{right}\n")
+    with pytest.raises(InputError) as info:
+        find_inputs([pairs])
+    assert f"{pairs}: pair 1: {says}" in str(info.value)
+
+
+def test_batch_input_without_a_pair_is_failed_not_done(tmp_path: Path) -> None:
+    """A batch task that makes no pair is ``failed`` with the reason (exit 1), not ``done``.
+
+    Before: status ``done`` with 0 pairs, and ``parproj batch`` exit 0 (``parproj process``
+    of the same: exit 1, "no pair was made").
+    """
+    row = run_input(
+        BatchInput("ventoux", "bag", (BAG,)),
+        tmp_path,
+        {"max_output_pixels": 1, "tie_points": False},
+    )
+    assert row["status"] == "failed", row
+    assert row["error"].startswith("EmptyResultError: no pair was made")
+    assert not (tmp_path / "ventoux").exists()
+    log = (tmp_path / "_failed" / "ventoux.log").read_text()
+    assert "normalized images would be 310 x 613 px (> max_output_pixels 1): pair skipped" in log
+    # the same bag with its pair made is done
+    row = run_input(BatchInput("ok", "bag", (BAG,)), tmp_path, {"tie_points": False})
+    assert row["status"] == "done" and row["pairs"] == 1, row
