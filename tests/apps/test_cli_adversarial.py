@@ -518,3 +518,24 @@ def test_batch_input_without_a_pair_is_failed_not_done(tmp_path: Path) -> None:
     # the same bag with its pair made is done
     row = run_input(BatchInput("ok", "bag", (BAG,)), tmp_path, {"tie_points": False})
     assert row["status"] == "done" and row["pairs"] == 1, row
+
+
+def test_segments_of_one_rpc_twice_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``segments L.geom L.geom`` (or a copy): exit 2, as ``import`` refuses one image twice.
+
+    Before: exit 0, a table of segments for a "pair" with no base ("one model L / R px 6.436
+    / 6.436").
+    """
+    left = DATA / "left_image.geom"
+    copy = tmp_path / "copy.geom"
+    shutil.copy(left, copy)
+    for right in (left, copy):
+        code, out, err = run(["segments", str(left), str(right)], capsys)
+        assert code == 2, err
+        assert err.strip().splitlines() == [
+            f"parproj segments: {right}: the same RPC as {left}: a stereo pair needs two scenes "
+            "(no base here)"
+        ]
+        assert out == ""

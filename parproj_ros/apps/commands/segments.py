@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from ...io.files import (
@@ -26,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
     args.inputs = [args.left_rpc, args.right_rpc]
     for f in args.inputs:
         check_rpc(input_path(f, "file"))
+    _check_two_scenes(input_path(args.left_rpc, "file"), input_path(args.right_rpc, "file"))
     check_heights("--heights", args.heights, MIN_SEGMENT_HEIGHT_RANGE_M)
     res = run_segments(
         args.left_rpc,
@@ -37,6 +39,29 @@ def run(args: argparse.Namespace) -> int:
     )
     report(args.json, res, lambda r: print(format_table(r)))
     return 0 if all(r["reached"] for r in res["runs"]) else 1
+
+
+def _check_two_scenes(left: Path, right: Path) -> None:
+    """Refuse one RPC given as both scenes (as ``import`` refuses one image as both).
+
+    Raises:
+        InputError: the two files hold the same RPC (offsets, scales and coefficients).
+    """
+    import numpy as np
+
+    from ...io.files import InputError
+    from ...io.raster import read_rpc_file
+
+    a, b = read_rpc_file(left)[0], read_rpc_file(right)[0]
+    keys = [
+        f"{v}_{k}" for k in ("off", "scale") for v in ("line", "samp", "lat", "long", "height")
+    ]
+    if all(getattr(a, k) == getattr(b, k) for k in keys) and np.array_equal(
+        a.coefficients, b.coefficients
+    ):
+        raise InputError(
+            right, f"the same RPC as {left}: a stereo pair needs two scenes (no base here)"
+        )
 
 
 def add_parser(sub: Any) -> None:
