@@ -27,8 +27,8 @@ def run(args: argparse.Namespace) -> int:
     args.inputs = [args.left_rpc, args.right_rpc]
     for f in args.inputs:
         check_rpc(input_path(f, "file"))
-    _check_two_scenes(input_path(args.left_rpc, "file"), input_path(args.right_rpc, "file"))
     check_heights("--heights", args.heights, MIN_SEGMENT_HEIGHT_RANGE_M)
+    _check_two_scenes(input_path(args.left_rpc, "file"), input_path(args.right_rpc, "file"))
     res = run_segments(
         args.left_rpc,
         args.right_rpc,
