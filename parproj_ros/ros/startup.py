@@ -120,6 +120,28 @@ def check_mounting(name: str, value: Any) -> tuple[float, float, float]:
     return rpy
 
 
+def check_frame_id(value: Any) -> str:
+    """The ``frame_id`` parameter: "" (the inputs' frame), any name, or a tangent plane.
+
+    Raises:
+        StartupError: ``enu_wgs84:...`` that does not parse, or whose origin cannot be (a
+            latitude beyond +-90 deg, a figure not finite): the outputs would carry a frame
+            that ``parproj dsm`` cannot place, and no object-frame transform would be published.
+    """
+    from ..io.scene_import import FRAME_PREFIX, frame_from_id
+
+    text = str(value)
+    if text.strip().startswith(FRAME_PREFIX + ":"):
+        try:
+            frame_from_id(text)
+        except ValueError as err:
+            raise StartupError(
+                f"parameter frame_id: {text!r}: {err}; a tangent plane on WGS84 is "
+                f"{FRAME_PREFIX}:lat=LAT,lon=LON,h=H (degrees, |LAT| <= 90; metres)"
+            ) from None
+    return text
+
+
 def to_stderr(text: str) -> None:
     """Print to stderr when logging itself failed; never raises."""
     try:
@@ -236,10 +258,11 @@ def declare_all(node: Node, issues: list[Issue]) -> dict[str, Any]:
     """Declare every parameter of the table (and of each view): name -> value.
 
     Raises:
-        StartupError: ``views`` or a ``<view>.mounting_rpy_deg`` is invalid.
+        StartupError: ``views``, ``frame_id`` or a ``<view>.mounting_rpy_deg`` is invalid.
     """
     vals = {p.name: declare(node, p.name, p, issues) for p in PARAMS}
     vals["views"] = check_views(vals["views"])
+    vals["frame_id"] = check_frame_id(vals["frame_id"])
     for view in vals["views"]:
         for p in VIEW_PARAMS:
             vals[f"{view}.{p.name}"] = declare(node, f"{view}.{p.name}", p, issues)

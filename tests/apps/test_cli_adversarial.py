@@ -12,6 +12,8 @@ import contextlib
 import json
 import re
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +26,7 @@ from parproj_ros.core import contract
 from parproj_ros.core.heights import MAX_CELLS_PER_GSD
 from parproj_ros.io.files import InputError
 from parproj_ros.ros.bag import BagReader, BagWriter
+from parproj_ros.ros.startup import StartupError, check_frame_id
 
 pytestmark = pytest.mark.ros  # bags written and read
 
@@ -539,3 +542,26 @@ def test_segments_of_one_rpc_twice_is_refused(
             "(no base here)"
         ]
         assert out == ""
+
+
+def test_node_refuses_a_tangent_plane_that_cannot_be() -> None:
+    """``parproj_node`` with ``frame_id`` enu_wgs84:lat=999,...: exit 2, one line.
+
+    Before: the node started and labelled every output with that frame (no object-frame
+    transform published, and ``parproj dsm`` of its recording failed: see the test above).
+    """
+    frame = "enu_wgs84:lat=999,lon=5,h=0"
+    cmd = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args", "-p", f"frame_id:={frame}"]
+    p = subprocess.run(cmd, capture_output=True, timeout=30, check=False)
+    text = (p.stdout + p.stderr).decode(errors="replace")
+    assert p.returncode == 2, text
+    assert text.strip().splitlines() == [
+        f"parproj_node: cannot start: parameter frame_id: {frame!r}: bad origin (999.0, 5.0, "
+        "0.0); a tangent plane on WGS84 is enu_wgs84:lat=LAT,lon=LON,h=H (degrees, |LAT| <= 90; "
+        "metres)"
+    ]
+    for good in ("", "map", "enu_wgs84:lat=44.2069738,lon=5.1950231,h=519.80"):
+        assert check_frame_id(good) == good
+    for bad in ("enu_wgs84:44,5", "enu_wgs84:lat=44,lon=5,h=inf", "enu_wgs84:lat=-91,lon=0,h=0"):
+        with pytest.raises(StartupError, match=r"^parameter frame_id: "):
+            check_frame_id(bad)
