@@ -33,6 +33,16 @@ _pool_pid = 0
 _pool_size = 0
 
 
+def _after_fork_in_child() -> None:
+    """A forked child has none of the parent's threads, and its lock may be held by one."""
+    global _lock, _pool, _pool_pid, _pool_size
+    _lock = threading.Lock()
+    _pool, _pool_pid, _pool_size = None, 0, 0
+
+
+os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
 def workers() -> int:
     """Threads to use: OpenCV's (``cv2.setNumThreads``), at least 1."""
     return max(1, int(cv2.getNumThreads()))

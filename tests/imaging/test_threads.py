@@ -7,6 +7,7 @@ sums are added block by block in row order) and the ortho-image are the same to 
 
 from __future__ import annotations
 
+import os
 import re
 import threading
 import time
@@ -85,6 +86,32 @@ def test_run_parts_within_a_part_and_a_failing_part(cv2_threads: None) -> None:
     with pytest.raises(ValueError, match=re.escape(f"part {spans[1]}")):
         run_parts(fail_second, spans)
     assert sorted(ended) == [a for a, _ in spans]  # every part ran to its end before the raise
+
+
+def test_a_forked_child_runs_parts_on_threads_of_its_own(cv2_threads: None) -> None:
+    import multiprocessing as mp
+
+    cv2.setNumThreads(2)
+    spans = row_parts(64, 4, 1)
+    assert run_parts(lambda p: p[0], spans) == [a for a, _ in spans]  # the parent's pool
+    from parproj_ros.imaging import threads
+
+    ctx = mp.get_context("fork")
+    with threads._lock:  # the child is forked while a thread of the parent holds the lock
+        pool = ctx.Pool(1)
+    try:
+        got = pool.apply_async(_parts_in_child, (spans,)).get(timeout=30)
+    finally:
+        pool.terminate()
+    assert got == ([a for a, _ in spans], True)
+
+
+def _parts_in_child(spans: list[tuple[int, int]]) -> tuple[list[int], bool]:
+    from parproj_ros.imaging import threads
+
+    cv2.setNumThreads(2)
+    out = run_parts(lambda p: p[0], spans)
+    return out, threads._pool is not None and threads._pool_pid == os.getpid()
 
 
 def test_a_caller_does_not_wait_for_another_callers_parts(cv2_threads: None) -> None:
