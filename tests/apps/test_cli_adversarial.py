@@ -565,3 +565,17 @@ def test_node_refuses_a_tangent_plane_that_cannot_be() -> None:
     for bad in ("enu_wgs84:44,5", "enu_wgs84:lat=44,lon=5,h=inf", "enu_wgs84:lat=-91,lon=0,h=0"):
         with pytest.raises(StartupError, match=r"^parameter frame_id: "):
             check_frame_id(bad)
+
+
+def test_evaluate_without_truth_points_names_truth(
+    processed: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An imported pair's output bag holds no truth points: say where they are (--truth)."""
+    code, out, err = run(["evaluate", str(processed), "--no-matching"], capsys)
+    assert code == 0 and "1 pairs, 0 truth points" in out, err
+    assert f"parproj evaluate: note: {processed}: it holds no truth points" in err
+    assert "--truth BAG" in err
+    code, out, err = run(
+        ["evaluate", str(processed), "--truth", str(BAG), "--no-matching"], capsys
+    )
+    assert code == 0 and "1 pairs, 300 truth points" in out and "no truth points" not in err

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import warnings
 from typing import Any
 
 from ...io.files import (
@@ -36,6 +37,13 @@ def run(args: argparse.Namespace) -> int:
             else None
         )
         res = evaluate_bag(out_bag, truth, plots=work, matching=not args.no_matching)
+    if truth is None and res["truth_points"] == 0 and res["pair_count"] > 0:
+        warnings.warn(
+            f"{out_bag}: it holds no truth points, so there are no geometric figures: they "
+            "are in the input bag parproj process read (the import's, or the recording's): "
+            "give it with --truth BAG",
+            stacklevel=1,
+        )
     report(args.json, res, print_evaluation)
     return 0 if res["pair_count"] > 0 else 1
 
@@ -44,7 +52,7 @@ def add_parser(sub: Any) -> None:
     """Add ``parproj evaluate`` to the sub-command parsers ``sub``."""
     p = sub.add_parser("evaluate", help="evaluate the normalized pairs of an output bag")
     p.add_argument("output_bag")
-    p.add_argument("--truth", help="bag with truth/points (default: the output bag)")
+    p.add_argument("--truth", help="bag with truth/points: the input bag parproj process read")
     p.add_argument("--json", action="store_true", help="print one JSON document")
     p.add_argument("--plots", help="folder to create for PNG plots and images")
     p.add_argument("--force", action="store_true", help="replace an existing --plots folder")
