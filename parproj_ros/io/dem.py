@@ -730,7 +730,11 @@ def dem_from_args(args: Any) -> DemHeights | None:
     elif args.geoid:
         geoid = str(args.geoid)
         if geoid.lower() not in GEOID_MODELS:
-            input_path(geoid, "file")
+            try:
+                input_path(geoid, "file")
+            except InputError as err:  # named with the option: the value may be a typo
+                known = ", ".join(GEOID_MODELS)
+                raise InputError("--geoid", f"{err} (a grid file, or a model: {known})") from None
     else:
         geoid = float(args.geoid_undulation)
     if not args.dem:

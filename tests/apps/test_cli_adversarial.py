@@ -579,3 +579,20 @@ def test_evaluate_without_truth_points_names_truth(
         ["evaluate", str(processed), "--truth", str(BAG), "--no-matching"], capsys
     )
     assert code == 0 and "1 pairs, 300 truth points" in out and "no truth points" not in err
+
+
+@pytest.mark.parametrize("command", ["dsm", "import"])
+def test_a_geoid_that_is_neither_file_nor_model_names_the_option(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """``--geoid nosuch``: before, 'nosuch: no such file or folder', the option not named."""
+    dem = str(ROOT.parent / "shared" / "data" / "ventoux" / "dem" / "N44E005.hgt")
+    if command == "dsm":
+        argv = ["dsm", str(processed), "-o", str(tmp_path / "d"), "--dem", dem]
+    else:
+        left, right = str(DATA / "left_image.tif"), str(DATA / "right_image.tif")
+        argv = ["import", left, right, "-o", str(tmp_path / "b"), "--dem", dem]
+    code, _, err = run([*argv, "--geoid", "nosuch"], capsys)
+    assert code == 2, err
+    assert f"parproj {command}: --geoid: nosuch: no such file or folder (a grid file, or a " in err
+    assert not (tmp_path / "d").exists() and not (tmp_path / "b").exists()
