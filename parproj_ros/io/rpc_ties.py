@@ -528,6 +528,10 @@ def measure(
 
 def _pairs_text(images: Sequence[ImportedImage], pairs: Sequence[PairMatches]) -> str:
     used = [pm for pm in pairs if pm.ia.size]
+    if not used:  # none matched: name the images searched, not "of 0 pairs ()"
+        if len(images) == 2:
+            return f"between {images[0].scene_id} and {images[1].scene_id}"
+        return f"among the {len(images)} images"
     if len(used) == 1:
         return f"between {images[used[0].left].scene_id} and {images[used[0].right].scene_id}"
     names = ", ".join(f"{images[p.left].scene_id}:{images[p.right].scene_id}" for p in used)
