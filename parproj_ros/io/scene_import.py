@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -408,6 +409,24 @@ def _ground(
     return np.stack([lon, lat, h], axis=-1)
 
 
+#: Share of a scene's DEM heights beyond its RPC's height range above which it is said.
+CLIPPED_SHARE_NOTED = 0.01
+
+
+def _warn_clipped(img: ImportedImage, dem_h: FloatArray, lo: float, hi: float) -> None:
+    """A note when the DEM's heights leave the RPC's height range (they are clipped to it)."""
+    known = dem_h[np.isfinite(dem_h)]
+    out = known[(known < lo) | (known > hi)]
+    if known.size and out.size > CLIPPED_SHARE_NOTED * known.size:
+        warnings.warn(
+            f"{img.scene_id}: the DEM gives {100 * out.size / known.size:.0f} % of its points "
+            f"heights beyond the RPC's height range {lo:.0f}..{hi:.0f} m (from "
+            f"{known.min():.0f} to {known.max():.0f} m): used clipped to that range; a DEM of "
+            "another place, datum or unit? (process measures the terrain from tie points)",
+            stacklevel=3,
+        )
+
+
 def _grid(img: ImportedImage, nx: int, ny: int, shift: float = 0.0) -> tuple[FloatArray, ...]:
     """(line, sample) of an nx x ny grid over the image, shifted by ``shift`` grid steps."""
     s = (np.arange(nx) + 0.5 + shift) / nx * (img.samples - 1)
@@ -492,7 +511,13 @@ def height_range(img: ImportedImage, heights: Heights, dem_margin: float) -> tup
         return float(heights[0]), float(heights[1])
     check_dem_coverage(img, heights)
     gl, gs = _grid(img, 5, 5)
-    g = _ground(img, gl, gs, heights, np.zeros(gl.shape))[:, 2]
+    geo = _ground(img, gl, gs, heights, np.zeros(gl.shape))
+    rpc = img.rpc
+    dem_h = np.asarray(heights(geo[:, 0], geo[:, 1]), dtype=np.float64)  # before the clip
+    _warn_clipped(
+        img, dem_h, rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale)
+    )
+    g = geo[:, 2]
     g = g[np.isfinite(g)]
     if g.size == 0:
         mid = img.rpc.height_off

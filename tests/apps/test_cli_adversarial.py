@@ -289,7 +289,10 @@ def test_heights_off_the_ground_are_named_not_the_rpc(
     ):
         code, _, err = run(["import", *imgs, "-o", str(tmp_path / "i"), *extra], capsys)
         assert code == 2, err
-        (line,) = err.strip().splitlines()
+        *notes, line = err.strip().splitlines()
+        # the feet DEM also reaches beyond the RPC's height range, which is noted first
+        assert all("beyond the RPC's height range" in n for n in notes), notes
+        assert (not notes) if used else len(notes) in (1, 2), notes  # one per image at most
         assert "a wrong RPC / crop origin" not in line
         m = re.search(
             r"do not overlap on the ground at the heights used \((\d+)\.\.(\d+) m\), but do at "
@@ -620,3 +623,27 @@ def test_no_tie_point_at_all_names_the_images(
     assert "of 0 pairs ()" not in text, text
     assert "only 0 tie points between left and right (50 needed" in text, text
     assert code == 0, text  # the pair is written: the heights are the prior, and said so
+
+
+def test_a_dem_beyond_the_rpc_height_range_is_noted(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A DEM at 0 m under a scene whose RPC spans 190..1960 m: clipped, and now said so."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    dem = tmp_path / "sea_level.tif"
+    profile = {"driver": "GTiff", "width": 40, "height": 40, "count": 1, "dtype": "float32",
+               "crs": "EPSG:4326", "transform": from_origin(5.0, 44.4, 0.01, 0.01)}  # fmt: skip
+    with rasterio.open(dem, "w", **profile) as ds:
+        ds.write(np.zeros((1, 40, 40), dtype=np.float32))
+    left, right = str(DATA / "left_image.tif"), str(DATA / "right_image.tif")
+    base = ["import", left, right, "--dem-ellipsoidal"]
+    code, _, err = run([*base, "-o", str(tmp_path / "b"), "--dem", str(dem)], capsys)
+    assert "beyond the RPC's height range 190..1960 m (from 0 to 0 m): used clipped" in err, err
+    assert code == 0, err  # written: process measures the terrain from its tie points
+    # the real SRTM tile (+ its geoid) lies within the range: no such note
+    tile = str(ROOT.parent / "shared" / "data" / "ventoux" / "dem" / "N44E005.hgt")
+    code, _, err = run(["import", left, right, "-o", str(tmp_path / "c"), "--dem", tile,
+                          "--geoid-undulation", "50"], capsys)  # fmt: skip
+    assert code == 0 and "beyond the RPC's height range" not in err, err
