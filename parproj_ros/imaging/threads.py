@@ -17,7 +17,7 @@ import itertools
 import os
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import TypeVar, cast
 
 import cv2
@@ -62,8 +62,12 @@ def _mark_worker() -> None:
     _local.in_pool = True
 
 
-def _shared_pool(size: int) -> ThreadPoolExecutor:
-    """The pool of this process, of at least ``size`` threads (a new one after a fork)."""
+def _submit(fn: Callable[[], None], size: int) -> list[Future[None]]:
+    """``fn`` submitted ``size`` times to this process's pool of at least ``size`` threads.
+
+    Under the lock that may replace the pool (a larger one, or a new one after a fork), so
+    that nothing is submitted to a pool that was just shut down.
+    """
     global _pool, _pool_pid, _pool_size
     with _lock:
         pid = os.getpid()
@@ -75,7 +79,7 @@ def _shared_pool(size: int) -> ThreadPoolExecutor:
             _pool_pid, _pool_size = pid, size
             if old is not None:
                 old.shutdown(wait=False)  # its threads end once their work is done
-        return _pool
+        return [_pool.submit(fn) for _ in range(size)]
 
 
 def run_parts(fn: Callable[[tuple[int, int]], T], parts: list[tuple[int, int]]) -> list[T]:
@@ -105,7 +109,7 @@ def run_parts(fn: Callable[[tuple[int, int]], T], parts: list[tuple[int, int]]) 
             except BaseException as exc:  # raised in the caller below
                 errors[i] = exc
 
-    futures = [_shared_pool(n - 1).submit(runner) for _ in range(n - 1)]
+    futures = _submit(runner, n - 1)
     runner()
     # a runner still queued (the pool busy with another caller's parts) has nothing left to
     # take: it is dropped, not waited for; a running one is finishing one of these parts
