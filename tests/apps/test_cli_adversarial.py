@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from testkit.cli import run
 from testkit.paths import BAGS, DATA, ROOT
 
 from parproj_ros.apps import cli
@@ -31,17 +32,6 @@ from parproj_ros.ros.startup import StartupError, check_frame_id
 pytestmark = pytest.mark.ros  # bags written and read
 
 BAG = BAGS / "ventoux"
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    """``cli.main(argv)`` in this process: exit code, stdout, stderr."""
-    capsys.readouterr()
-    try:
-        code = cli.main(argv)
-    except SystemExit as exc:  # argparse
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 @pytest.fixture(scope="module")

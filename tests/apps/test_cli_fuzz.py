@@ -34,6 +34,7 @@ from mcap.writer import Writer as McapWriter
 from nav_msgs.msg import Odometry
 from parproj_msgs.msg import StereoPair
 from sensor_msgs.msg import Image
+from testkit.cli import run
 from testkit.paths import DATA, ROOT
 
 from parproj_ros.apps import cli
@@ -48,17 +49,6 @@ BIG_BAG = ROOT / "bags" / "ikonos_agile"  # several seconds to process
 
 PARPROJ = [sys.executable, "-m", "parproj_ros.apps.cli"]
 FAST = ["-q", "--no-tie-points"]
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    """``cli.main(argv)`` in this process: exit code, stdout, stderr."""
-    capsys.readouterr()
-    try:
-        code = cli.main(argv)
-    except SystemExit as exc:  # argparse
-        code = int(exc.code or 0)
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def assert_bad_input(code: int, err: str, command: str, names: str) -> None:
