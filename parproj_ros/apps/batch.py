@@ -328,6 +328,14 @@ def run_input(
                 )
                 (work / "log.txt").write_text("\n".join(lines) + "\n")
                 row.update(_pair_rows(evaluation), scenes=summary.scenes, status="done")
+                missing = row["pairs"] - row["dsms"]
+                if (overrides or {}).get("heights") and missing > 0:
+                    # done (the pairs are made and kept), but not what was asked: said, and
+                    # the batch exits 1 (parproj process --heights of the same: exit 1)
+                    row["warning"] = (
+                        f"{missing} of {row['pairs']} pairs got no DSM (the [warn] lines of "
+                        f"{inp.name}/log.txt say why)"
+                    )
                 row["time_s"] = time.perf_counter() - t0
                 row["peak_rss_mb"] = peak["mb"]
                 (work / "summary.json").write_text(json.dumps(row, indent=1, default=float))
@@ -548,6 +556,7 @@ def format_summary(result: BatchResult) -> str:
             f"{fmt(r.get('y_parallax_rms_px'), '.3f'):>9} {fmt(r.get('time_s'), '.1f'):>8} "
             f"{fmt(r.get('peak_rss_mb'), '.0f'):>8}"
             + (f"  {r['error']}" if r.get("error") else "")
+            + (f"  {r['warning']}" if r.get("warning") else "")
         )
     d = result.as_dict()
     lines.append(

@@ -516,6 +516,44 @@ def test_batch_input_without_a_pair_is_failed_not_done(tmp_path: Path) -> None:
     assert row["status"] == "done" and row["pairs"] == 1, row
 
 
+def test_batch_with_heights_names_the_pairs_without_a_dsm(tmp_path: Path) -> None:
+    """``--heights`` asked and a pair without a DSM: ``done`` (its pair kept) with a warning.
+
+    Before: ``done`` with no word, and ``parproj batch`` exit 0 (``parproj process
+    --heights`` of the same: exit 1).
+    """
+    from parproj_ros.apps.batch import BatchResult, format_summary
+
+    over = {"heights": True}
+    row = run_input(BatchInput("nodsm", "bag", (BAG,)), tmp_path, {**over, "heights_cell_m": 1e-4})
+    assert row["status"] == "done" and row["pairs"] == 1 and row["dsms"] == 0, row
+    assert row["warning"] == "1 of 1 pairs got no DSM (the [warn] lines of nodsm/log.txt say why)"
+    log = (tmp_path / "nodsm" / "log.txt").read_text()
+    assert "no DSM: heights_cell_m 0.0001 m is" in log, log
+    ok = run_input(BatchInput("ok", "bag", (BAG,)), tmp_path, over)
+    assert ok["status"] == "done" and ok["dsms"] == 1 and "warning" not in ok, ok
+    text = format_summary(BatchResult([row, ok], 1.0, 1, None))
+    assert "1 of 1 pairs got no DSM" in text.splitlines()[1]
+
+
+@pytest.mark.parametrize("short", [True, False])
+def test_batch_exits_1_when_asked_dsms_are_missing(
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    short: bool,
+) -> None:
+    """``parproj batch --heights``: a row with missing DSMs makes the exit 1, as a failure."""
+    from parproj_ros.apps import batch
+
+    row = {"name": "a", "status": "done", "pairs": 1, "dsms": 0 if short else 1}
+    if short:
+        row["warning"] = "1 of 1 pairs got no DSM (...)"
+    monkeypatch.setattr(batch, "run_batch", lambda *a, **k: batch.BatchResult([row], 1, 1, None))
+    code, out, _ = run(["batch", str(BAG), "-o", str(tmp_path / "o"), "--heights"], capsys)
+    assert code == (1 if short else 0) and "1 done" in out, out
+
+
 def test_segments_of_one_rpc_twice_is_refused(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
