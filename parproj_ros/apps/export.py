@@ -127,7 +127,7 @@ def export_dsms(
         name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"
         frame = m.header.frame_id
         try:
-            frame_of(frame)
+            plane = frame_of(frame)
         except ValueError as err:
             raise InputError(
                 str(out_bag),
@@ -143,11 +143,11 @@ def export_dsms(
             continue
         surface = truth
         for option, given in (("--dem", dem is not None), ("--heights-geoid", geoid is not None)):
-            if given and frame_of(frame) is None:
+            if given and plane is None:
                 raise InputError(
                     option, f"the DSM of {m.pair_id} is in {frame!r}, not a tangent plane"
                 )
-        if truth is not None and frame_of(frame) is not None:
+        if truth is not None and plane is not None:
             raise InputError(
                 "--scenario",
                 f"the DSM of {m.pair_id} is in {frame!r}, a real pair's tangent plane on WGS84; "

@@ -220,40 +220,24 @@ def measure_heights(
     height = (a * res.disparity + b).astype(np.float32)
     mapping = GroundMapping.of_pair(pair, "left")
     problem = cell_problem(opt.cell_m, mapping.ground_sample_distance)
-    if problem is not None:
-        kept = HeightsResult(
-            pair.pair_id,
-            pair.stamp_ns,
-            res.status,
-            problem,
-            res.d_range,
-            res.valid_share,
+    dsm = ortho = None
+    if problem is None:
+        dsm = make_dsm(
             res.disparity,
-            height,
-            None,
-            None,
             a,
             b,
-            terrain=terrain,
+            mapping,
+            cell=opt.cell_m or None,
+            fill=opt.fill,
+            max_fill_cells=opt.max_fill_cells,
+            reducer=opt.reducer,
         )
-        return kept, [Issue(Level.WARN, where, f"no DSM: {problem}")]
-    dsm = make_dsm(
-        res.disparity,
-        a,
-        b,
-        mapping,
-        cell=opt.cell_m or None,
-        fill=opt.fill,
-        max_fill_cells=opt.max_fill_cells,
-        reducer=opt.reducer,
-    )
-    ortho = orthoimage(left, dsm, mapping, nodata=opt.nodata)
-    valid = np.isfinite(dsm.heights)
+        ortho = orthoimage(left, dsm, mapping, nodata=opt.nodata)
     out = HeightsResult(
         pair.pair_id,
         pair.stamp_ns,
         res.status,
-        res.message,
+        res.message if problem is None else problem,
         res.d_range,
         res.valid_share,
         res.disparity,
@@ -262,9 +246,12 @@ def measure_heights(
         ortho,
         a,
         b,
-        opt.max_fill_cells if opt.fill == "nearest" else 0.0,
+        opt.max_fill_cells if opt.fill == "nearest" and dsm is not None else 0.0,
         terrain,
     )
+    if dsm is None:  # the disparity and height images are kept
+        return out, [Issue(Level.WARN, where, f"no DSM: {problem}")]
+    valid = np.isfinite(dsm.heights)
     searched = f"{terrain.describe()}: " if terrain is not None else ""
     text = (
         f"heights: {searched}disparity {res.d_range[0]}..{res.d_range[1]} px, "

@@ -351,6 +351,13 @@ def frame_id_of(frame: LocalTangentPlane) -> str:
     return f"{FRAME_PREFIX}:lat={frame.lat0:.7f},lon={frame.lon0:.7f},h={frame.h0:.2f}"
 
 
+#: How a tangent-plane frame_id is written (for messages refusing one).
+TANGENT_PLANE_FORM = (
+    f"a tangent plane on WGS84 is {FRAME_PREFIX}:lat=LAT,lon=LON,h=H "
+    "(degrees, |LAT| <= 90; metres)"
+)
+
+
 def frame_from_id(frame_id: str) -> LocalTangentPlane:
     """Inverse of :func:`frame_id_of`.
 
@@ -374,6 +381,12 @@ def frame_from_id(frame_id: str) -> LocalTangentPlane:
 Heights = tuple[float, float] | HeightFunction
 
 
+def _rpc_heights(img: ImportedImage) -> tuple[float, float]:
+    """The heights an image's RPC spans, ``height_off`` +- ``height_scale``, metres."""
+    rpc = img.rpc
+    return rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale)
+
+
 def _ground(
     img: ImportedImage,
     line: FloatArray,
@@ -389,8 +402,7 @@ def _ground(
     are NaN.
     """
     rpc = img.rpc
-    lo = rpc.height_off - abs(rpc.height_scale)
-    hi = rpc.height_off + abs(rpc.height_scale)
+    lo, hi = _rpc_heights(img)
     if callable(heights):
         h = np.full(line.shape, rpc.height_off)
         for _ in range(30):
@@ -512,11 +524,8 @@ def height_range(img: ImportedImage, heights: Heights, dem_margin: float) -> tup
     check_dem_coverage(img, heights)
     gl, gs = _grid(img, 5, 5)
     geo = _ground(img, gl, gs, heights, np.zeros(gl.shape))
-    rpc = img.rpc
     dem_h = np.asarray(heights(geo[:, 0], geo[:, 1]), dtype=np.float64)  # before the clip
-    _warn_clipped(
-        img, dem_h, rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale)
-    )
+    _warn_clipped(img, dem_h, *_rpc_heights(img))
     g = geo[:, 2]
     g = g[np.isfinite(g)]
     if g.size == 0:
@@ -640,8 +649,7 @@ def check_image(
 
 def footprints_overlap(left: ImportedImage, right: ImportedImage) -> bool:
     """Whether the lon/lat boxes of two images (from :func:`check_image`) intersect."""
-    a, b = left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"]
-    return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
+    return _boxes_meet(left.checks["footprint_lon_lat"], right.checks["footprint_lon_lat"])
 
 
 def _box_at(img: ImportedImage, h: float) -> list[float] | None:
@@ -655,6 +663,7 @@ def _box_at(img: ImportedImage, h: float) -> list[float] | None:
 
 
 def _boxes_meet(a: Sequence[float], b: Sequence[float]) -> bool:
+    """Whether two lon/lat boxes (min lon, min lat, max lon, max lat) intersect."""
     return not (a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1])
 
 
@@ -668,7 +677,7 @@ def check_overlap(left: ImportedImage, right: ImportedImage) -> None:
     if footprints_overlap(left, right):
         return
     rpc = left.rpc
-    lo, hi = rpc.height_off - abs(rpc.height_scale), rpc.height_off + abs(rpc.height_scale)
+    lo, hi = _rpc_heights(left)
     meet = []
     for h in np.linspace(lo, hi, 41):
         ba, bb = _box_at(left, float(h)), _box_at(right, float(h))

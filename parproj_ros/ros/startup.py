@@ -128,17 +128,14 @@ def check_frame_id(value: Any) -> str:
             latitude beyond +-90 deg, a figure not finite): the outputs would carry a frame
             that ``parproj dsm`` cannot place, and no object-frame transform would be published.
     """
-    from ..io.scene_import import FRAME_PREFIX, frame_from_id
+    from ..io.geotiff import frame_of
+    from ..io.scene_import import TANGENT_PLANE_FORM
 
     text = str(value)
-    if text.strip().startswith(FRAME_PREFIX + ":"):
-        try:
-            frame_from_id(text)
-        except ValueError as err:
-            raise StartupError(
-                f"parameter frame_id: {text!r}: {err}; a tangent plane on WGS84 is "
-                f"{FRAME_PREFIX}:lat=LAT,lon=LON,h=H (degrees, |LAT| <= 90; metres)"
-            ) from None
+    try:
+        frame_of(text)
+    except ValueError as err:
+        raise StartupError(f"parameter frame_id: {text!r}: {err}; {TANGENT_PLANE_FORM}") from None
     return text
 
 

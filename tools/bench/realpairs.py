@@ -356,10 +356,13 @@ def normalized_pairs(
     return {k: (*images[k], ranges[k]) for k in images if k in ranges}
 
 
-def bare_sgbm_s(
-    left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int], repeat: int = 3
-) -> float:
-    """Seconds of one bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), best of n."""
+def bare_pass(
+    left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]
+) -> Callable[[], float]:
+    """One bare cv2.StereoSGBM pass (uint8, SgbmParams' settings), made ready: seconds per call.
+
+    The images are stretched and the matcher built once; each call times one ``compute``.
+    """
     from parproj_ros.imaging.dense import SgbmParams, sgbm_matcher, to_uint8
 
     p = SgbmParams()
@@ -372,12 +375,21 @@ def bare_sgbm_s(
     l8, r8 = stretch(left), stretch(right)
     ndisp = int(np.ceil((d_range[1] - d_range[0] + 1) / 16)) * 16
     sgbm = sgbm_matcher(p, d_range[0], ndisp)
-    best = math.inf
-    for _ in range(repeat):
+
+    def timed() -> float:
         t0 = time.perf_counter()
         sgbm.compute(l8, r8)
-        best = min(best, time.perf_counter() - t0)
-    return best
+        return time.perf_counter() - t0
+
+    return timed
+
+
+def bare_sgbm_s(
+    left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int], repeat: int = 3
+) -> float:
+    """Seconds of one bare cv2.StereoSGBM pass (:func:`bare_pass`), best of ``repeat``."""
+    run = bare_pass(left, right, d_range)
+    return min(run() for _ in range(repeat))
 
 
 def match_pair_s(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
@@ -425,10 +437,10 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     match = sum(matched.values())
     step = float(sum(times))
     by_id = {str(args[0].pair_id): args for args in calls}
+    ready = {k: bare_pass(*v) for k, v in pairs.items() if k in by_id}
 
     def bare_of(pair: Any) -> float:
-        lft, rgt, rng = pairs[str(pair.pair_id)]
-        return bare_sgbm_s(lft, rgt, rng, repeat=1)
+        return ready[str(pair.pair_id)]()
 
     known = [args for k, args in by_id.items() if k in pairs]
     best, bare_alt = step_best_s(known, bare_of) if known else (math.nan, math.nan)

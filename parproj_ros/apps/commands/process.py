@@ -103,16 +103,12 @@ def _check_frame_id(frame_id: str) -> None:
     """
     from ...io.files import InputError
     from ...io.geotiff import frame_of
-    from ...io.scene_import import FRAME_PREFIX
+    from ...io.scene_import import TANGENT_PLANE_FORM
 
     try:
         frame_of(frame_id)
     except ValueError as err:
-        raise InputError(
-            "--frame-id",
-            f"{frame_id!r}: {err}; a tangent plane on WGS84 is "
-            f"{FRAME_PREFIX}:lat=LAT,lon=LON,h=H (degrees, |LAT| <= 90; metres)",
-        ) from None
+        raise InputError("--frame-id", f"{frame_id!r}: {err}; {TANGENT_PLANE_FORM}") from None
 
 
 def verdict(summary: ProcessSummary, *, heights: bool) -> int:
