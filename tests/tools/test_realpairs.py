@@ -193,3 +193,34 @@ def test_done_when_verdicts() -> None:
     assert got["marseille_123: fused NMAD vs best pair (s2p_dsm_123)"] == ("0.52 m", True)
     assert got["marseille_123: pair levels agree"] == ("0.65 m", False)
     assert "| marseille_12: completeness | 95.0 % | >= 90 % | yes |" in markdown(doc)
+
+
+def test_step_parts_split_the_time_at_sgbm(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The step's time inside the matchers it builds and outside them, of its fastest run."""
+    import time
+
+    from parproj_ros.core import heights as core_heights
+    from parproj_ros.imaging import dense
+
+    rng = np.random.default_rng(1)
+    left = rng.integers(0, 255, (96, 160)).astype(np.uint8)
+    right = np.ascontiguousarray(np.roll(left, -3, axis=1))
+    inside: list[float] = []
+    original = dense.sgbm_matcher
+
+    def step(*args: Any) -> None:
+        matcher = dense.sgbm_matcher(dense.SgbmParams(), -8, 16)
+        t0 = time.perf_counter()
+        matcher.compute(left, right)
+        inside.append(time.perf_counter() - t0)
+        time.sleep(0.02)  # the rest of the step
+
+    monkeypatch.setattr(core_heights, "measure_heights", step)
+    in_sgbm, rest = realpairs.step_parts_s([("pair",)], repeat=3)
+    assert dense.sgbm_matcher is original  # restored
+    assert len(inside) == 3
+    # the split of one of the runs: SGBM as the step itself timed it (+ the proxy's call)
+    assert min(abs(in_sgbm - t) for t in inside) < 1e-3
+    assert 0.02 <= rest < 0.02 + 0.05
+    t16 = realpairs.narrowest_pass(left, right, (-40, 40))
+    assert math.isfinite(t16) and t16 > 0

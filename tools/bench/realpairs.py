@@ -54,7 +54,7 @@ from collections.abc import Callable, Sequence
 from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -329,6 +329,70 @@ def step_best_s(
     return step_total, bare_total
 
 
+class _TimedMatcher:
+    """A cv2.StereoSGBM whose ``compute`` calls add their seconds to ``spent[0]``."""
+
+    def __init__(self, matcher: Any, spent: list[float]) -> None:
+        self._matcher, self._spent = matcher, spent
+
+    def compute(self, left: NDArray[Any], right: NDArray[Any]) -> NDArray[Any]:
+        t0 = time.perf_counter()
+        try:
+            return cast("NDArray[Any]", self._matcher.compute(left, right))
+        finally:
+            self._spent[0] += time.perf_counter() - t0
+
+
+def step_parts_s(calls: list[tuple[Any, ...]], repeat: int = 5) -> tuple[float, float]:
+    """The heights step's seconds inside OpenCV's SGBM ``compute`` and outside it.
+
+    Each call of the step again on its own inputs, ``repeat`` times, with every matcher the
+    step builds (``imaging.dense.sgbm_matcher``) timing its ``compute`` calls; of each call,
+    the run of least total time, summed over the calls.
+
+    Returns:
+        (seconds in SGBM, seconds of everything else: checks, sub-pixel refinement, DSM
+        gridding and fill, ortho-image, bookkeeping).
+    """
+    from parproj_ros.core.heights import measure_heights
+    from parproj_ros.imaging import dense
+
+    original = dense.sgbm_matcher
+    spent = [0.0]
+
+    def timed(*args: Any) -> Any:
+        return _TimedMatcher(original(*args), spent)
+
+    in_sgbm = rest = 0.0
+    dense.sgbm_matcher = timed  # type: ignore[assignment]
+    try:
+        for args in calls:
+            best = (math.inf, math.inf)
+            for _ in range(repeat):
+                spent[0] = 0.0
+                t0 = time.perf_counter()
+                measure_heights(*args)
+                total = time.perf_counter() - t0
+                if total < sum(best):
+                    best = (spent[0], total - spent[0])
+            in_sgbm += best[0]
+            rest += best[1]
+    finally:
+        dense.sgbm_matcher = original
+    return in_sgbm, rest
+
+
+def narrowest_pass(left: NDArray[Any], right: NDArray[Any], d_range: tuple[int, int]) -> float:
+    """Seconds of one bare pass searching 16 disparities (the fewest SGBM takes), best of 5.
+
+    Centred on ``d_range``, on the same images and settings as :func:`bare_pass`: what any
+    full-resolution SGBM pass of the pair costs at least, however narrow its range.
+    """
+    mid = (d_range[0] + d_range[1]) // 2
+    run = bare_pass(left, right, (mid - 8, mid + 7))
+    return min(run() for _ in range(5))
+
+
 def normalized_pairs(
     out_bag: Path,
 ) -> dict[str, tuple[NDArray[Any], NDArray[Any], tuple[int, int]]]:
@@ -444,6 +508,9 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
 
     known = [args for k, args in by_id.items() if k in pairs]
     best, bare_alt = step_best_s(known, bare_of) if known else (math.nan, math.nan)
+    in_sgbm, rest = step_parts_s(known) if known else (math.nan, math.nan)
+    narrow = sum(narrowest_pass(*pairs[k]) for k in by_id if k in pairs)
+    floor = (narrow + rest) / bare_alt if bare_alt else math.nan
     res = {
         "pairs": len(pairs),
         "mpx": mpx,
@@ -455,6 +522,11 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "heights_best_s": best,
         "sgbm_alternated_s": bare_alt,
         "ratio_best": best / bare_alt if bare_alt and math.isfinite(best / bare_alt) else None,
+        "step_sgbm_s": in_sgbm,
+        "step_rest_s": rest,
+        "rest_over_sgbm": rest / bare_alt if bare_alt else None,
+        "narrowest_over_sgbm": narrow / bare_alt if bare_alt else None,
+        "floor_over_sgbm": floor if math.isfinite(floor) else None,
         "ranges": {k: list(v[2]) for k, v in pairs.items()},
         "sgbm_s_by_pair": per_pair,
         "match_pair_s": match,
@@ -467,6 +539,11 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f} (the two in turns, best of 5: "
         f"{best:.2f} s and {bare_alt:.2f} s, x{res['ratio_best'] or math.nan:.2f}); "
         f"match_pair alone {match:.2f} s"
+    )
+    log(
+        f"  of the step, {in_sgbm:.3f} s in SGBM and {rest:.3f} s outside it "
+        f"(x{rest / bare_alt:.2f} the bare pass alone); a pass of 16 disparities "
+        f"x{narrow / bare_alt:.2f}: with one such pass and the rest as it is, x{floor:.2f}"
     )
     return res
 
@@ -829,8 +906,8 @@ def markdown(doc: dict[str, Any]) -> str:
         "",
         "| case | import s | process s | dsm s | fuse s | heights step s/Mpx | bare SGBM s/Mpx "
         "| heights / SGBM (first call) | heights / SGBM (in turns, best of 5) "
-        "| match_pair / SGBM |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| match_pair / SGBM | step outside SGBM / SGBM | 16-disparity pass + outside / SGBM |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case in doc["cases"]:
         s = case.get("seconds", {})
@@ -840,7 +917,8 @@ def markdown(doc: dict[str, Any]) -> str:
             f"| {_f(s.get('dsm'), '.1f')} | {_f(s.get('fuse'), '.1f')} "
             f"| {_f(sp.get('heights_s_per_mpx'), '.2f')} | {_f(sp.get('sgbm_s_per_mpx'), '.2f')} "
             f"| {_f(sp.get('ratio'), '.2f')} | {_f(sp.get('ratio_best'), '.2f')} "
-            f"| {_f(sp.get('match_pair_over_sgbm'), '.2f')} |"
+            f"| {_f(sp.get('match_pair_over_sgbm'), '.2f')} "
+            f"| {_f(sp.get('rest_over_sgbm'), '.2f')} | {_f(sp.get('floor_over_sgbm'), '.2f')} |"
         )
     for case in doc["cases"]:
         fu = case.get("fusion")
