@@ -559,12 +559,14 @@ class Ortho:
         image: uint8, uint16, int16, float32 ... (grid.height, grid.width), on the DSM grid.
         nodata: the image's no-data value.
         interpolation: see :func:`write_ortho_geotiff`.
+        tags: further dataset tags (e.g. the software and the pair that made it).
     """
 
     path: str | os.PathLike[str]
     image: NDArray[Any]
     nodata: float = 0
     interpolation: Literal["bilinear", "nearest"] = "bilinear"
+    tags: Mapping[str, str] | None = None
 
 
 def _ortho_header(dst: Any, frame_id: str, crs: CRS, target: Target) -> None:
@@ -636,6 +638,7 @@ def write_dsm_geotiff(
             oprofile = _profile(out, ortho.image.dtype, crs, ortho.nodata)
             odst = files.enter_context(_cog(ortho.path, oprofile, crs))
             _ortho_header(odst, frame_id, crs, target)
+            odst.update_tags(**dict(ortho.tags or {}))
         dst.update_tags(**_tags(frame_id, crs, target, "DSM"), **dict(tags or {}))
         if frame is None:
             dst.set_band_description(1, f"height Z in frame {frame_id}, metres")
@@ -773,12 +776,16 @@ def write_like(
     *,
     nodata: float | None = None,
     description: str = "",
+    unit: str = "",
+    tags: Mapping[str, str] | None = None,
 ) -> None:
     """Write one band on the grid and CRS of the GeoTIFF ``like`` (e.g. a DSM's count layer).
 
     A Cloud Optimized GeoTIFF like the others of this module; the CRS read from ``like`` (a
     3-D one included: its ellipsoidal height key is written the same way), its geotransform,
-    ``array``'s dtype.
+    ``array``'s dtype. ``description``: the band's description and the file's
+    ``TIFFTAG_IMAGEDESCRIPTION``; ``unit``: the band's unit (e.g. "m"); ``tags``: further
+    dataset tags.
 
     Raises:
         ValueError: ``array`` is not of ``like``'s shape, or not an integer or float array.
@@ -816,6 +823,9 @@ def write_like(
         if description:
             dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=description)
             dst.set_band_description(1, description)
+        dst.update_tags(**dict(tags or {}))
+        if unit:
+            dst.set_band_unit(1, unit)
         dst.write(a, 1)
 
 

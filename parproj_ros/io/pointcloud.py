@@ -4,25 +4,65 @@ One point per DSM cell with a height: X, Y the cell centre in the file's CRS (ma
 height written in the cell (WGS84 ellipsoidal, above a geoid, or the frame's Z for a local
 frame, as the GeoTIFF says). LAS 1.4, point format 6, coordinates stored as integers of
 :data:`SCALE_M` (1 mm) from an offset at the grid's corner; the CRS is the GeoTIFF's, as an OGC
-WKT VLR (global encoding WKT bit set), which laspy, PDAL and CloudCompare read. A ``.laz`` path
-is written LAZ-compressed (lazrs). Rows are read and written by blocks: memory stays that of
-one block.
+WKT VLR (global encoding WKT bit set) in the WKT the LAS 1.4 specification names (OGC 01-009,
+"WKT1", :func:`las_wkt`), which laspy, PDAL, LAStools and CloudCompare read. Each point is a
+single return (return 1 of 1: LAS 1.4 allows no return number 0 in formats 6-10), not
+classified (class 0). The header names the software that made the DSM (the GeoTIFF's
+``TIFFTAG_SOFTWARE``). A ``.laz`` path is written LAZ-compressed (lazrs). Rows are read and
+written by blocks: memory stays that of one block.
 """
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-__all__ = ["SCALE_M", "write_point_cloud"]
+if TYPE_CHECKING:
+    from pyproj import CRS
+
+__all__ = ["SCALE_M", "las_wkt", "write_point_cloud"]
 
 #: Coordinate resolution stored in the LAS file, metres.
 SCALE_M = 0.001
 #: DSM rows read and written at once.
 BLOCK_ROWS = 512
+#: The header's system identifier (LAS 1.4: "PROCESSING" for data made by processing others).
+SYSTEM_ID = "PROCESSING"
+
+
+def las_wkt(crs: CRS) -> str:
+    """The CRS as the WKT of a LAS 1.4 WKT VLR: OGC 01-009 ("WKT1", GDAL's dialect).
+
+    A 3-D projected CRS (map CRS with an ellipsoidal height axis) has no WKT1 of its own (PROJ
+    refuses it, or drops the height axis when the CRS came from a GeoTIFF): it is written as GDAL
+    does (``ALLOW_ELLIPSOIDAL_HEIGHT_AS_VERTICAL_CRS``), a ``COMPD_CS`` of the
+    map CRS and a ``VERT_CS`` whose ``VERT_DATUM`` is of type 2002 (ellipsoidal, OGC 01-009),
+    which PROJ and GDAL read back as the 3-D CRS. A CRS with no WKT1 at all: its WKT2.
+    """
+    from pyproj import CRS as _CRS
+
+    if crs.is_projected and len(crs.axis_info) == 3 and not crs.is_compound:
+        horizontal = crs.to_2d()
+        code = horizontal.to_epsg()
+        if code is not None and _CRS.from_epsg(code).equals(horizontal):
+            horizontal = _CRS.from_epsg(code)  # its WKT1 then carries AUTHORITY["EPSG", code]
+        base = crs.geodetic_crs
+        name = base.name if base is not None else "unknown"
+        datum = base.datum.name.removesuffix(" ensemble") if base and base.datum else name
+        return (
+            f'COMPD_CS["{horizontal.name} + {name} ellipsoidal height",'
+            f"{horizontal.to_wkt('WKT1_GDAL')},"
+            f'VERT_CS["{name} ellipsoidal height",VERT_DATUM["{datum}",2002],'
+            'UNIT["metre",1,AUTHORITY["EPSG","9001"]],AXIS["Ellipsoidal height",UP]]]'
+        )
+    try:
+        return str(crs.to_wkt("WKT1_GDAL"))
+    except Exception:  # pyproj's CRSError: not expressible in WKT1
+        pass
+    return str(crs.to_wkt())
 
 
 def write_point_cloud(dsm_tif: str | os.PathLike[str], path: str | os.PathLike[str]) -> int:
@@ -55,7 +95,10 @@ def write_point_cloud(dsm_tif: str | os.PathLike[str], path: str | os.PathLike[s
         header = laspy.LasHeader(point_format=6, version="1.4")
         header.scales = np.array([SCALE_M] * 3)
         header.offsets = np.array([np.floor(t.c), np.floor(t.f + src.height * t.e), 0.0])
-        header.add_crs(crs)
+        header.vlrs.append(laspy.vlrs.known.WktCoordinateSystemVlr(las_wkt(crs)))
+        header.global_encoding.wkt = True
+        header.system_identifier = SYSTEM_ID
+        header.generating_software = src.tags().get("TIFFTAG_SOFTWARE", "parproj_ros")[:31]
         count = 0
         try:
             with laspy.open(tmp, mode="w", header=header, do_compress=out.suffix == ".laz") as w:
@@ -70,6 +113,8 @@ def write_point_cloud(dsm_tif: str | os.PathLike[str], path: str | os.PathLike[s
                     pts.x = t.c + (cols + 0.5) * t.a
                     pts.y = t.f + (rows + r0 + 0.5) * t.e
                     pts.z = np.asarray(z.data[ok], dtype=float)
+                    pts.return_number[:] = 1  # one return of one: a surface point
+                    pts.number_of_returns[:] = 1
                     w.write_points(pts)
                     count += int(rows.size)
             os.replace(tmp, out)
