@@ -22,6 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .. import __version__
 from ..core import contract
 from ..eval.heights import (
     Surface,
@@ -61,6 +62,11 @@ def heights_made(msg: Any) -> dict[str, Any]:
         "disparity_range_px": [int(msg.disparity_min), int(msg.disparity_max)],
         "matched_share": round(float(msg.matched_share), 4),
     }
+
+
+def provenance(pair_id: str) -> dict[str, str]:
+    """Dataset tags naming what made a product: the software and its version, and the pair."""
+    return {"TIFFTAG_SOFTWARE": f"parproj_ros {__version__}", "PARPROJ_PAIR_ID": pair_id}
 
 
 class NoHeightsError(Exception):
@@ -158,7 +164,19 @@ def export_dsms(
             surface = enu_dem_surface(frame, dem)
         made = heights_made(m)
         row["heights"] = made
-        with_ortho = None if ortho is None else Ortho(folder / f"{name}_ortho.tif", ortho)
+        # cells of the DSM (its frame grid) filled from the nearest measured cell, not measured
+        row["filled_cells"] = int(m.filled_cells)
+        made_by = provenance(m.pair_id)
+        tags = {f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()}
+        tags.update(
+            made_by,
+            PARPROJ_FILLED_CELLS=str(int(m.filled_cells)),
+            PARPROJ_FILLED_NOTE="cells of the DSM's frame grid filled from the nearest measured "
+            f"cell (at most {float(m.max_fill_cells):g} cell widths away): not measurements",
+        )
+        with_ortho = (
+            None if ortho is None else Ortho(folder / f"{name}_ortho.tif", ortho, tags=made_by)
+        )
         crs, out_grid = write_dsm_geotiff(
             folder / f"{name}_dsm.tif",
             heights,
@@ -166,7 +184,7 @@ def export_dsms(
             frame,
             target=target,
             geoid=geoid,
-            tags={f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()},
+            tags=tags,
             ortho=with_ortho,  # on the same grid, from the same reprojection
         )
         files = [f"{name}_dsm.tif"]

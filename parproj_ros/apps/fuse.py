@@ -11,7 +11,11 @@ tangent-plane frame with WGS84 ellipsoidal heights, or the frame as it is):
 
 * ``fused_dsm.tif``: the fused heights (float32, NaN holes);
 * ``fused_count.tif``: samples kept per cell (uint8, 0 = none);
-* ``fused_spread.tif``: max - min of the samples kept, metres (float32, NaN holes);
+* ``fused_spread.tif``: max - min of the samples kept, metres (float32, NaN holes; 0 where
+  one sample was kept: the count layer tells);
+
+each with a band description and unit saying what it holds, and tags naming the software and
+the fused pairs (``PARPROJ_INPUTS``);
 * ``fuse.json``: the inputs, offsets before and after, and the figures printed;
 * ``bag/``: the fused DSM as a ``dsm`` ElevationGrid (pair id ``fused``), as a pair's DSM is
   published: ``parproj dsm DIR/bag -o ...`` exports it like one.
@@ -36,6 +40,7 @@ from ..io.files import InputError
 from ..io.geotiff import frame_of, write_dsm_geotiff, write_like
 from ..ros.bag import BagError, BagReader
 from ..ros.conversions import array_to_image, elevation_grid_from_msg, stamp_to_ns
+from .export import provenance
 
 __all__ = [
     "FuseResult",
@@ -257,7 +262,11 @@ def _matrix(m: Any) -> list[list[float | None]]:
 
 
 def _layers_on_export(
-    dsm_path: Path, layers: dict[str, tuple[Any, float]], grid: DsmGrid, frame_id: str
+    dsm_path: Path,
+    layers: dict[str, tuple[Any, float, str, str]],
+    grid: DsmGrid,
+    frame_id: str,
+    tags: dict[str, str] | None = None,
 ) -> None:
     """Write frame-grid layers on the grid of the DSM GeoTIFF just written, nearest cell.
 
@@ -265,7 +274,8 @@ def _layers_on_export(
     of its (lon, lat, h) (the point of the fused surface it shows, as
     :func:`~parproj_ros.io.geotiff.write_ortho_geotiff` finds it, without its iteration: the
     heights are already there); nodata where h has none. A frame without geodetic anchor:
-    the layers as they are (same grid). ``layers``: file name -> (array, nodata).
+    the layers as they are (same grid). ``layers``: file name -> (array, nodata, what it
+    holds, unit); ``tags``: dataset tags of every layer.
     """
     import rasterio
 
@@ -291,7 +301,7 @@ def _layers_on_export(
         ok &= (rows >= 0) & (rows < grid.height) & (cols >= 0) & (cols < grid.width)
         rows = np.where(ok, rows, -1)
         cols = np.where(ok, cols, -1)
-    for name, (values, nodata) in layers.items():
+    for name, (values, nodata, what, unit) in layers.items():
         v = np.asarray(values)
         if rows is None or cols is None:
             out = v
@@ -305,7 +315,9 @@ def _layers_on_export(
             dsm_path,
             out,
             nodata=nodata,
-            description=f"parproj_ros fused DSM layer {name} (frame {frame_id})",
+            description=f"parproj_ros fused DSM: {what}",
+            unit=unit,
+            tags={**(tags or {}), "PARPROJ_SOURCE_FRAME": frame_id},
         )
 
 
@@ -349,15 +361,41 @@ def export_fused(
 ) -> dict[str, Any]:
     """Write the fused DSM, count and spread GeoTIFFs into ``folder``; the report as a dict."""
     f = res.fused
+    made_by = {
+        **provenance(FUSED_ID),
+        "PARPROJ_INPUTS": ", ".join(res.names),
+        "PARPROJ_OFFSETS_REMOVED_M": ", ".join(f"{o:+.3f}" for o in f.offsets)
+        if res.aligned
+        else "none (--no-align)",
+    }
     crs, out = write_dsm_geotiff(
-        folder / "fused_dsm.tif", f.heights, f.grid, res.frame_id, target=target
+        folder / "fused_dsm.tif",
+        f.heights,
+        f.grid,
+        res.frame_id,
+        target=target,
+        tags={**made_by, "PARPROJ_LAYERS": "fused_count.tif, fused_spread.tif"},
     )
     write_fused_bag(res, folder / "bag")
     _layers_on_export(
         folder / "fused_dsm.tif",
-        {"fused_count.tif": (f.count, 0), "fused_spread.tif": (f.spread, float("nan"))},
+        {
+            "fused_count.tif": (
+                f.count,
+                0,
+                "count of pair DSM samples kept in the cell (0: no height)",
+                "",
+            ),
+            "fused_spread.tif": (
+                f.spread,
+                float("nan"),
+                "spread (max - min) of the samples kept, metres (0 where one was kept)",
+                "m",
+            ),
+        },
         f.grid,
         res.frame_id,
+        made_by,
     )
     n = len(res.names)
     valid = f.count > 0
