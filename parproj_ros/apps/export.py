@@ -64,6 +64,19 @@ def heights_made(msg: Any) -> dict[str, Any]:
     }
 
 
+def matched(msg: Any) -> bool:
+    """Whether a DSM's ElevationGrid comes from matching one pair (its matching fields filled).
+
+    A fused DSM (``parproj fuse``'s bag, the node's ``dsm_fused``) leaves them 0 / empty: its
+    products get no matching figures (they would say 0 % matched, disparities 0..0).
+    """
+    return bool(
+        float(msg.matched_share) > 0.0
+        or int(msg.disparity_min) != int(msg.disparity_max)
+        or str(msg.terrain_source)
+    )
+
+
 def provenance(pair_id: str) -> dict[str, str]:
     """Dataset tags naming what made a product: the software and its version, and the pair."""
     return {"TIFFTAG_SOFTWARE": f"parproj_ros {__version__}", "PARPROJ_PAIR_ID": pair_id}
@@ -162,18 +175,20 @@ def export_dsms(
             )
         if dem is not None:
             surface = enu_dem_surface(frame, dem)
-        made = heights_made(m)
-        row["heights"] = made
-        # cells of the DSM (its frame grid) filled from the nearest measured cell, not measured
-        row["filled_cells"] = int(m.filled_cells)
         made_by = provenance(m.pair_id)
-        tags = {f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()}
-        tags.update(
-            made_by,
-            PARPROJ_FILLED_CELLS=str(int(m.filled_cells)),
-            PARPROJ_FILLED_NOTE="cells of the DSM's frame grid filled from the nearest measured "
-            f"cell (at most {float(m.max_fill_cells):g} cell widths away): not measurements",
-        )
+        tags = dict(made_by)
+        if matched(m):
+            made = heights_made(m)
+            row["heights"] = made
+            # cells of the DSM (its frame grid) filled from the nearest measured cell
+            row["filled_cells"] = int(m.filled_cells)
+            tags.update({f"PARPROJ_{k.upper()}": str(v) for k, v in made.items()})
+            tags.update(
+                PARPROJ_FILLED_CELLS=str(int(m.filled_cells)),
+                PARPROJ_FILLED_NOTE="cells of the DSM's frame grid filled from the nearest "
+                f"measured cell (at most {float(m.max_fill_cells):g} cell widths away): not "
+                "measurements",
+            )
         with_ortho = (
             None if ortho is None else Ortho(folder / f"{name}_ortho.tif", ortho, tags=made_by)
         )

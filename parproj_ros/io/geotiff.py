@@ -647,13 +647,14 @@ def write_dsm_geotiff(
             if odst is not None and ortho is not None:
                 odst.write(ortho.image, 1)
         else:
-            vertical = ELLIPSOIDAL if geoid is None else f"height above {crs.sub_crs_list[1].name}"
+            datum, vertical = "WGS84 ellipsoid", ELLIPSOIDAL
+            if geoid is not None:
+                vcrs = crs.sub_crs_list[1]
+                datum = vcrs.datum.name if vcrs.datum is not None else vcrs.name
+                # e.g. "height above the EGM2008 geoid (EGM2008 height), metres"
+                vertical = f"height above the {datum} ({vcrs.name}), metres"
             dst.set_band_description(1, vertical)
-            dst.update_tags(
-                1,
-                HEIGHT=vertical,
-                VERTICAL_DATUM="WGS84 ellipsoid" if geoid is None else crs.sub_crs_list[1].name,
-            )
+            dst.update_tags(1, HEIGHT=vertical, VERTICAL_DATUM=datum)
             rep = _Reprojection(frame, horizontal, z, grid, out)
             for r0, r1 in _spans(out.height):
                 x, y, h = rep.rows(r0, r1)

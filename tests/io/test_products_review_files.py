@@ -130,3 +130,19 @@ def test_layer_beside_a_dsm_has_its_unit_and_tags(tmp_path: Path) -> None:
         assert src.tags()["PARPROJ_PAIR_ID"] == "fused"
         assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
         assert float(src.read(1).mean()) == pytest.approx(0.25)
+
+
+def test_geoid_heights_band_names_the_geoid(tmp_path: Path) -> None:
+    """With a geoid (--heights-geoid egm2008) the band says heights above the EGM2008 geoid;
+    before it read "height above EGM2008 height" (the vertical CRS's name taken for a surface),
+    and VERTICAL_DATUM held the CRS's name, not its datum's."""
+    tif, _ = cloud(tmp_path, FID, geoid=(egm, 3855))
+    with rasterio.open(tif) as src:
+        assert src.descriptions == ("height above the EGM2008 geoid (EGM2008 height), metres",)
+        assert src.tags(1)["VERTICAL_DATUM"] == "EGM2008 geoid" and src.units == ("m",)
+        h = src.read(1)
+    # the heights are h - N: the plane's ellipsoidal heights less the 49.6 m of egm(); 12 m
+    # from the origin the plane leaves the ellipsoid by 1e-5 m, the export grid's cells lie
+    # within half a cell (0.01 m of the tilt) of the frame grid's
+    z = heights()
+    assert abs(float(np.nanmedian(h)) - (188.44 + float(np.nanmedian(z)) - 49.6)) < 0.05
