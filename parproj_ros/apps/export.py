@@ -189,6 +189,13 @@ def export_dsms(
                 f"measured cell (at most {float(m.max_fill_cells):g} cell widths away): not "
                 "measurements",
             )
+            if plane is not None:  # the file's heights are not the frame's Z: say how they relate
+                lo, hi = plane.h0 + made["terrain_min_m"], plane.h0 + made["terrain_max_m"]
+                tags["PARPROJ_TERRAIN_NOTE"] = (
+                    f"terrain searched {made['terrain_min_m']:.2f}..{made['terrain_max_m']:.2f} m "
+                    f"in the object frame (Z above its tangent plane at h0 {plane.h0:.2f} m): "
+                    f"about {lo:.2f}..{hi:.2f} m above the WGS84 ellipsoid"
+                )
         with_ortho = (
             None if ortho is None else Ortho(folder / f"{name}_ortho.tif", ortho, tags=made_by)
         )

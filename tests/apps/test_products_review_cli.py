@@ -21,12 +21,13 @@ from parproj_ros import __version__
 from parproj_ros.apps.cli import main
 from parproj_ros.ros.bag import BagWriter
 from parproj_ros.ros.conversions import array_to_image
-from tests.apps.test_dsm_export import CELL, FID, T0, surface
+from tests.apps.test_dsm_export import CELL, FID, FRAME, T0, surface
 
 pytestmark = pytest.mark.ros  # bags (rclpy serialization) and messages
 
 FILLED, MAX_FILL = 1234, 2.0
 OFFSET_M = 0.4  # the second pair's level above the first's
+TERRAIN = (-2.0, 60.0)  # terrain searched, Z m in the frame: holds the surface (12.8..50 m)
 
 
 def bag(path: Path, pairs: list[tuple[str, Any]]) -> Path:
@@ -43,6 +44,8 @@ def bag(path: Path, pairs: list[tuple[str, Any]]) -> Path:
             m.pair_id = pair
             m.x0, m.y0, m.cell_size = -75.0, 60.0, CELL
             m.terrain_source, m.terrain_points = "tie_points", 381
+            m.terrain_min_m, m.terrain_max_m = TERRAIN
+            m.disparity_min, m.disparity_max, m.matched_share = -20, 35, 0.93
             m.filled_cells, m.max_fill_cells = FILLED, MAX_FILL
             m.heights = array_to_image(z.astype(np.float32), Image(), frame_id=FID, stamp_ns=T0)
             ortho = np.where(np.isfinite(z), 1000, 0).astype(np.uint16)
@@ -72,6 +75,26 @@ def test_dsm_files_name_their_software_pair_and_filled_cells(
     assert otags["TIFFTAG_SOFTWARE"] == software and otags["PARPROJ_PAIR_ID"] == "left+right"
     header = laspy.read(tmp_path / "d" / "left_right_dsm.las").header
     assert header.generating_software == software
+
+
+def test_terrain_tags_relate_to_the_files_heights(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """PARPROJ_TERRAIN_MIN_M / MAX_M are Z in the object frame (here -2..60 m), next to heights
+    above the ellipsoid (208..238 m): the note gives the ellipsoidal heights searched, h0 + Z
+    (within 100 m of the origin the plane leaves the ellipsoid by < 1 mm), which hold the DSM's
+    heights. Before, nothing in the file said the two were in different references."""
+    out = bag(tmp_path / "out", [("left+right", surface())])
+    assert main(["dsm", str(out), "-o", str(tmp_path / "d")]) == 0
+    capsys.readouterr()
+    with rasterio.open(tmp_path / "d" / "left_right_dsm.tif") as src:
+        note = src.tags()["PARPROJ_TERRAIN_NOTE"]
+        h = src.read(1, masked=True)
+    lo, hi = (float(v) for v in note.split("about ")[1].split(" m above")[0].split(".."))
+    assert lo == pytest.approx(FRAME.h0 + TERRAIN[0], abs=0.005)
+    assert hi == pytest.approx(FRAME.h0 + TERRAIN[1], abs=0.005)
+    assert lo < float(h.min()) and float(h.max()) < hi
+    assert f"h0 {FRAME.h0:.2f} m" in note
 
 
 def test_fused_layers_say_what_they_hold(
