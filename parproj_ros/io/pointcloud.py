@@ -2,14 +2,15 @@
 
 One point per DSM cell with a height: X, Y the cell centre in the file's CRS (map metres), Z the
 height written in the cell (WGS84 ellipsoidal, above a geoid, or the frame's Z for a local
-frame, as the GeoTIFF says). LAS 1.4, point format 6, coordinates stored as integers of
-:data:`SCALE_M` (1 mm) from an offset at the grid's corner; the CRS is the GeoTIFF's, as an OGC
-WKT VLR (global encoding WKT bit set) in the WKT the LAS 1.4 specification names (OGC 01-009,
-"WKT1", :func:`las_wkt`), which laspy, PDAL, LAStools and CloudCompare read. Each point is a
-single return (return 1 of 1: LAS 1.4 allows no return number 0 in formats 6-10), not
-classified (class 0). The header names the software that made the DSM (the GeoTIFF's
-``TIFFTAG_SOFTWARE``). A ``.laz`` path is written LAZ-compressed (lazrs). Rows are read and
-written by blocks: memory stays that of one block.
+frame, as the GeoTIFF says; a 2-D map CRS whose band says ellipsoidal heights, as GDAL reads
+the ``target="local"`` files, gets its ellipsoidal height axis back). LAS 1.4, point format 6,
+coordinates stored as integers of :data:`SCALE_M` (1 mm) from an offset at the grid's corner;
+the CRS as an OGC WKT VLR (global encoding WKT bit set) in the WKT the LAS 1.4 specification
+names (OGC 01-009, "WKT1", :func:`las_wkt`), which laspy, PDAL, LAStools and CloudCompare
+read. Each point is a single return (return 1 of 1: LAS 1.4 allows no return number 0 in
+formats 6-10), not classified (class 0). The header names the software that made the DSM (the
+GeoTIFF's ``TIFFTAG_SOFTWARE``). A ``.laz`` path is written LAZ-compressed (lazrs). Rows are
+read and written by blocks: memory stays that of one block.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from .geotiff import ELLIPSOIDAL
 
 if TYPE_CHECKING:
     from pyproj import CRS
@@ -53,7 +56,8 @@ def las_wkt(crs: CRS) -> str:
         name = base.name if base is not None else "unknown"
         datum = base.datum.name.removesuffix(" ensemble") if base and base.datum else name
         return (
-            f'COMPD_CS["{horizontal.name} + {name} ellipsoidal height",'
+            f'COMPD_CS["{horizontal.name.removesuffix(f" + {name} ellipsoidal height")} + '
+            f'{name} ellipsoidal height",'
             f"{horizontal.to_wkt('WKT1_GDAL')},"
             f'VERT_CS["{name} ellipsoidal height",VERT_DATUM["{datum}",2002],'
             'UNIT["metre",1,AUTHORITY["EPSG","9001"]],AXIS["Ellipsoidal height",UP]]]'
@@ -91,6 +95,12 @@ def write_point_cloud(dsm_tif: str | os.PathLike[str], path: str | os.PathLike[s
         if src.crs is None:
             raise ValueError(f"{dsm_tif}: no CRS to give the point cloud")
         crs = CRS.from_wkt(src.crs.to_wkt())
+        if (
+            crs.is_projected
+            and len(crs.axis_info) == 2
+            and src.tags(1).get("HEIGHT") == (ELLIPSOIDAL)
+        ):  # GDAL reads a 3-D CRS it has no code for (target "local") as 2-D: the band tells
+            crs = crs.to_3d()
         t = src.transform
         header = laspy.LasHeader(point_format=6, version="1.4")
         header.scales = np.array([SCALE_M] * 3)

@@ -15,7 +15,7 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
-from pyproj import CRS
+from pyproj import CRS, Transformer
 
 from parproj_ros.geometry.geodesy import LocalTangentPlane
 from parproj_ros.imaging.heights import DsmGrid
@@ -53,8 +53,9 @@ def egm(lon: Any, lat: Any) -> Any:
     ("frame", "options", "opening"),
     [
         (FID, {}, "COMPD_CS["),  # UTM 31N + WGS 84 ellipsoidal height (a 3-D projected CRS)
-        # local transverse Mercator: GDAL reads the GeoTIFF's CRS as a 2-D one (docs/products.md)
-        (FID, {"target": "local"}, "PROJCS["),
+        # local transverse Mercator: GDAL reads the GeoTIFF's CRS as a 2-D one (docs/products.md);
+        # the band says the heights are ellipsoidal: the LAS's CRS is 3-D
+        (FID, {"target": "local"}, "COMPD_CS["),
         (FID, {"geoid": (egm, 3855)}, "COMPD_CS["),  # UTM 31N + EGM2008 height
         ("map", {}, "LOCAL_CS["),  # a simulated bag's frame
     ],
@@ -82,8 +83,18 @@ def test_las_points_are_single_returns_with_a_wkt1_crs(
     assert vlr.string.startswith(opening), vlr.string[:40]
     assert las.header.global_encoding.wkt
     crs = las.header.parse_crs()
-    assert crs is not None and crs.equals(tif_crs)
-    assert [a.name for a in crs.axis_info] == [a.name for a in tif_crs.axis_info]
+    assert crs is not None
+    if frame == "map":
+        assert crs.equals(tif_crs) and len(crs.axis_info) == 2
+    else:  # the GeoTIFF's map CRS (the same lon, lat at its corners), and its vertical axis
+        corners = ([t.c, t.c + 50 * t.a], [t.f, t.f + 40 * t.e])
+        lonlat = [
+            Transformer.from_crs(c.to_2d(), "EPSG:4326", always_xy=True).transform(*corners)
+            for c in (crs, tif_crs)
+        ]
+        assert np.abs(np.subtract(*lonlat)).max() < 1e-10  # degrees: 1e-5 m
+        vertical = "Gravity-related height" if "geoid" in options else "Ellipsoidal height"
+        assert [a.name for a in crs.axis_info] == ["Easting", "Northing", vertical]
     assert las.header.generating_software == SOFTWARE
     assert las.header.system_identifier == "PROCESSING"
     # each point at its cell's centre, with its height (pixel-is-area geotransform)
