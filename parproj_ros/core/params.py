@@ -55,6 +55,31 @@ _PYTHON_TYPES: dict[str, type | tuple[type, ...]] = {
     "double_array": list,
 }
 
+#: A parameter type in words, for messages ("an integer").
+_KINDS: dict[str, str] = {
+    "bool": "a bool (true or false)",
+    "integer": "an integer",
+    "double": "a number",
+    "string": "a string",
+    "string_array": "a list of strings",
+    "double_array": "a list of numbers",
+}
+
+
+def _kind(value: Any) -> str:
+    """What ``value`` is, in words ("an integer", "a number with a fraction", "a list")."""
+    if isinstance(value, bool):
+        return _KINDS["bool"]
+    if isinstance(value, int):
+        return _KINDS["integer"]
+    if isinstance(value, float):
+        return "a number with a fraction" if math.isfinite(value) else "not a finite number"
+    if isinstance(value, str):
+        return _KINDS["string"]
+    if isinstance(value, bytes | bytearray):
+        return "bytes"
+    return "a list" if hasattr(value, "__len__") else f"a {type(value).__name__}"
+
 
 @dataclass(frozen=True)
 class Param:
@@ -146,6 +171,37 @@ class Param:
     def ros_description(self) -> str:
         """The description declared to ROS: with the unit in brackets."""
         return f"{self.description} [{self.unit}]" if self.unit else self.description
+
+    def check(self, value: Any) -> tuple[Any, str]:
+        """``value`` as given to parproj_node: (the value to use, "") or (None, what is wrong).
+
+        A whole number is a double (``z_avg: 100`` is 100.0), and a double with no fraction
+        an integer (``scene_lines: 1000.0`` is 1000), as a person writes them; anything else of
+        another type is wrong, as is a number outside the range (NaN included), ``low`` itself
+        when ``low_open``, or a string not among the choices. The arrays (``strict`` rows) are
+        returned as they are: the node checks them itself.
+        """
+        if self.type in ("string_array", "double_array"):
+            return value, ""
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if self.type == "double" and number:
+            value = float(value)
+        elif self.type == "integer" and isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if not isinstance(value, _PYTHON_TYPES[self.type]) or (
+            self.type != "bool" and isinstance(value, bool)
+        ):
+            return None, f"{value!r} is {_kind(value)}, where {_KINDS[self.type]} is expected"
+        unit = f" {self.unit}" if self.unit else ""
+        if self.low is not None and self.high is not None and isinstance(value, int | float):
+            if not self.low <= value <= self.high:  # NaN too
+                return None, f"{value!r} is outside its range {self.range_text}{unit}"
+            if self.low_open and value == self.low:
+                low = format_number(self.low)
+                return None, f"{value!r}: it must be more than {low}{unit}"
+        if self.choices and value not in self.choices:
+            return None, f"{value!r} is not one of {list(self.choices)}"
+        return value, ""
 
 
 def _p(

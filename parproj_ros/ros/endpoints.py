@@ -13,6 +13,7 @@ from dataclasses import replace
 from typing import Any
 
 from rclpy.node import Node
+from rclpy.qos import QoSPolicyKind
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import Image
 
@@ -66,13 +67,22 @@ def subscribe(node: Node, callbacks: Mapping[str, Callable[[Any], None]]) -> dic
 def advertise(node: Node, latched_depth: int) -> dict[str, Any]:
     """A publisher of ``node`` per output topic of the contract (``/diagnostics`` apart).
 
-    Each takes QoS overrides (``qos_overrides.<topic>.publisher.*``); a transient-local
+    Each takes QoS overrides (``qos_overrides.<topic>.publisher.<history|depth|reliability|
+    durability>``); a transient-local
     (latched) output keeps its last ``latched_depth`` messages.
 
     Raises:
         StartupError: a QoS override that cannot be applied.
     """
-    overrides = QoSOverridingOptions.with_default_policies()
+    # durability too: a latched output may be made volatile, or the reverse (docs/node.md)
+    overrides = QoSOverridingOptions(
+        policy_kinds=(
+            QoSPolicyKind.HISTORY,
+            QoSPolicyKind.DEPTH,
+            QoSPolicyKind.RELIABILITY,
+            QoSPolicyKind.DURABILITY,
+        )
+    )
     pubs = {}
     for t in contract.OUTPUTS:
         if t.name == contract.DIAGNOSTICS:

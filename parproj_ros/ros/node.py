@@ -33,8 +33,12 @@ from .cdr import CdrError, read_image
 from .diagnostics import Reporter
 from .endpoints import advertise, subscribe
 from .startup import (
+    GIVEN_PARAMS_FILES,
     declare_all,
     exit_with,
+    machine_memory_mb,
+    memory_issues,
+    params_file_issues,
     run,
     start_line,
     unknown_parameters,
@@ -85,7 +89,14 @@ class ParprojNode(Node):
         # next one meanwhile), not gathered until the input's other outputs are made.
         self.pipeline.set_block_sink(self._publish_block, self._blocks_wanted)
         self.blocks_unsubscribed = 0  # streamed blocks not sent: no subscriber (volatile)
-        if said := prefault(config, float(vals["prefault_mb"]), self.pipeline.assemblers):
+        prefault_mb, said_memory = memory_issues(
+            config,
+            float(vals["prefault_mb"]),
+            float(vals["memory_budget_mb"]),
+            machine_memory_mb(),
+        )
+        issues += said_memory
+        if said := prefault(config, prefault_mb, self.pipeline.assemblers):
             self.log("info", said)
         self.worker_stall_s = float(vals["worker_stall_s"])
         self.stop_timeout_s = float(vals["stop_timeout_s"])
@@ -117,6 +128,7 @@ class ParprojNode(Node):
         if vals["gcp_file"]:
             self._load_gcp_file(str(vals["gcp_file"]), issues)
         issues += unknown_parameters(self)
+        issues += params_file_issues(self.get_fully_qualified_name(), GIVEN_PARAMS_FILES)
         self.log("info", start_line(vals))
         self._announced = ""
         self._announce_frame()  # a frame_id parameter given: its place on Earth now

@@ -25,6 +25,7 @@ from rclpy.exceptions import (
     ParameterException,
 )
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 
 from ..core import contract
 from ..core.config import PARAMS, VIEW_PARAMS, Param
@@ -202,6 +203,7 @@ def init_rclpy(argv: list[str]) -> None:
     import tempfile
 
     _check_params_files(argv)
+    GIVEN_PARAMS_FILES[:] = _params_files(argv)
     with tempfile.TemporaryFile() as held:
         sys.stderr.flush()
         saved = os.dup(2)
@@ -224,14 +226,33 @@ def init_rclpy(argv: list[str]) -> None:
 def declare(node: Node, name: str, p: Param, issues: list[Issue]) -> Any:
     """Declare one parameter of ``node``; a bad value is replaced by the default and reported.
 
-    Out of range or not among the choices: the node keeps running with the default, an ERROR is
-    added to ``issues`` and the 1 Hz summary stays at ERROR naming the parameter. A parameter
-    with no safe default (``p.strict``: ``views``, ``<view>.mounting_rpy_deg``) is checked by
-    its caller instead; rclpy refusing it raises :class:`StartupError`.
+    The value given (``--params-file``, ``-p``) is checked first (:meth:`Param.check`): a whole
+    number for a double and a double with no fraction for an integer are taken as that type;
+    a wrong type, a value out of range (``low`` itself for a ``low_open`` row) or not among the
+    choices: the node keeps running with the default, which its parameter services then report
+    too, an ERROR is added to ``issues`` and the 1 Hz summary stays at ERROR naming the
+    parameter. A parameter with no safe default (``p.strict``: ``views``,
+    ``<view>.mounting_rpy_deg``) is checked by its caller instead; rclpy refusing it raises
+    :class:`StartupError`.
     """
     desc = descriptor(p)
+    overrides = node._parameter_overrides  # rclpy: the values given for this node
+    given = overrides.get(name)
+    if given is not None and not p.strict:
+        value, problem = p.check(given.value)
+        if problem:
+            issues.append(
+                Issue(
+                    Level.ERROR,
+                    f"parameter {name}",
+                    f"{problem}; the default {p.default!r} is used",
+                )
+            )
+            return node.declare_parameter(name, p.default, desc, ignore_override=True).value
+        if type(value) is not type(given.value):  # 100 for a double, 1000.0 for an integer
+            overrides[name] = Parameter(name, value=value)
     try:
-        value = node.declare_parameter(name, p.default, desc).value
+        return node.declare_parameter(name, p.default, desc).value
     except (InvalidParameterValueException, InvalidParameterTypeException) as err:
         if p.strict:
             raise StartupError(f"parameter {name}: {err}") from err
@@ -239,16 +260,6 @@ def declare(node: Node, name: str, p: Param, issues: list[Issue]) -> Any:
             Issue(Level.ERROR, f"parameter {name}", f"{err}; the default {p.default!r} is used")
         )
         return node.declare_parameter(name, p.default, desc, ignore_override=True).value
-    if p.choices and value not in p.choices:
-        issues.append(
-            Issue(
-                Level.ERROR,
-                f"parameter {name}",
-                f"{value!r} is not one of {list(p.choices)}; the default {p.default!r} is used",
-            )
-        )
-        return p.default
-    return value
 
 
 def declare_all(node: Node, issues: list[Issue]) -> dict[str, Any]:
@@ -268,23 +279,193 @@ def declare_all(node: Node, issues: list[Issue]) -> dict[str, Any]:
     return vals
 
 
+#: The ``--params-file`` arguments of the process's :func:`init_rclpy` (checked by
+#: :func:`params_file_issues` once the node knows its name).
+GIVEN_PARAMS_FILES: list[str] = []
+
+#: How a QoS override is named (rclpy's QoS overriding; the topic resolved, with its "/").
+QOS_OVERRIDE_FORM = (
+    "qos_overrides./<topic>.subscription.<history|depth|reliability> for the inputs "
+    "navigation and <view>/image_strip, qos_overrides./<topic>.publisher."
+    "<history|depth|reliability|durability> for the outputs"
+)
+
+
 def unknown_parameters(node: Node) -> list[Issue]:
     """An ERROR per parameter given (``--params-file``, ``-p``) that the node does not have.
 
-    A misspelt name, or a view not in ``views``: its value would be ignored silently.
-    ``qos_overrides.*`` are left to rclpy (those of topics the node does not have are ignored).
+    A misspelt name, a view not in ``views``, or a QoS override of a topic or policy that takes
+    none (``qos_overrides.navigation...`` without the topic's "/", ``...subscriber...``, the
+    ``gcp`` input): its value would be ignored silently. Called once the endpoints exist (rclpy
+    declares the QoS overrides they take).
     """
     given = node._parameter_overrides  # rclpy: every override for this node
-    return [
-        Issue(
-            Level.ERROR,
-            f"parameter {name}",
-            f"{shown(given[name].value)} given, but parproj_node has no such parameter "
-            "(misspelt, or a view not in views?): ignored",
+    issues = []
+    for name in sorted(given):
+        if node.has_parameter(name):
+            continue
+        hint = (
+            f"no such QoS override (they are {QOS_OVERRIDE_FORM})"
+            if name.startswith("qos_overrides.")
+            else "no such parameter (misspelt, or a view not in views?)"
         )
-        for name in sorted(given)
-        if not name.startswith("qos_overrides.") and not node.has_parameter(name)
-    ]
+        issues.append(
+            Issue(
+                Level.ERROR,
+                f"parameter {name}",
+                f"{shown(given[name].value)} given, but parproj_node has {hint}: ignored",
+            )
+        )
+    return issues
+
+
+def _sections(tree: Any, path: str = "") -> list[tuple[str, int]]:
+    """The node sections of a parameters file's YAML: (node name as written, parameters)."""
+    out: list[tuple[str, int]] = []
+    if not isinstance(tree, dict):
+        return out
+    for key, sub in tree.items():
+        if key == "ros__parameters":
+            out.append((path or "/", _leaves(sub)))
+        else:
+            out += _sections(sub, f"{path}/{str(key).strip('/')}")
+    return out
+
+
+def _leaves(tree: Any) -> int:
+    """Parameters under a ``ros__parameters`` key (nested keys make dotted names)."""
+    return sum(_leaves(v) for v in tree.values()) if isinstance(tree, dict) else 1
+
+
+def section_applies(section: str, fqn: str) -> bool:
+    """Whether a parameters file's section ``section`` applies to the node named ``fqn``.
+
+    As rcl matches them: the name is fully qualified (a leading "/" added), ``**`` stands for
+    any number of name tokens and ``*`` for one (or part of one).
+    """
+    parts = []
+    for token in section.strip("/").split("/"):
+        if token == "**":
+            parts.append("(/[^/]+)*")
+        else:
+            parts.append("/" + re.escape(token).replace(r"\*", "[^/]*"))
+    return re.fullmatch("".join(parts), fqn) is not None
+
+
+def params_file_issues(fqn: str, files: Sequence[str]) -> list[Issue]:
+    """An ERROR per parameters file with no section for the node named ``fqn`` (WARN: none).
+
+    Its sections are for other nodes (a misspelt node name, or the node renamed with
+    ``-r __node:=``) or it has none: none of its values is used, although the node would
+    otherwise start as if it had read them. A file that does not parse here (rcl read it) is
+    left alone.
+    """
+    import yaml
+
+    issues = []
+    for f in files:
+        try:
+            with open(f, encoding="utf-8") as fh:
+                tree = yaml.safe_load(fh)
+        except Exception:
+            continue
+        sections = _sections(tree)
+        if any(section_applies(name, fqn) for name, _ in sections):
+            continue
+        if not sections:
+            why = "holds no parameters (no section with ros__parameters): nothing set from it"
+            issues.append(Issue(Level.WARN, "parameters file", f"{f}: {why}"))
+            continue
+        n = sum(k for _, k in sections)
+        names = ", ".join(name.lstrip("/") for name, _ in sections)
+        issues.append(
+            Issue(
+                Level.ERROR,
+                "parameters file",
+                f"{f}: no section for this node, {fqn} (the file's sections: {names}): none of "
+                f"its {n} parameters is used (name the section {fqn.lstrip('/')} or /**)",
+            )
+        )
+    return issues
+
+
+def machine_memory_mb() -> tuple[float | None, float | None]:
+    """(memory of this machine or of the process's cgroup, whichever is less; available), MB.
+
+    From ``/proc/meminfo`` (MemTotal, MemAvailable) and cgroup v2's ``memory.max``; None
+    where unknown (not Linux).
+    """
+    info: dict[str, float] = {}
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                key, _, rest = line.partition(":")
+                info[key] = float(rest.split()[0]) / 1024.0  # kB -> MB
+    total = info.get("MemTotal")
+    with contextlib.suppress(OSError, ValueError):
+        with open("/sys/fs/cgroup/memory.max", encoding="ascii") as fh:
+            limit = fh.read().strip()
+        if limit.isdigit():
+            total = min(total or math.inf, int(limit) / 2**20)
+    return total, info.get("MemAvailable")
+
+
+def memory_issues(
+    config: Any, prefault_mb: float, budget_mb: float, machine: tuple[float | None, float | None]
+) -> tuple[float, list[Issue]]:
+    """``prefault_mb`` to use, and what is wrong with it and ``memory_budget_mb``.
+
+    The prefault touches ``prefault_mb`` MB of heap (-1: two raw pairs of the configured
+    scenes) and, when it is > 0 and ``scene_lines`` is set, a line buffer of a scene per view
+    (:func:`parproj_ros.core.admission.prefault`). More than the memory budget leaves (less its
+    headroom), or than the machine has available (``machine``: :func:`machine_memory_mb`), and
+    it is not done (0: an ERROR when ``prefault_mb`` was given, a WARN for -1): the node would
+    start over its own budget, or be killed by the kernel before it has read a strip
+    (``scene_lines`` 1e7, in its range, asks two raw pairs of 1.1 TB). A ``memory_budget_mb``
+    above the machine's memory is a WARN: the kernel, not the admission, would then end an
+    overload.
+    """
+    from ..core.admission import HEADROOM, auto_prefault_mb
+    from ..core.memory import raw_pair_bytes
+
+    issues: list[Issue] = []
+    total, available = machine
+    if total is not None and budget_mb > total:
+        issues.append(
+            Issue(
+                Level.WARN,
+                "parameter memory_budget_mb",
+                f"{budget_mb:g} MB is more than this machine's memory, {total:.0f} MB: the "
+                "kernel may end the node (out of memory) before the admission sheds a pair; "
+                "set it below that",
+            )
+        )
+    heap = auto_prefault_mb(config) if prefault_mb < 0 else prefault_mb
+    lines = raw_pair_bytes(config) / 2**20 if heap > 0 else 0.0
+    usable = budget_mb * (1.0 - HEADROOM)
+    room = (
+        f"the {usable:.0f} MB that memory_budget_mb {budget_mb:g} MB leaves (less "
+        f"{HEADROOM:.0%} headroom)"
+    )
+    if available is not None and available < usable:
+        room = f"the {available:.0f} MB this machine has available"
+        usable = available
+    if heap + lines <= usable:
+        return prefault_mb, issues
+    what = (
+        f"{prefault_mb:g}"
+        if prefault_mb >= 0
+        else f"-1 (two raw pairs of scene_lines {config.scenes.lines})"
+    )
+    issues.append(
+        Issue(
+            Level.ERROR if prefault_mb >= 0 else Level.WARN,
+            "parameter prefault_mb",
+            f"{what} asks {heap:.0f} MB of heap and {lines:.0f} MB of line buffers touched at "
+            f"start, more than {room}: nothing touched (as prefault_mb 0)",
+        )
+    )
+    return 0.0, issues
 
 
 def wants_help(argv: Sequence[str]) -> bool:

@@ -1,0 +1,294 @@
+"""parproj_node's configuration surface tried as a user wiring a ROS 2 graph would (issue 24).
+
+Each case is a node process of its own (``-r __node:=<case>``, so that the cases run side by
+side on one DDS domain), started with a parameters file and ``-p`` arguments nobody tried; the
+test reads its log, asks its parameter services over DDS what it uses, and stops it:
+
+- ``types``: numbers as people write them (``z_avg: 100`` for a double, ``scene_lines: 1000.0``
+  for an integer) are taken as that type (before: ERROR "Trying to set parameter 'z_avg' to
+  '100' of type 'INTEGER', expecting type 'DOUBLE'", the default used);
+- ``refused``: a value refused (a choice, ``height_range`` 0, which ``parproj process`` refuses
+  and which gave a pair "no usable stereo base", a fraction for an integer, 1 for a bool) is an
+  ERROR naming the parameter, and the parameter services report the default the node uses
+  (before: ``gcp_roll`` 'bogus' reported while 'estimate' was used; ``height_range`` 0 taken);
+- ``renamed``: a parameters file with no section for the node (renamed with ``-r __node:=``,
+  or a misspelt node name) and an empty one (before: both ignored in silence);
+- ``qos``: a misspelt QoS override, one of a topic that takes none (before: ignored in
+  silence), and a publisher's durability override, which docs/node.md promises (before: not
+  declared, ignored);
+- ``prefault``: ``prefault_mb`` beyond ``memory_budget_mb`` (before: touched regardless; with
+  ``scene_lines`` 1e7, in its range, the default -1 asked two raw pairs of 1.1 TB), and a
+  budget beyond the machine's memory.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from rcl_interfaces.srv import GetParameters, SetParameters
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.qos import DurabilityPolicy
+from testkit.live import GraphNode, wait
+
+from parproj_ros.ros.live import NodeProcess, ros_environment
+from parproj_ros.ros.startup import machine_memory_mb
+
+pytestmark = pytest.mark.ros
+
+#: case -> (parameters of the file, its section name, more ROS arguments, parameters to read)
+CASES: dict[str, tuple[dict[str, Any], str, list[str], list[str]]] = {
+    "types": (
+        {"z_avg": 100, "scene_lines": 1000.0, "nodata": -5},
+        "adv_types",
+        ["-p", "heights_margin_px:=12"],
+        ["z_avg", "scene_lines", "nodata", "heights_margin_px"],
+    ),
+    "refused": (
+        {"gcp_roll": "bogus", "height_range": 0.0, "max_gap_lines": 2.5, "heights": 1},
+        "adv_refused",
+        [],
+        ["gcp_roll", "height_range", "max_gap_lines", "heights"],
+    ),
+    "renamed": ({"z_avg": 100.0}, "parproj_node", ["--params-file", "@empty"], ["z_avg"]),
+    "qos": (
+        {
+            "qos_overrides": {
+                "navigation": {"subscription": {"reliability": "reliable"}},
+                "/gcp": {"subscription": {"depth": 3}},
+                "/dsm": {"publisher": {"durability": "volatile"}},
+            }
+        },
+        "adv_qos",
+        [],
+        ["qos_overrides./dsm.publisher.durability"],
+    ),
+    "prefault": (
+        {"prefault_mb": 1200.0, "memory_budget_mb": 256.0},
+        "adv_prefault",
+        [],
+        ["prefault_mb"],
+    ),
+    "budget": ({"memory_budget_mb": 1e6}, "adv_budget", [], ["memory_budget_mb"]),
+}
+
+
+def _node(case: str) -> str:
+    return f"adv_{case}"
+
+
+@pytest.fixture(scope="module")
+def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, dict[str, Any]]]:
+    """Every case's node started together; its log, parameters, RSS and endpoints' QoS."""
+    tmp = tmp_path_factory.mktemp("params_adversarial")
+    env = ros_environment(log_dir=tmp / "ros_log")
+    empty = tmp / "empty.yaml"
+    empty.write_text("")
+    procs: dict[str, NodeProcess] = {}
+    files: dict[str, Path] = {}
+    test = GraphNode("test_params_adversarial")
+    out: dict[str, dict[str, Any]] = {c: {} for c in CASES}
+    try:
+        for case, (params, section, extra, _) in CASES.items():
+            files[case] = tmp / f"{case}.yaml"
+            doc = {section: {"ros__parameters": params}}
+            files[case].write_text(yaml.safe_dump(doc, sort_keys=False))
+            args = [str(empty) if a == "@empty" else a for a in extra]
+            program = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args"]
+            program += ["-r", f"__node:={_node(case)}", *args]
+            procs[case] = NodeProcess(files[case], env, tmp / f"{case}.log", program=program)
+        for proc in procs.values():
+            assert wait(lambda p=proc: "starting: views" in p.output(), 30), proc.output()
+        for case, (_, _, _, names) in CASES.items():
+            node = _node(case)
+            out[case]["values"] = _get(test, node, names)
+            out[case]["rss_mb"] = _rss_mb(procs[case].proc.pid)
+        out["qos"]["dsm"] = {
+            i.node_name: i.qos_profile.durability
+            for i in test.node.get_publishers_info_by_topic("/dsm")
+        }
+        # Run-time changes: read-only, an unknown name, a wrong type: refused, values kept.
+        req = SetParameters.Request()
+        req.parameters = [
+            Parameter("heights_quicklook", value=2).to_parameter_msg(),
+            Parameter("z_avg", value="high").to_parameter_msg(),
+            Parameter("no_such_parameter", value=1.0).to_parameter_msg(),
+            Parameter("use_sim_time", value="abc").to_parameter_msg(),
+        ]
+        out["types"]["set"] = _call(test, SetParameters, "/adv_types/set_parameters", req)
+        out["types"]["after"] = _get(test, "adv_types", ["heights_quicklook", "z_avg"])
+        for case, proc in procs.items():
+            out[case]["alive"] = proc.proc.poll() is None
+    finally:
+        for case, proc in procs.items():
+            out[case]["code"] = proc.stop()
+            out[case]["log"] = proc.output()
+            out[case]["file"] = files[case]
+        out["renamed"]["empty"] = empty
+        test.close()
+    yield out
+
+
+def _call(test: GraphNode, srv: Any, name: str, request: Any) -> Any:
+    client = test.node.create_client(srv, name)
+    assert client.wait_for_service(timeout_sec=20), f"{name}: not available"
+    # A request sent before the server's reply writer matched this client gets no reply
+    # (test_params_live.py): asked again, at most 4 times.
+    for _ in range(4):
+        future = client.call_async(request)
+        if wait(future.done, 5):
+            return future.result()
+        client.remove_pending_request(future)
+    raise AssertionError(f"{name}: no response to 4 requests")
+
+
+def _get(test: GraphNode, node: str, names: list[str]) -> dict[str, Any]:
+    """``names``' values from ``node``'s parameter service (None: not declared)."""
+    got = {}
+    for name in names:  # one by one: a name not declared gets no value, nor do the others
+        req = GetParameters.Request()
+        req.names = [name]
+        values = _call(test, GetParameters, f"/{node}/get_parameters", req).values
+        got[name] = parameter_value_to_python(values[0]) if values else None
+    return got
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident memory of process ``pid``, MB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024.0
+    raise AssertionError("no VmRSS")
+
+
+def _errors(log: str) -> list[str]:
+    return [ln for ln in log.splitlines() if "[ERROR]" in ln or "[WARN]" in ln]
+
+
+def _ran(r: dict[str, Any]) -> None:
+    assert r["alive"] and r["code"] == 0, r["log"]
+    assert "Traceback" not in r["log"], r["log"]
+
+
+def test_numbers_as_people_write_them(started: dict[str, dict[str, Any]]) -> None:
+    """z_avg: 100 is 100.0 m, scene_lines: 1000.0 is 1000 lines: no ERROR, the values used."""
+    r = started["types"]
+    _ran(r)
+    assert _errors(r["log"]) == [], r["log"]
+    got = r["values"]
+    assert got == {"z_avg": 100.0, "scene_lines": 1000, "nodata": -5.0, "heights_margin_px": 12.0}
+    assert [type(v) for v in got.values()] == [float, int, float, float]
+    (line,) = [ln for ln in r["log"].splitlines() if "starting: views" in ln]
+    assert "scene_lines=1000, z_avg=100.0, nodata=-5.0, heights_margin_px=12.0" in line, line
+
+
+def test_run_time_changes_refused(started: dict[str, dict[str, Any]]) -> None:
+    """Mid-run: read-only, a wrong type, an unknown name: each refused with rclpy's reason."""
+    reasons = [(x.successful, x.reason) for x in started["types"]["set"].results]
+    assert reasons == [
+        (False, "Trying to set a read-only parameter: heights_quicklook."),
+        (False, "Trying to set a read-only parameter: z_avg."),
+        (False, "Invalid access to undeclared parameter(s): []"),
+        (False, "Wrong parameter type, expected '1' got '4'"),
+    ]
+    assert started["types"]["after"] == {"heights_quicklook": 0, "z_avg": 100.0}
+
+
+def test_refused_values_name_the_cause_and_the_services_tell_the_truth(
+    started: dict[str, dict[str, Any]],
+) -> None:
+    r = started["refused"]
+    _ran(r)
+    want = {
+        "gcp_roll": "'bogus' is not one of ['estimate', 'navigation', 'none']; the default "
+        "'estimate' is used",
+        "height_range": "0.0: it must be more than 0 m; the default 500.0 is used",
+        "max_gap_lines": "2.5 is a number with a fraction, where an integer is expected; the "
+        "default 64 is used",
+        "heights": "1 is an integer, where a bool (true or false) is expected; the default "
+        "False is used",
+    }
+    errors = _errors(r["log"])
+    for name, says in want.items():
+        assert [e for e in errors if "[ERROR]" in e and f"parameter {name}: {says}" in e], errors
+    assert len(errors) == len(want), errors
+    assert r["values"] == {
+        "gcp_roll": "estimate",
+        "height_range": 500.0,
+        "max_gap_lines": 64,
+        "heights": False,
+    }
+
+
+def test_a_parameters_file_for_another_node_is_named(started: dict[str, dict[str, Any]]) -> None:
+    r = started["renamed"]
+    _ran(r)
+    errors = sorted(_errors(r["log"]), key=lambda e: "[WARN]" in e)  # ERROR first
+    assert len(errors) == 2, errors
+    assert "[ERROR] " in errors[0] and errors[0].endswith(
+        f"parameters file: {r['file']}: no section for this node, /adv_renamed (the file's "
+        "sections: parproj_node): none of its 1 parameters is used (name the section "
+        "adv_renamed or /**)"
+    ), errors[0]
+    assert "[WARN] " in errors[1] and errors[1].endswith(
+        f"parameters file: {r['empty']}: holds no parameters (no section with "
+        "ros__parameters): nothing set from it"
+    ), errors[1]
+    assert r["values"] == {"z_avg": 0.0}
+
+
+def test_qos_overrides_that_apply_to_nothing_are_named(started: dict[str, dict[str, Any]]) -> None:
+    r = started["qos"]
+    _ran(r)
+    errors = _errors(r["log"])
+    assert len(errors) == 2, errors
+    for name, value in (
+        ("qos_overrides./gcp.subscription.depth", "3"),
+        ("qos_overrides.navigation.subscription.reliability", "'reliable'"),
+    ):
+        assert [
+            e
+            for e in errors
+            if f"parameter {name}: {value} given, but parproj_node has no such QoS override "
+            "(they are qos_overrides./<topic>.subscription.<history|depth|reliability> for "
+            "the inputs navigation and <view>/image_strip"
+            in e
+            and e.endswith("): ignored")
+        ], errors
+    # the durability override of an output, as docs/node.md says, applies
+    assert r["values"] == {"qos_overrides./dsm.publisher.durability": "volatile"}
+    assert r["dsm"]["adv_qos"] == DurabilityPolicy.VOLATILE
+    assert r["dsm"]["adv_types"] == DurabilityPolicy.TRANSIENT_LOCAL  # the contract's
+
+
+def test_a_prefault_beyond_the_budget_is_not_done(started: dict[str, dict[str, Any]]) -> None:
+    """prefault_mb 1200 with memory_budget_mb 256: an ERROR, nothing touched (RSS ~100 MB;
+    before: 1200 MB touched, RSS ~1.3 GB, over the node's own budget)."""
+    r = started["prefault"]
+    _ran(r)
+    (error,) = _errors(r["log"])
+    assert error.endswith(
+        "parameter prefault_mb: 1200 asks 1200 MB of heap and 0 MB of line buffers touched at "
+        "start, more than the 243 MB that memory_budget_mb 256 MB leaves (less 5% headroom): "
+        "nothing touched (as prefault_mb 0)"
+    ), error
+    assert r["rss_mb"] < 600, r["rss_mb"]
+    assert "MB of heap and" not in r["log"].replace(error, ""), r["log"]
+
+
+def test_a_budget_beyond_the_machine_is_a_warning(started: dict[str, dict[str, Any]]) -> None:
+    r = started["budget"]
+    _ran(r)
+    total, _ = machine_memory_mb()
+    assert total is not None and total < 1e6
+    (warn,) = _errors(r["log"])
+    assert "[WARN]" in warn and warn.endswith(
+        f"parameter memory_budget_mb: 1e+06 MB is more than this machine's memory, "
+        f"{total:.0f} MB: the kernel may end the node (out of memory) before the admission "
+        "sheds a pair; set it below that"
+    ), warn
+    assert r["values"] == {"memory_budget_mb": 1e6}
