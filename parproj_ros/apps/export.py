@@ -223,6 +223,8 @@ def export_dsms(
                 disp,
                 nodata=float("nan"),
                 description="disparity col_left - col_right, px, left normalized grid",
+                unit="px",
+                tags=made_by,
             )
             files.append(f"{name}_disparity.tif")
         row.update(

@@ -836,11 +836,14 @@ def write_plain_tiff(
     *,
     nodata: float | None = None,
     description: str = "",
+    unit: str = "",
+    tags: Mapping[str, str] | None = None,
 ) -> None:
     """Write one 2-D array as a TIFF with no georeferencing (deflate, tiled), dtype kept.
 
     For rasters in an image's pixel grid, e.g. a disparity map (float32, pixels, NaN where
-    invalid): row 0 is the image's first row, no geotransform, no CRS.
+    invalid): row 0 is the image's first row, no geotransform, no CRS. ``unit``: the band's
+    unit (e.g. "px"); ``tags``: further dataset tags.
     """
     a = np.asarray(array)
     if a.ndim != 2 or a.dtype.kind not in "iuf":
@@ -863,4 +866,7 @@ def write_plain_tiff(
         if description:
             dst.update_tags(TIFFTAG_IMAGEDESCRIPTION=description)
             dst.set_band_description(1, description)
+        dst.update_tags(**dict(tags or {}))
+        if unit:
+            dst.set_band_unit(1, unit)
         dst.write(a, 1)

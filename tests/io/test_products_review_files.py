@@ -19,7 +19,7 @@ from pyproj import CRS, Transformer
 
 from parproj_ros.geometry.geodesy import LocalTangentPlane
 from parproj_ros.imaging.heights import DsmGrid
-from parproj_ros.io.geotiff import write_dsm_geotiff, write_like
+from parproj_ros.io.geotiff import write_dsm_geotiff, write_like, write_plain_tiff
 from parproj_ros.io.pointcloud import write_point_cloud
 from parproj_ros.io.scene_import import frame_id_of
 
@@ -157,3 +157,24 @@ def test_geoid_heights_band_names_the_geoid(tmp_path: Path) -> None:
     # within half a cell (0.01 m of the tilt) of the frame grid's
     z = heights()
     assert abs(float(np.nanmedian(h)) - (188.44 + float(np.nanmedian(z)) - 49.6)) < 0.05
+
+
+@pytest.mark.filterwarnings("ignore::rasterio.errors.NotGeoreferencedWarning")  # no CRS: meant
+def test_disparity_tiff_has_its_unit_and_tags(tmp_path: Path) -> None:
+    """write_plain_tiff (the disparity map): band unit "px" and the tags given (software,
+    pair); before, the unit was only in the description and nothing named the pair."""
+    d = np.linspace(-40.0, 30.0, 60 * 70, dtype=np.float32).reshape(60, 70)
+    d[5:9, 5:9] = np.nan
+    write_plain_tiff(
+        tmp_path / "disp.tif",
+        d,
+        nodata=float("nan"),
+        description="disparity col_left - col_right, px, left normalized grid",
+        unit="px",
+        tags={"TIFFTAG_SOFTWARE": SOFTWARE, "PARPROJ_PAIR_ID": "left+right"},
+    )
+    with rasterio.open(tmp_path / "disp.tif") as src:
+        assert src.units == ("px",) and src.tags()["PARPROJ_PAIR_ID"] == "left+right"
+        assert src.tags()["TIFFTAG_SOFTWARE"] == SOFTWARE and src.crs is None
+        back = src.read(1)
+    np.testing.assert_array_equal(back, d)
