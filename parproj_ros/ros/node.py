@@ -39,6 +39,7 @@ from .startup import (
     machine_memory_mb,
     memory_issues,
     params_file_issues,
+    quicklook_issues,
     run,
     start_line,
     unknown_parameters,
@@ -95,7 +96,7 @@ class ParprojNode(Node):
             float(vals["memory_budget_mb"]),
             machine_memory_mb(),
         )
-        issues += said_memory
+        issues += said_memory + quicklook_issues(config)
         if said := prefault(config, prefault_mb, self.pipeline.assemblers):
             self.log("info", said)
         self.worker_stall_s = float(vals["worker_stall_s"])

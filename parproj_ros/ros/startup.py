@@ -127,12 +127,18 @@ def check_frame_id(value: Any) -> str:
     Raises:
         StartupError: ``enu_wgs84:...`` that does not parse, or whose origin cannot be (a
             latitude beyond +-90 deg, a figure not finite): the outputs would carry a frame
-            that ``parproj dsm`` cannot place, and no object-frame transform would be published.
+            that ``parproj dsm`` cannot place, and no object-frame transform would be published;
+            a name beginning with "/", which tf2 (and so RViz) refuses.
     """
     from ..io.geotiff import frame_of
     from ..io.scene_import import TANGENT_PLANE_FORM
 
     text = str(value)
+    if text.startswith("/"):
+        raise StartupError(
+            f"parameter frame_id: {text!r} begins with '/', which tf2 refuses in a frame id "
+            f"(RViz would show none of the outputs): write {text.lstrip('/')!r}"
+        )
     try:
         frame_of(text)
     except ValueError as err:
@@ -466,6 +472,38 @@ def memory_issues(
         )
     )
     return 0.0, issues
+
+
+def quicklook_issues(config: Any) -> list[Issue]:
+    """A WARN when ``heights_quicklook`` is set but no pair can get quick-look tiles.
+
+    They are made while a pair streams (:meth:`parproj_ros.core.tiles.TileStage.applies`):
+    heights on, two views, ``scene_lines`` > 0, streaming on. Otherwise the setting does
+    nothing, and nothing would say so (``scene_lines`` is 0 by default).
+    """
+    from ..core.tiles import TileStage
+
+    level = config.dense.quicklook
+    if not level or TileStage.applies(config):
+        return []
+    why = [
+        text
+        for off, text in (
+            (not config.dense.enabled, "heights is off"),
+            (config.single_camera, "one view (single-camera mode)"),
+            (config.scenes.lines <= 0, "scene_lines is 0"),
+            (not config.stream.enabled, "streaming is off"),
+        )
+        if off
+    ]
+    return [
+        Issue(
+            Level.WARN,
+            "parameter heights_quicklook",
+            f"{level}: no quick-look tiles will be made: {', '.join(why)} (they are made while "
+            "a pair streams: heights on, two views, scene_lines > 0, streaming on)",
+        )
+    ]
 
 
 def wants_help(argv: Sequence[str]) -> bool:

@@ -18,11 +18,15 @@ test reads its log, asks its parameter services over DDS what it uses, and stops
   declared, ignored);
 - ``prefault``: ``prefault_mb`` beyond ``memory_budget_mb`` (before: touched regardless; with
   ``scene_lines`` 1e7, in its range, the default -1 asked two raw pairs of 1.1 TB), and a
-  budget beyond the machine's memory.
+  budget beyond the machine's memory;
+- ``quicklook``: ``heights_quicklook`` where no pair can stream (before: nothing made, nothing
+  said; ``scene_lines`` is 0 by default);
+- ``frame_id`` beginning with "/", which tf2 refuses: the node does not start (exit 2).
 """
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -74,6 +78,12 @@ CASES: dict[str, tuple[dict[str, Any], str, list[str], list[str]]] = {
         ["prefault_mb"],
     ),
     "budget": ({"memory_budget_mb": 1e6}, "adv_budget", [], ["memory_budget_mb"]),
+    "quicklook": (
+        {"heights": True, "heights_quicklook": 2, "scene_lines": 1000, "streaming": False},
+        "adv_quicklook",
+        ["-p", "views:=[pan]"],
+        ["heights_quicklook"],
+    ),
 }
 
 
@@ -292,3 +302,29 @@ def test_a_budget_beyond_the_machine_is_a_warning(started: dict[str, dict[str, A
         "sheds a pair; set it below that"
     ), warn
     assert r["values"] == {"memory_budget_mb": 1e6}
+
+
+def test_quicklook_that_cannot_be_made_is_a_warning(started: dict[str, dict[str, Any]]) -> None:
+    r = started["quicklook"]
+    _ran(r)
+    (warn,) = _errors(r["log"])
+    assert "[WARN]" in warn and warn.endswith(
+        "parameter heights_quicklook: 2: no quick-look tiles will be made: one view "
+        "(single-camera mode), streaming is off (they are made while a pair streams: heights "
+        "on, two views, scene_lines > 0, streaming on)"
+    ), warn
+    assert r["values"] == {"heights_quicklook": 2}
+
+
+def test_a_frame_id_tf2_refuses_stops_the_start(tmp_path: Path) -> None:
+    """frame_id '/map': exit 2 with one line (before: every output labelled '/map', which
+    tf2, and so RViz, refuses)."""
+    env = ros_environment(log_dir=tmp_path / "ros_log")
+    cmd = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args", "-p", "frame_id:=/map"]
+    cmd += ["-r", "__node:=adv_frame"]
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=30)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stdout == "" and r.stderr.splitlines() == [
+        "parproj_node: cannot start: parameter frame_id: '/map' begins with '/', which tf2 "
+        "refuses in a frame id (RViz would show none of the outputs): write 'map'"
+    ], r.stderr
