@@ -395,6 +395,11 @@ def params_file_issues(fqn: str, files: Sequence[str]) -> list[Issue]:
     return issues
 
 
+#: Line buffers of a scene each that the prefault touches per view (``BufferPool.keep``,
+#: parproj_ros/imaging/assembly.py; docs/node.md, ``prefault_mb``: "two line buffers").
+LINE_BUFFERS = 2
+
+
 def machine_memory_mb() -> tuple[float | None, float | None]:
     """(memory of this machine or of the process's cgroup, whichever is less; available), MB.
 
@@ -422,7 +427,8 @@ def memory_issues(
     """``prefault_mb`` to use, and what is wrong with it and ``memory_budget_mb``.
 
     The prefault touches ``prefault_mb`` MB of heap (-1: two raw pairs of the configured
-    scenes) and, when it is > 0 and ``scene_lines`` is set, a line buffer of a scene per view
+    scenes) and, when it is > 0 and ``scene_lines`` is set, the line buffers each view's pool
+    keeps (:data:`LINE_BUFFERS`, a scene each)
     (:func:`parproj_ros.core.admission.prefault`). More than the memory budget leaves (less its
     headroom), or than the machine has available (``machine``: :func:`machine_memory_mb`), and
     it is not done (0: an ERROR when ``prefault_mb`` was given, a WARN for -1): the node would
@@ -447,7 +453,7 @@ def memory_issues(
             )
         )
     heap = auto_prefault_mb(config) if prefault_mb < 0 else prefault_mb
-    lines = raw_pair_bytes(config) / 2**20 if heap > 0 else 0.0
+    lines = LINE_BUFFERS * raw_pair_bytes(config) / 2**20 if heap > 0 else 0.0
     usable = budget_mb * (1.0 - HEADROOM)
     room = (
         f"the {usable:.0f} MB that memory_budget_mb {budget_mb:g} MB leaves (less "

@@ -328,3 +328,44 @@ def test_a_frame_id_tf2_refuses_stops_the_start(tmp_path: Path) -> None:
         "parproj_node: cannot start: parameter frame_id: '/map' begins with '/', which tf2 "
         "refuses in a frame id (RViz would show none of the outputs): write 'map'"
     ], r.stderr
+
+
+#: (memory_budget_mb, machine (total, available) MB, prefault_mb) -> (level, message) or None
+PREFAULTS: dict[str, tuple[float, tuple[float, float], float, str | None]] = {
+    "fits": (6144.0, (24000.0, 20000.0), -1.0, None),
+    "over the budget": (
+        2048.0,
+        (24000.0, 20000.0),
+        -1.0,
+        "-1 (two raw pairs of scene_lines 14000) asks 1476 MB of heap and 1476 MB of line "
+        "buffers touched at start, more than the 1946 MB that memory_budget_mb 2048 MB leaves "
+        "(less 5% headroom): nothing touched (as prefault_mb 0)",
+    ),
+    "over what is available": (
+        6144.0,
+        (24000.0, 1000.0),
+        500.0,
+        "500 asks 500 MB of heap and 1476 MB of line buffers touched at start, more than the "
+        "1000 MB this machine has available: nothing touched (as prefault_mb 0)",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(PREFAULTS))
+def test_prefault_of_ikonos_size_scenes(case: str) -> None:
+    """Two IKONOS-size views (13816 detectors) of 14000 lines: a raw pair is 738 MB; -1 asks
+    two of heap, and the pools' two line buffers per view are as much again (2952 MB)."""
+    from parproj_ros.core.config import config_from_values
+    from parproj_ros.core.results import Level
+    from parproj_ros.ros.startup import memory_issues
+
+    budget, machine, asked, says = PREFAULTS[case]
+    cfg = config_from_values({"scene_lines": 14000})
+    assert [v.camera.detectors for v in cfg.views] == [13816, 13816]
+    used, issues = memory_issues(cfg, asked, budget, machine)
+    if says is None:
+        assert (used, issues) == (asked, [])
+        return
+    (iss,) = issues
+    assert used == 0.0 and iss.where == "parameter prefault_mb" and iss.message == says
+    assert iss.level == (Level.WARN if asked < 0 else Level.ERROR)
