@@ -11,6 +11,7 @@ overload policy is :mod:`parproj_ros.core.admission`. Topics and parameters: doc
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from functools import partial
@@ -137,7 +138,12 @@ class ParprojNode(Node):
         self.worker.start()
 
     def _load_gcp_file(self, path: str, issues: list[Issue]) -> None:
-        """Queue the points of the ``gcp_file`` parameter; an ERROR in ``issues`` if unreadable."""
+        """Queue the points of the ``gcp_file`` parameter; an ERROR in ``issues`` if unreadable.
+
+        A relative path is taken from the node's working folder, and named so: a node started
+        by a launch file may not run where its user thinks.
+        """
+        path = os.path.abspath(os.path.expanduser(path))
         self.log("info", f"gcp_file {path}: loading")
         try:
             self.worker.put(InputKind.GCP, load_gcp_file(path))

@@ -7,10 +7,12 @@ test reads its log, asks its parameter services over DDS what it uses, and stops
 - ``types``: numbers as people write them (``z_avg: 100`` for a double, ``scene_lines: 1000.0``
   for an integer) are taken as that type (before: ERROR "Trying to set parameter 'z_avg' to
   '100' of type 'INTEGER', expecting type 'DOUBLE'", the default used);
-- ``refused``: a value refused (a choice, ``height_range`` 0, which ``parproj process`` refuses
-  and which gave a pair "no usable stereo base", a fraction for an integer, 1 for a bool) is an
-  ERROR naming the parameter, and the parameter services report the default the node uses
-  (before: ``gcp_roll`` 'bogus' reported while 'estimate' was used; ``height_range`` 0 taken);
+- ``refused``: a value refused (a choice, ``height_range`` 0, which ``parproj process``
+  refuses and which gave a pair "no usable stereo base", a fraction for an integer, 1 for a
+  bool) is an ERROR naming the parameter, and the parameter services report the default the
+  node uses (before: ``gcp_roll`` 'bogus' reported while 'estimate' was used; ``height_range``
+  0 taken); a relative ``gcp_file`` that is not there is named with the node's folder
+  (before: "no_such_gcp.csv: no such file");
 - ``renamed``: a parameters file with no section for the node (renamed with ``-r __node:=``,
   or a misspelt node name) and an empty one (before: both ignored in silence);
 - ``qos``: a misspelt QoS override, one of a topic that takes none (before: ignored in
@@ -55,7 +57,7 @@ CASES: dict[str, tuple[dict[str, Any], str, list[str], list[str]]] = {
     "refused": (
         {"gcp_roll": "bogus", "height_range": 0.0, "max_gap_lines": 2.5, "heights": 1},
         "adv_refused",
-        [],
+        ["-p", "gcp_file:=no_such_gcp.csv"],
         ["gcp_roll", "height_range", "max_gap_lines", "heights"],
     ),
     "renamed": ({"z_avg": 100.0}, "parproj_node", ["--params-file", "@empty"], ["z_avg"]),
@@ -225,7 +227,14 @@ def test_refused_values_name_the_cause_and_the_services_tell_the_truth(
     errors = _errors(r["log"])
     for name, says in want.items():
         assert [e for e in errors if "[ERROR]" in e and f"parameter {name}: {says}" in e], errors
-    assert len(errors) == len(want), errors
+    # a relative gcp_file is named as the node looked for it (a launched node's folder)
+    gcp = Path.cwd() / "no_such_gcp.csv"
+    assert [
+        e
+        for e in errors
+        if e.endswith(f"gcp_file: GcpFileError: {gcp}: no such file; continuing without it")
+    ], errors
+    assert len(errors) == len(want) + 1, errors
     assert r["values"] == {
         "gcp_roll": "estimate",
         "height_range": 500.0,
