@@ -137,14 +137,20 @@ def pair_frame(
     return PairFrame(pair_id, norm, gl, gr, fl, fr, pix, (float(y0), float(y1)), z_avg)
 
 
+#: Fewest pixels a side of a pair's normalized images with ``output_pixel`` set: coarser
+#: leaves nothing to match (tie points, dense heights).
+MIN_OUTPUT_SIDE_PX = 16
+
+
 def pair_grids(
     frame: PairFrame, output: OutputSettings, heights: tuple[float, float]
 ) -> PairGeometry | Issue:
     """The output grids of a pair: its rows, and its columns by ``output.extent``.
 
     ``heights`` (m): the pair's terrain, at which ``overlap`` keeps the columns both scenes
-    see. An ERROR issue when no column is left or the images would exceed
-    ``max_output_pixels``. The zero-disparity height is ``frame.z_ref``.
+    see. An ERROR issue when no column is left, the images would exceed ``max_output_pixels``,
+    or ``output_pixel`` makes them less than :data:`MIN_OUTPUT_SIDE_PX` a side. The
+    zero-disparity height is ``frame.z_ref``.
     """
     norm, shift, pix = frame.normalization, frame.shift, frame.pixel
     xo_l, x1 = frame.union_columns()
@@ -170,6 +176,15 @@ def pair_grids(
             f"pair {frame.pair_id}",
             f"normalized images would be {width} x {height} px (> max_output_pixels "
             f"{output.max_pixels}): pair skipped",
+        )
+    if output.pixel_m > 0 and min(width, height) < MIN_OUTPUT_SIDE_PX:
+        # else reported as scenes that see different ground (output_pixel 1: 1 x 1 px)
+        return Issue(
+            Level.ERROR,
+            f"pair {frame.pair_id}",
+            f"normalized images would be {width} x {height} px at output_pixel "
+            f"{output.pixel_m:g} (< {MIN_OUTPUT_SIDE_PX} px a side: nothing to match): pair "
+            "skipped; give a smaller output_pixel, or 0 for the scenes' own resolution",
         )
     grid_l = OutputGrid(pix, xo_l, y0, width, height)
     grid_r = OutputGrid(pix, xo_l - shift, y0, width, height)

@@ -378,3 +378,48 @@ def test_prefault_of_ikonos_size_scenes(case: str) -> None:
     (iss,) = issues
     assert used == 0.0 and iss.where == "parameter prefault_mb" and iss.message == says
     assert iss.level == (Level.WARN if asked < 0 else Level.ERROR)
+
+
+def test_output_pixel_too_coarse_is_named_not_the_overlap(tmp_path: Path) -> None:
+    """output_pixel 1 (m of the normalized image plane: 85000 times bags/ikonos_agile's own
+    pixel) through the live node: ERROR naming output_pixel and the 1 x 1 px it gives (before:
+    "its normalized images share only 0.0 % of their pixels with data in both (< 5 %): the
+    scenes see different ground at the heights used ... Check that the scenes overlap")."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from testkit.diagnostics import level
+    from testkit.paths import BAGS
+
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.ros.inputs import node_parameters, views_from_bag
+    from parproj_ros.ros.live import node_params_yaml, replay
+
+    bag = BAGS / "ikonos_agile"
+    params = node_parameters(views_from_bag(BagReader(bag)), tie_points=False, output_pixel=1.0)
+    pfile = node_params_yaml(
+        params, tmp_path / "p.yaml", reliable_inputs=["/navigation", "/pan/image_strip"]
+    )
+    test = GraphNode("test_output_pixel", start=False)
+    statuses: list[Any] = []
+    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    test.node.create_subscription(
+        DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status), qos
+    )
+    test.start()
+    proc = NodeProcess(pfile, ros_environment(log_dir=tmp_path / "ros_log"), tmp_path / "n.log")
+    try:
+        replay(test.node, bag, rate=0.0, max_gap_s=0.2, wait_for=["/pan/image_strip"], log=print)
+        pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
+        said = lambda: [s for s in list(statuses) if s.name == pair]  # noqa: E731
+        wait(lambda: bool(said()), 20, lambda: proc.proc.poll() is None)
+        alive = proc.proc.poll() is None
+    finally:
+        code = proc.stop()
+        test.close()
+    log = proc.output()
+    assert alive and code == 0 and "Traceback" not in log, log
+    (s,) = said()
+    assert level(s) == 2 and s.message == (
+        "normalized images would be 1 x 1 px at output_pixel 1 (< 16 px a side: nothing to "
+        "match): pair skipped; give a smaller output_pixel, or 0 for the scenes' own resolution"
+    ), s.message
