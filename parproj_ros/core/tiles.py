@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from ..geometry import AffineModel, Normalization
 from ..imaging.dense import (
+    CoarseGuide,
     DenseStatus,
     SgbmParams,
     disparity_range,
@@ -322,6 +323,13 @@ class TileLevel:
             lr_check=lr_check,
             stretch_percentiles=(0, 100),
             subpixel=options.subpixel if factor == 1 else "sgbm",
+        )
+        # The full resolution is guided by a reduced pass as the whole-pair step is
+        # (HeightsOptions.coarse); the quick-look, itself reduced, is not.
+        self.guide = (
+            CoarseGuide(ranges=options.coarse == "ranges")
+            if factor == 1 and options.coarse != "none"
+            else None
         )
 
     # ---- blocks in ----------------------------------------------------------------------
@@ -613,6 +621,7 @@ class TileLevel:
             tile_cols=max(16, wb - wa),
             overlap=TILE_OVERLAP,
             params=self.params,
+            guide=self.guide,
         )
         own = res.disparity[:, c0 - wa : c1 - wa]
         has = masks[0][:, c0 - wa : c1 - wa]
