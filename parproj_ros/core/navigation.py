@@ -51,8 +51,8 @@ class NavigationFeed:
                         "navigation",
                         (
                             f"a sample stamped {(pending.t_ns - (last or 0)) / 1e9:+.3f} s "
-                            "from the "
-                            "newest one was not followed by others: dropped"
+                            "from the newest one (more than nav_jump_s, "
+                            f"{self.settings.jump_s:g} s) was not followed by others: dropped"
                         ),
                     )
                 )
@@ -66,7 +66,8 @@ class NavigationFeed:
                     "navigation",
                     (
                         f"sample stamped {(sample.t_ns - last) / 1e9:+.3f} s from the newest one "
-                        "(stamps going backwards; too late for any scene still open): dropped"
+                        f"(stamps going backwards by more than nav_jump_s, "
+                        f"{self.settings.jump_s:g} s; too late for any scene still open): dropped"
                     ),
                 )
             )

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -380,46 +381,82 @@ def test_prefault_of_ikonos_size_scenes(case: str) -> None:
     assert iss.level == (Level.WARN if asked < 0 else Level.ERROR)
 
 
-def test_output_pixel_too_coarse_is_named_not_the_overlap(tmp_path: Path) -> None:
-    """output_pixel 1 (m of the normalized image plane: 85000 times bags/ikonos_agile's own
-    pixel) through the live node: ERROR naming output_pixel and the 1 x 1 px it gives (before:
-    "its normalized images share only 0.0 % of their pixels with data in both (< 5 %): the
-    scenes see different ground at the heights used ... Check that the scenes overlap")."""
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """bags/ikonos_agile through a node with output_pixel 1 and nav_jump_s 0.01: statuses."""
     from diagnostic_msgs.msg import DiagnosticArray
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from testkit.diagnostics import level
     from testkit.paths import BAGS
 
     from parproj_ros.ros.bag import BagReader
     from parproj_ros.ros.inputs import node_parameters, views_from_bag
     from parproj_ros.ros.live import node_params_yaml, replay
 
+    tmp = tmp_path_factory.mktemp("params_adversarial_replay")
     bag = BAGS / "ikonos_agile"
-    params = node_parameters(views_from_bag(BagReader(bag)), tie_points=False, output_pixel=1.0)
-    pfile = node_params_yaml(
-        params, tmp_path / "p.yaml", reliable_inputs=["/navigation", "/pan/image_strip"]
+    params = node_parameters(
+        views_from_bag(BagReader(bag)), tie_points=False, output_pixel=1.0, nav_jump_s=0.01
     )
-    test = GraphNode("test_output_pixel", start=False)
+    pfile = node_params_yaml(
+        params, tmp / "p.yaml", reliable_inputs=["/navigation", "/pan/image_strip"]
+    )
+    test = GraphNode("test_params_adversarial_replay", start=False)
     statuses: list[Any] = []
-    qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    test.node.create_subscription(
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    sub = test.node.create_subscription(
         DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status), qos
     )
     test.start()
-    proc = NodeProcess(pfile, ros_environment(log_dir=tmp_path / "ros_log"), tmp_path / "n.log")
+    proc = NodeProcess(pfile, ros_environment(log_dir=tmp / "ros_log"), tmp / "n.log")
+    pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
     try:
+        # /diagnostics is volatile: what the node publishes before its writer has matched this
+        # reader is lost (discovery is not symmetric: settle 1 s once the reader sees it)
+        assert wait(lambda: sub.get_publisher_count() > 0, 20), proc.output()
+        time.sleep(1.0)
         replay(test.node, bag, rate=0.0, max_gap_s=0.2, wait_for=["/pan/image_strip"], log=print)
-        pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
-        said = lambda: [s for s in list(statuses) if s.name == pair]  # noqa: E731
-        wait(lambda: bool(said()), 20, lambda: proc.proc.poll() is None)
+        wait(
+            lambda: any(s.name == pair for s in list(statuses)),
+            20,
+            lambda: proc.proc.poll() is None,
+        )
         alive = proc.proc.poll() is None
     finally:
         code = proc.stop()
         test.close()
-    log = proc.output()
-    assert alive and code == 0 and "Traceback" not in log, log
-    (s,) = said()
+    return {"alive": alive, "code": code, "log": proc.output(), "statuses": list(statuses)}
+
+
+def test_output_pixel_too_coarse_is_named_not_the_overlap(replayed: dict[str, Any]) -> None:
+    """output_pixel 1 (m of the normalized image plane: 85000 times bags/ikonos_agile's own
+    pixel) through the live node: ERROR naming output_pixel and the 1 x 1 px it gives (before:
+    "its normalized images share only 0.0 % of their pixels with data in both (< 5 %): the
+    scenes see different ground at the heights used ... Check that the scenes overlap")."""
+    from testkit.diagnostics import level
+
+    r = replayed
+    assert r["alive"] and r["code"] == 0 and "Traceback" not in r["log"], r["log"]
+    pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
+    (s,) = [s for s in r["statuses"] if s.name == pair]
     assert level(s) == 2 and s.message == (
         "normalized images would be 1 x 1 px at output_pixel 1 (< 16 px a side: nothing to "
         "match): pair skipped; give a smaller output_pixel, or 0 for the scenes' own resolution"
     ), s.message
+
+
+def test_navigation_dropped_by_nav_jump_s_names_it(replayed: dict[str, Any]) -> None:
+    """nav_jump_s 0.01 s, under the bag's 0.05 s navigation period (within its range 0.01 ..
+    86400): every other sample is held and dropped, each with a WARN that now names nav_jump_s
+    (before: "a sample stamped +0.050 s from the newest one was not followed by others:
+    dropped", which does not say what made +0.050 s suspicious)."""
+    from testkit.diagnostics import level
+
+    nav = [s for s in replayed["statuses"] if s.name == "parproj_node: navigation"]
+    assert len(nav) > 100, len(nav)  # 20 Hz navigation for the two scenes, half dropped
+    assert {(level(s), s.message) for s in nav} == {
+        (
+            1,
+            "a sample stamped +0.050 s from the newest one (more than nav_jump_s, 0.01 s) was "
+            "not followed by others: dropped",
+        )
+    }
