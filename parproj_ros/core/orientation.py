@@ -55,7 +55,7 @@ def start_unseen(scene: Scene, nav_first_ns: int | None, margin_s: float) -> Iss
         Level.ERROR,
         f"{scene.view}/{scene.scene_id}",
         f"first scene received on view {scene.view} ({scene.lines} lines), and navigation "
-        f"starts only {when} its first line (less than {margin_s} s "
+        f"starts only {when} its first line (less than start_margin_s, {margin_s:g} s, "
         "before): the node may have started, or restarted, while this scene was under "
         "way, so its beginning, its line numbers (GCP observations) and its pair are "
         "unknown: scene skipped",

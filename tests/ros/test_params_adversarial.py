@@ -40,6 +40,7 @@ import yaml
 from rcl_interfaces.srv import GetParameters, SetParameters
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.qos import DurabilityPolicy
+from sensor_msgs.msg import Image
 from testkit.live import GraphNode, wait
 
 from parproj_ros.ros.live import NodeProcess, ros_environment
@@ -407,24 +408,43 @@ def replayed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
         DiagnosticArray, "/diagnostics", lambda m: statuses.extend(m.status), qos
     )
     test.start()
-    proc = NodeProcess(pfile, ros_environment(log_dir=tmp / "ros_log"), tmp / "n.log")
+    env = ros_environment(log_dir=tmp / "ros_log")
+    proc = NodeProcess(pfile, env, tmp / "n.log")
+    # a second node on the same replay: start_margin_s 3600 (an hour of navigation before a
+    # view's first scene)
+    margin = dict(params, start_margin_s=3600.0, output_pixel=0.0, nav_jump_s=10.0)
+    mfile = tmp / "margin.yaml"
+    node_params_yaml(margin, mfile, reliable_inputs=["/navigation", "/pan/image_strip"])
+    mfile.write_text(mfile.read_text().replace("parproj_node:", "adv_margin:", 1))
+    program = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args"]
+    other = NodeProcess(mfile, env, tmp / "m.log", program=[*program, "-r", "__node:=adv_margin"])
     pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
     try:
         # /diagnostics is volatile: what the node publishes before its writer has matched this
         # reader is lost (discovery is not symmetric: settle 1 s once the reader sees it)
-        assert wait(lambda: sub.get_publisher_count() > 0, 20), proc.output()
+        assert wait(lambda: sub.get_publisher_count() > 1, 20), proc.output()
         time.sleep(1.0)
+        strips = test.node.create_publisher(Image, "/pan/image_strip", 10)
+        assert wait(lambda: strips.get_subscription_count() > 1, 20), other.output()
+        test.node.destroy_publisher(strips)
         replay(test.node, bag, rate=0.0, max_gap_s=0.2, wait_for=["/pan/image_strip"], log=print)
+        skipped = "parproj_node: pan/pan_scene_0000"
         wait(
-            lambda: any(s.name == pair for s in list(statuses)),
+            lambda: {pair, skipped} <= {s.name for s in list(statuses)},
             20,
-            lambda: proc.proc.poll() is None,
+            lambda: proc.proc.poll() is None and other.proc.poll() is None,
         )
-        alive = proc.proc.poll() is None
+        alive = proc.proc.poll() is None and other.proc.poll() is None
     finally:
         code = proc.stop()
+        code_other = other.stop()
         test.close()
-    return {"alive": alive, "code": code, "log": proc.output(), "statuses": list(statuses)}
+    return {
+        "alive": alive,
+        "code": (code, code_other),
+        "log": proc.output() + other.output(),
+        "statuses": list(statuses),
+    }
 
 
 def test_output_pixel_too_coarse_is_named_not_the_overlap(replayed: dict[str, Any]) -> None:
@@ -435,7 +455,7 @@ def test_output_pixel_too_coarse_is_named_not_the_overlap(replayed: dict[str, An
     from testkit.diagnostics import level
 
     r = replayed
-    assert r["alive"] and r["code"] == 0 and "Traceback" not in r["log"], r["log"]
+    assert r["alive"] and r["code"] == (0, 0) and "Traceback" not in r["log"], r["log"]
     pair = "parproj_node: pair pan_scene_0000+pan_scene_0001"
     (s,) = [s for s in r["statuses"] if s.name == pair]
     assert level(s) == 2 and s.message == (
@@ -460,3 +480,17 @@ def test_navigation_dropped_by_nav_jump_s_names_it(replayed: dict[str, Any]) -> 
             "not followed by others: dropped",
         )
     }
+
+
+def test_a_first_scene_skipped_by_start_margin_s_names_it(replayed: dict[str, Any]) -> None:
+    """start_margin_s 3600 (in its range): the view's first scene is skipped, and the ERROR
+    names the parameter (before: "(less than 3600.0 s before)", no name to look for)."""
+    from testkit.diagnostics import level
+
+    (s,) = [s for s in replayed["statuses"] if s.name == "parproj_node: pan/pan_scene_0000"]
+    assert level(s) == 2 and s.message == (
+        "first scene received on view pan (768 lines), and navigation starts only 1.000 s "
+        "before its first line (less than start_margin_s, 3600 s, before): the node may have "
+        "started, or restarted, while this scene was under way, so its beginning, its line "
+        "numbers (GCP observations) and its pair are unknown: scene skipped"
+    ), s.message
