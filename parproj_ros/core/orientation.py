@@ -89,10 +89,9 @@ def orient_scene(
                     Level.WARN,
                     where,
                     (
-                        f"navigation positions scatter by {fit.position_rms_m:.3f} m rms "
-                        "about the "
-                        "constant-velocity line "
-                        f"(> {config.navigation.position_tolerance_m} m): an "
+                        f"navigation positions scatter by {fit.position_rms_m:.3g} m rms "
+                        "about the constant-velocity line (> nav_position_tolerance_m, "
+                        f"{config.navigation.position_tolerance_m:g} m): an "
                         "outlier or a manoeuvre; the parameters carry that error"
                     ),
                 )

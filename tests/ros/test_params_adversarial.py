@@ -411,8 +411,14 @@ def replayed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     env = ros_environment(log_dir=tmp / "ros_log")
     proc = NodeProcess(pfile, env, tmp / "n.log")
     # a second node on the same replay: start_margin_s 3600 (an hour of navigation before a
-    # view's first scene)
-    margin = dict(params, start_margin_s=3600.0, output_pixel=0.0, nav_jump_s=10.0)
+    # view's first scene), nav_position_tolerance_m 0
+    margin = dict(
+        params,
+        start_margin_s=3600.0,
+        output_pixel=0.0,
+        nav_jump_s=10.0,
+        nav_position_tolerance_m=0.0,
+    )
     mfile = tmp / "margin.yaml"
     node_params_yaml(margin, mfile, reliable_inputs=["/navigation", "/pan/image_strip"])
     mfile.write_text(mfile.read_text().replace("parproj_node:", "adv_margin:", 1))
@@ -493,4 +499,24 @@ def test_a_first_scene_skipped_by_start_margin_s_names_it(replayed: dict[str, An
         "before its first line (less than start_margin_s, 3600 s, before): the node may have "
         "started, or restarted, while this scene was under way, so its beginning, its line "
         "numbers (GCP observations) and its pair are unknown: scene skipped"
+    ), s.message
+
+
+def test_navigation_scatter_names_nav_position_tolerance_m(replayed: dict[str, Any]) -> None:
+    """nav_position_tolerance_m 0 (in its range): the second scene's WARN names it (before:
+    "navigation positions scatter by 0.000 m rms about the constant-velocity line (> 0.0 m)",
+    a scatter shown as 0.000 over a tolerance of 0.0 and no parameter named)."""
+    from testkit.diagnostics import level
+
+    (s,) = [
+        s
+        for s in replayed["statuses"]
+        if s.name == "parproj_node: pan/pan_scene_0001" and "scatter" in s.message
+    ]
+    rms = s.message.split("scatter by ")[1].split(" m rms")[0]
+    assert level(s) == 1 and 0.0 < float(rms) < 1e-3, s.message  # simulated: no noise
+    assert s.message == (
+        f"navigation positions scatter by {rms} m rms about the constant-velocity line "
+        "(> nav_position_tolerance_m, 0 m): an outlier or a manoeuvre; the parameters carry "
+        "that error"
     ), s.message
