@@ -7,8 +7,10 @@ Arguments (``ros2 launch parproj_ros parproj.launch.py --show-args`` lists them)
 
 - ``params_file``: a ``--params-file`` for the node (default: the installed
   ``share/parproj_ros/config/parproj_node.yaml``, every parameter at its default);
-- ``frame_id``, ``heights``: these parameters, set after ``params_file`` (so they win over it);
-  their defaults are the parameter table's (parproj_ros/core/params.py);
+- ``frame_id``, ``heights``: these parameters, set after ``params_file`` (so they win over it,
+  their defaults too: a ``frame_id`` or ``heights`` in ``params_file`` is overridden, and the
+  node WARNs when such a value is reset to the default; give them here); their defaults are
+  the parameter table's (parproj_ros/core/params.py);
 - ``<input>_topic``: where the node's inputs come from (remaps of ``navigation``,
   ``left/image_strip``, ``right/image_strip``, ``gcp`` and ``pairs``; the strip remaps apply with
   the default views ``left``/``right``);

@@ -130,7 +130,8 @@ class ParprojNode(Node):
         if vals["gcp_file"]:
             self._load_gcp_file(str(vals["gcp_file"]), issues)
         issues += unknown_parameters(self)
-        issues += params_file_issues(self.get_fully_qualified_name(), GIVEN_PARAMS_FILES)
+        used = {k: v.value for k, v in self._parameter_overrides.items()}
+        issues += params_file_issues(self.get_fully_qualified_name(), GIVEN_PARAMS_FILES, used)
         self.log("info", start_line(vals))
         self._announced = ""
         self._announce_frame()  # a frame_id parameter given: its place on Earth now

@@ -13,7 +13,7 @@ import os
 import re
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import rclpy
@@ -325,22 +325,27 @@ def unknown_parameters(node: Node) -> list[Issue]:
     return issues
 
 
-def _sections(tree: Any, path: str = "") -> list[tuple[str, int]]:
-    """The node sections of a parameters file's YAML: (node name as written, parameters)."""
-    out: list[tuple[str, int]] = []
+def _sections(tree: Any, path: str = "") -> list[tuple[str, Any]]:
+    """The node sections of a parameters file's YAML: (node name as written, its parameters)."""
+    out: list[tuple[str, Any]] = []
     if not isinstance(tree, dict):
         return out
     for key, sub in tree.items():
         if key == "ros__parameters":
-            out.append((path or "/", _leaves(sub)))
+            out.append((path or "/", sub))
         else:
             out += _sections(sub, f"{path}/{str(key).strip('/')}")
     return out
 
 
-def _leaves(tree: Any) -> int:
-    """Parameters under a ``ros__parameters`` key (nested keys make dotted names)."""
-    return sum(_leaves(v) for v in tree.values()) if isinstance(tree, dict) else 1
+def _flat(tree: Any, prefix: str = "") -> dict[str, Any]:
+    """The parameters under a ``ros__parameters`` key (nested keys make dotted names)."""
+    if not isinstance(tree, dict):
+        return {prefix: tree}
+    out: dict[str, Any] = {}
+    for key, sub in tree.items():
+        out.update(_flat(sub, f"{prefix}.{key}" if prefix else str(key)))
+    return out
 
 
 def section_applies(section: str, fqn: str) -> bool:
@@ -358,17 +363,25 @@ def section_applies(section: str, fqn: str) -> bool:
     return re.fullmatch("".join(parts), fqn) is not None
 
 
-def params_file_issues(fqn: str, files: Sequence[str]) -> list[Issue]:
-    """An ERROR per parameters file with no section for the node named ``fqn`` (WARN: none).
+def params_file_issues(
+    fqn: str, files: Sequence[str], used: Mapping[str, Any] | None = None
+) -> list[Issue]:
+    """What a user would not see of the parameters files given to the node named ``fqn``.
 
-    Its sections are for other nodes (a misspelt node name, or the node renamed with
-    ``-r __node:=``) or it has none: none of its values is used, although the node would
-    otherwise start as if it had read them. A file that does not parse here (rcl read it) is
-    left alone.
+    An ERROR per file with no section for the node (a misspelt node name, or the node renamed
+    with ``-r __node:=``; a WARN when it has no section at all): none of its values is used,
+    although the node would otherwise start as if it had read them. A WARN per parameter that
+    a file sets to a value other than the table's default and a later file back to the
+    default (the later file wins, in silence: parproj.launch.py passes ``frame_id`` and
+    ``heights`` after ``params_file``, so a value of either there is overridden even by those
+    arguments' defaults), naming the value used (``used``: the node's overrides). Files
+    layered on purpose (a later one changing a value to another than the default) are not
+    reported. A file that does not parse here (rcl read it) is left alone.
     """
     import yaml
 
     issues = []
+    given: dict[str, list[tuple[str, Any]]] = {}
     for f in files:
         try:
             with open(f, encoding="utf-8") as fh:
@@ -376,13 +389,17 @@ def params_file_issues(fqn: str, files: Sequence[str]) -> list[Issue]:
         except Exception:
             continue
         sections = _sections(tree)
-        if any(section_applies(name, fqn) for name, _ in sections):
+        mine = [sub for name, sub in sections if section_applies(name, fqn)]
+        for sub in mine:
+            for name, value in _flat(sub).items():
+                given.setdefault(name, []).append((f, value))
+        if mine:
             continue
         if not sections:
             why = "holds no parameters (no section with ros__parameters): nothing set from it"
             issues.append(Issue(Level.WARN, "parameters file", f"{f}: {why}"))
             continue
-        n = sum(k for _, k in sections)
+        n = sum(len(_flat(sub)) for _, sub in sections)
         names = ", ".join(name.lstrip("/") for name, _ in sections)
         issues.append(
             Issue(
@@ -390,6 +407,27 @@ def params_file_issues(fqn: str, files: Sequence[str]) -> list[Issue]:
                 "parameters file",
                 f"{f}: no section for this node, {fqn} (the file's sections: {names}): none of "
                 f"its {n} parameters is used (name the section {fqn.lstrip('/')} or /**)",
+            )
+        )
+    defaults = {p.name: p.default for p in PARAMS}
+    defaults |= {
+        f"{v}.{p.name}": p.default for v in (used or {}).get("views", []) for p in VIEW_PARAMS
+    }
+    for name, values in given.items():
+        if used is None or name not in used or name not in defaults:
+            continue
+        *earlier, (last_file, last) = values
+        lost = [(f, v) for f, v in earlier if v != defaults[name]]
+        if last != defaults[name] or not lost:
+            continue
+        where = ", ".join(f"{v!r} in {f}" for f, v in lost)
+        issues.append(
+            Issue(
+                Level.WARN,
+                f"parameter {name}",
+                f"given {where}, but a later file, {last_file}, sets the default {last!r}: "
+                f"{shown(used[name])} used (with parproj.launch.py, give frame_id and heights "
+                "as its arguments: it passes them after params_file, defaults too)",
             )
         )
     return issues

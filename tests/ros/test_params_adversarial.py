@@ -82,6 +82,7 @@ CASES: dict[str, tuple[dict[str, Any], str, list[str], list[str]]] = {
         ["prefault_mb"],
     ),
     "budget": ({"memory_budget_mb": 1e6}, "adv_budget", [], ["memory_budget_mb"]),
+    "launch": ({"anaglyph": True}, "adv_launch", ["@launch"], ["heights", "frame_id"]),
     "quicklook": (
         {"heights": True, "heights_quicklook": 2, "scene_lines": 1000, "streaming": False},
         "adv_quicklook",
@@ -112,6 +113,8 @@ def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, dict
             doc = {section: {"ros__parameters": params}}
             files[case].write_text(yaml.safe_dump(doc, sort_keys=False))
             args = [str(empty) if a == "@empty" else a for a in extra]
+            if args == ["@launch"]:
+                args = _as_launched(tmp)
             program = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args"]
             program += ["-r", f"__node:={_node(case)}", *args]
             procs[case] = NodeProcess(files[case], env, tmp / f"{case}.log", program=program)
@@ -145,6 +148,26 @@ def started(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, dict
         out["renamed"]["empty"] = empty
         test.close()
     yield out
+
+
+#: A user's parameters file for parproj.launch.py's params_file: heights and frame_id set.
+MINE = {"heights": True, "frame_id": "enu_wgs84:lat=44.2,lon=5.2,h=500"}
+
+
+def _as_launched(tmp: Path) -> list[str]:
+    """The ROS arguments launch/parproj.launch.py gives the node with ``params_file`` a file
+    of :data:`MINE` (testkit.launch_stub: launch has no wheel here), the node named
+    adv_launch."""
+    from testkit.launch_stub import load_launch, node_ros_args
+    from testkit.paths import ROOT
+
+    mine = tmp / "mine.yaml"
+    mine.write_text(yaml.safe_dump({"adv_launch": {"ros__parameters": MINE}}))
+    desc = load_launch(ROOT / "launch" / "parproj.launch.py")
+    (node,) = desc.nodes
+    args = node_ros_args(node, desc, {"params_file": str(mine)}, lambda p: ROOT, tmp)
+    assert args[0] == "--ros-args" and args[-1] == "--"
+    return [a.replace("__node:=parproj_node", "__node:=adv_launch") for a in args[1:-1]]
 
 
 def _call(test: GraphNode, srv: Any, name: str, request: Any) -> Any:
@@ -520,3 +543,48 @@ def test_navigation_scatter_names_nav_position_tolerance_m(replayed: dict[str, A
         "(> nav_position_tolerance_m, 0 m): an outlier or a manoeuvre; the parameters carry "
         "that error"
     ), s.message
+
+
+def test_a_value_the_launch_file_resets_is_named(started: dict[str, dict[str, Any]]) -> None:
+    """parproj.launch.py passes frame_id and heights after params_file, their defaults too:
+    heights true and a frame_id in the user's params_file are lost. Each is now a WARN naming
+    both files and the value used (before: nothing; the start line said "every parameter at
+    its default")."""
+    r = started["launch"]
+    _ran(r)
+    warns = _errors(r["log"])
+    assert len(warns) == 2 and all("[WARN]" in w for w in warns), warns
+    launch_file = str(r["file"].parent / "launch_params_1.yaml")
+    mine = str(r["file"].parent / "mine.yaml")
+    for name, value, default in (("heights", True, False), ("frame_id", MINE["frame_id"], "")):
+        assert [
+            w
+            for w in warns
+            if w.endswith(
+                f"parameter {name}: given {value!r} in {mine}, but a later file, {launch_file}, "
+                f"sets the default {default!r}: {default!r} used (with parproj.launch.py, give "
+                "frame_id and heights as its arguments: it passes them after params_file, "
+                "defaults too)"
+            )
+        ], warns
+    assert r["values"] == {"heights": False, "frame_id": ""}
+
+
+def test_launch_arguments_over_the_installed_file_are_not_reported(tmp_path: Path) -> None:
+    """The documented use, heights:=true over the installed config/parproj_node.yaml (every
+    parameter at its default): no WARN; the trap only (a value reset to the default)."""
+    from testkit.paths import ROOT
+
+    from parproj_ros.ros.startup import params_file_issues
+
+    later = tmp_path / "launch_params_1.yaml"
+    later.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"heights": True}}}))
+    files = [str(ROOT / "config" / "parproj_node.yaml"), str(later)]
+    used = {"heights": True, "views": ["left", "right"]}
+    assert params_file_issues("/parproj_node", files, used) == []
+    # files layered on purpose (a later value other than the default) are not reported either
+    base = tmp_path / "base.yaml"
+    base.write_text(yaml.safe_dump({"parproj_node": {"ros__parameters": {"z_avg": 100.0}}}))
+    site = tmp_path / "site.yaml"
+    site.write_text(yaml.safe_dump({"parproj_node": {"ros__parameters": {"z_avg": 250.0}}}))
+    assert params_file_issues("/parproj_node", [str(base), str(site)], {"z_avg": 250.0}) == []
