@@ -6,19 +6,24 @@ import numpy as np
 
 from parproj_ros.core.pipeline import Pipeline, PipelineConfig
 from parproj_ros.core.render_process import RenderProcess
-from parproj_ros.ros.conversions import image_to_array, odometry_to_sample, stamp_to_ns
+from parproj_ros.core.trajectory import NavSample
+from parproj_ros.sim.synthetic import VIEWS, acquisition, make_platform, texture_blocks
 
 
 def _stream(renderer: RenderProcess | None, sink: bool = False) -> list[np.ndarray]:
     """Two pairs of the benchmark's fore/aft platform (2048 lines, 192 detectors); the blocks.
 
-    ``sink``: the blocks are taken by a block sink as they are rendered (copied there).
+    Fed as the node feeds the pipeline once a message is converted (NavSamples, uint16 strips),
+    with no ROS message: core/ is ROS-free, and so is this test (``./dev fast`` runs it). Every
+    scene has the texture of ``sim.synthetic.StripMessages``: one random 11-bit block per strip
+    position. ``sink``: the blocks are taken by a block sink as they are rendered (copied there).
     """
-    from parproj_ros.sim.synthetic import StripMessages, acquisition, make_platform, nav_message
-
     plat = make_platform(2048, 192)
     events = sorted(acquisition(plat, 2, 256, 50.0), key=lambda e: (e.due_s, e.kind != "nav"))
-    strips = StripMessages(plat, 256)
+    texture = {
+        r0: texture_blocks(1, min(256, plat.lines - r0), plat.camera.detectors, seed=10 + r0)[0]
+        for r0 in range(0, plat.lines, 256)
+    }
     pipe = Pipeline(PipelineConfig(views=plat.views, scene_lines=2048))
     if renderer is not None:
         pipe.use_render_process(renderer)
@@ -27,15 +32,10 @@ def _stream(renderer: RenderProcess | None, sink: bool = False) -> list[np.ndarr
         pipe.set_block_sink(lambda blk: blocks.append(blk.image.copy()))
     for e in events:
         if e.kind == "nav":
-            out = pipe.add_navigation(odometry_to_sample(nav_message(plat, e.t_s)))
+            nav = NavSample(e.stamp_ns, plat.position(e.t_s), plat.body, plat.velocity)
+            out = pipe.add_navigation(nav)
         else:
-            m = strips.get(e)
-            out = pipe.add_strip(
-                ("left", "right")[e.view],
-                stamp_to_ns(m.header.stamp),
-                m.header.frame_id,
-                image_to_array(m),
-            )
+            out = pipe.add_strip(VIEWS[e.view], e.stamp_ns, e.scene_id, texture[e.row0])
         assert not (sink and out.blocks)
         blocks += [b.image for b in out.blocks]
     return blocks

@@ -65,6 +65,7 @@ def test_resampling_part_keys_and_geometric_error() -> None:
     assert "Resampling one scene" in format_text(doc)
 
 
+@pytest.mark.ros  # writes and reads bags (ros.bag: rclpy serialization)
 def test_offline_part_with_its_io_bound(tmp_path) -> None:  # type: ignore[no-untyped-def]
     """process_bag over a bag of one small pair, and the I/O bound of the same bags: the copy
     reads every input byte and writes as many bytes as the output holds."""
