@@ -136,7 +136,7 @@ NAVIGATION_QOS = Qos(
     "volatile",
     500,
     "sensor data (REP 2003: best effort, volatile); a deep queue, so that a burst of samples "
-    "waits while the worker is busy; qos_overrides.navigation.subscription.reliability can make "
+    "waits while the worker is busy; qos_overrides./navigation.subscription.reliability can make "
     "it reliable for a lossless replay",
 )
 #: The node's subscription of each view's strips.
@@ -145,7 +145,7 @@ STRIP_QOS = Qos(
     "volatile",
     200,
     "sensor data (REP 2003: best effort, volatile); a deep queue, since a strip lost is a gap in "
-    "a scene; qos_overrides.<view>/image_strip.subscription.reliability can make it reliable for "
+    "a scene; qos_overrides./<view>/image_strip.subscription.reliability makes it reliable for "
     "a lossless replay",
 )
 #: The node's subscriptions of GCP and of the pair selection.
