@@ -113,7 +113,7 @@ class HeightsOptions:
         coarse: a matching pass at 1/4 scale first (:class:`CoarseGuide`):
             "support" (default): a pixel with no match of that pass within one reduced pixel
             is not taken (blunders: on the simulated bags RMS against truth 0.030 / 2.61 /
-            1.15 -> 0.021 / 0.20 / 0.31 m, on Marseille 2-3 RMS against s2p 1.79 -> 0.99 m,
+            1.15 -> 0.022 / 0.20 / 0.27 m, on Marseille 2-3 RMS against s2p 1.79 -> 0.99 m,
             the same NMAD, about 1 point less complete); "ranges": also each tile of 256 px
             searches only the disparities that pass found around it (10-30 % less CPU on
             ranges of 144-224 disparities, but a small feature the reduced pass missed is

@@ -228,7 +228,7 @@ class CoarseGuide:
     within ``support`` reduced pixels of its own is not taken (counted as ``no_match``). Where
     the reduced pass found nothing consistent (occlusions, the partner off the right image, no
     texture) a full-resolution match is mostly a blunder: on the simulated bags RMS against
-    truth 0.030 / 2.61 / 1.15 -> 0.021 / 0.20 / 0.31 m (airborne_foreaft, crab_foreaft,
+    truth 0.030 / 2.61 / 1.15 -> 0.022 / 0.20 / 0.27 m (airborne_foreaft, crab_foreaft,
     ikonos_agile), on Marseille 2-3 RMS against s2p 1.79 -> 0.99 m; NMAD unchanged, about 1
     point less complete (docs/performance.md). Its cost: a feature smaller than some 3
     reduced pixels whose disparity stands out from its surroundings (a narrow tower) may be
