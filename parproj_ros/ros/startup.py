@@ -196,6 +196,22 @@ def _check_params_files(argv: Sequence[str]) -> None:
             )
 
 
+def rcl_init_error(text: str, files: Sequence[str]) -> str:
+    """The command line rcl refused, as one line naming what it refused.
+
+    The parameters file only when rcl could not parse a file (a ``-p`` or ``-r`` rule beside a
+    good file was blamed on the file); rcl's "Error: error not set" after a rule with nothing
+    after ``:=`` says so.
+    """
+    said = one_line(text)
+    rule = re.search(r"'(-[pr] [^']*:=)'", said)
+    if rule is not None:
+        said = said.replace("Error: error not set", "Error: no value after ':='")
+    in_file = files and "params file" in said
+    where = f"parameters file {', '.join(files)}" if in_file else "ROS arguments"
+    return f"cannot parse the {where}: {said}"
+
+
 def init_rclpy(argv: list[str]) -> None:
     """``rclpy.init`` with rcl's own console output held back, shown again if init works.
 
@@ -217,9 +233,7 @@ def init_rclpy(argv: list[str]) -> None:
         try:
             rclpy.init(args=argv, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
         except Exception as err:
-            files = _params_files(argv)
-            where = f"parameters file {', '.join(files)}" if files else "ROS arguments"
-            raise StartupError(f"cannot parse the {where}: {one_line(str(err))}") from err
+            raise StartupError(rcl_init_error(str(err), _params_files(argv))) from err
         finally:
             os.dup2(saved, 2)
             os.close(saved)

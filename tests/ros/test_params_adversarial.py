@@ -350,18 +350,37 @@ def test_quicklook_that_cannot_be_made_is_a_warning(started: dict[str, dict[str,
     assert r["values"] == {"heights_quicklook": 2}
 
 
-def test_a_frame_id_tf2_refuses_stops_the_start(tmp_path: Path) -> None:
-    """frame_id '/map': exit 2 with one line (before: every output labelled '/map', which
-    tf2, and so RViz, refuses)."""
+#: case -> (ROS arguments, the one line on stderr); @config: config/parproj_node.yaml
+BAD_START = {
+    # before: started, every output labelled '/map', which tf2 (and so RViz) refuses
+    "frame_id /map": (
+        ["-p", "frame_id:=/map"],
+        "parproj_node: cannot start: parameter frame_id: '/map' begins with '/', which tf2 "
+        "refuses in a frame id (RViz would show none of the outputs): write 'map'",
+    ),
+    # before: "cannot parse the parameters file .../parproj_node.yaml: ... '-p gcp_roll:='.
+    # Error: error not set", the good file blamed for the rule
+    "rule without value": (
+        ["--params-file", "@config", "-p", "gcp_roll:="],
+        "parproj_node: cannot start: cannot parse the ROS arguments: failed to initialize rcl: "
+        "Couldn't parse parameter override rule: '-p gcp_roll:='. Error: no value after ':='",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_START))
+def test_invalid_start_names_the_cause(case: str, tmp_path: Path) -> None:
+    """Exit 2 with one line on stderr naming the real cause."""
+    from testkit.paths import ROOT
+
+    args, says = BAD_START[case]
+    args = [str(ROOT / "config" / "parproj_node.yaml") if a == "@config" else a for a in args]
     env = ros_environment(log_dir=tmp_path / "ros_log")
-    cmd = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args", "-p", "frame_id:=/map"]
-    cmd += ["-r", "__node:=adv_frame"]
+    cmd = [sys.executable, "-m", "parproj_ros.ros.node", "--ros-args", *args]
+    cmd += ["-r", "__node:=adv_bad_start"]
     r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=30)
     assert r.returncode == 2, r.stdout + r.stderr
-    assert r.stdout == "" and r.stderr.splitlines() == [
-        "parproj_node: cannot start: parameter frame_id: '/map' begins with '/', which tf2 "
-        "refuses in a frame id (RViz would show none of the outputs): write 'map'"
-    ], r.stderr
+    assert r.stdout == "" and r.stderr.splitlines() == [says], r.stderr
 
 
 #: (memory_budget_mb, machine (total, available) MB, prefault_mb) -> (level, message) or None
