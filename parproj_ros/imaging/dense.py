@@ -972,13 +972,13 @@ def match_pair(
         shift,
     )
     matcher = sgbm_matcher(p, prep.dmin, ndisp)
-    coarse = support = None
+    coarse = near = None
     if guide is not None:
         coarse = _coarse_disparity(
             left, right, rng, guide.scale, nodata, (left_mask, right_mask), p
         )
         if coarse is not None:  # else as without a guide
-            support = _support(coarse, guide, (h, w))
+            near = _near(coarse, guide)
             if guide.ranges:
                 tile_rows = tile_cols = guide.tile_px
                 overlap = guide.overlap_px
@@ -997,8 +997,8 @@ def match_pair(
                 tprep = _tile_prepared(prep, local)
                 tmatcher = sgbm_matcher(p, tprep.dmin, tprep.ndisp)
                 d, code = _match_tile(tprep, tmatcher, p, (ra, rb), (ca, cb))
-            if support is not None:
-                lost = (code == _VALID) & ~support[ra:rb, ca:cb]
+            if near is not None and guide is not None:
+                lost = (code == _VALID) & ~_supported(near, guide.scale, (ra, rb), (ca, cb))
                 d[lost] = np.nan
                 code[lost] = _NO_MATCH
             sr, sc = slice(r0 - ra, r1 - ra), slice(c0 - ca, c1 - ca)
@@ -1029,20 +1029,16 @@ def _coarse_disparity(
 ) -> Float32Array | None:
     """Disparities of the pair reduced ``scale`` times, reduced pixels (NaN: none), or None.
 
-    Area means; a reduced pixel with any no-data input pixel has no data. Matched over
-    ``d_range / scale`` with ``params`` (the sub-pixel refinement left out: a range needs no
-    more); None when the reduced pair does not match (its status is not OK).
+    Means of ``scale`` x ``scale`` blocks (:func:`_reduced`). Matched over ``d_range / scale``
+    with ``params`` (no sub-pixel refinement, no speckle filter); None when the reduced pair
+    does not match (its status is not OK) or is smaller than a block.
     """
     lo, hi = d_range
-    h, w = left.shape
-    size = (max(1, w // scale), max(1, h // scale))
-    small: list[NDArray[Any]] = []
-    for img, mask in zip((left, right), masks, strict=True):
-        red = cv2.resize(img.astype(np.float32), size, interpolation=cv2.INTER_AREA)
-        if nodata is not None or mask is not None:
-            bad = (~_valid_mask(img, nodata, mask)).astype(np.float32)
-            red[cv2.resize(bad, size, interpolation=cv2.INTER_AREA) > 0] = np.nan
-        small.append(red)
+    if min(left.shape) < scale:
+        return None
+    small = [
+        _reduced(img, nodata, mask, scale) for img, mask in zip((left, right), masks, strict=True)
+    ]
     p = replace(params or SgbmParams(), subpixel="sgbm", min_ncc=None, speckle_window=0)
     res = match_pair(
         small[0],
@@ -1054,20 +1050,55 @@ def _coarse_disparity(
     return res.disparity if res.status == DenseStatus.OK else None
 
 
-def _support(coarse: Float32Array, opt: CoarseGuide, shape: tuple[int, int]) -> BoolArray | None:
-    """Full-resolution pixels with a valid reduced pixel within ``opt.support`` of theirs.
+def _reduced(
+    image: NDArray[Any],
+    nodata: float | None,
+    mask: BoolArray | None,
+    scale: int,
+    band_rows: int = 256,
+) -> Float32Array:
+    """Means of the ``scale`` x ``scale`` blocks of ``image`` (float32), NaN: no data.
 
-    None: no support rule (``opt.support`` < 0).
+    A block with any pixel without data has none; the rows and columns past the last whole
+    block are left out. By bands of about ``band_rows`` rows (no full-size float copy of a
+    large image).
     """
+    hr, wr = image.shape[0] // scale, image.shape[1] // scale
+    out = np.empty((hr, wr), dtype=np.float32)
+    step = max(1, band_rows // scale)
+    for i in range(0, hr, step):
+        j = min(hr, i + step)
+        rows = slice(i * scale, j * scale)
+        part = image[rows, : wr * scale]
+        red = part.astype(np.float32).reshape(j - i, scale, wr, scale).mean(axis=(1, 3))
+        if nodata is not None or mask is not None:
+            ok = _valid_mask(part, nodata, None if mask is None else mask[rows, : wr * scale])
+            red[~ok.reshape(j - i, scale, wr, scale).all(axis=(1, 3))] = np.nan
+        out[i:j] = red
+    return out
+
+
+def _near(coarse: Float32Array, opt: CoarseGuide) -> UInt8Array | None:
+    """1 where a valid reduced pixel lies within ``opt.support`` reduced pixels (None: no rule)."""
     if opt.support < 0:
         return None
-    out = np.zeros(shape, dtype=bool)
     k = 2 * opt.support + 1
-    near = cv2.dilate(np.isfinite(coarse).view(np.uint8), np.ones((k, k), np.uint8))
-    s = opt.scale
-    rows = np.minimum(np.arange(shape[0]) // s, near.shape[0] - 1)
-    cols = np.minimum(np.arange(shape[1]) // s, near.shape[1] - 1)
-    out[...] = near[rows[:, None], cols[None, :]] != 0
+    return cast(
+        "UInt8Array", cv2.dilate(np.isfinite(coarse).view(np.uint8), np.ones((k, k), np.uint8))
+    )
+
+
+def _supported(
+    near: UInt8Array, scale: int, rows: tuple[int, int], cols: tuple[int, int]
+) -> BoolArray:
+    """The support rule over the window rows x cols (full-resolution pixels).
+
+    True where the pixel's reduced pixel (the last one for pixels past the last whole block) is
+    near a valid reduced pixel (``near``, :func:`_near`).
+    """
+    r = np.minimum(np.arange(rows[0], rows[1]) // scale, near.shape[0] - 1)
+    c = np.minimum(np.arange(cols[0], cols[1]) // scale, near.shape[1] - 1)
+    out: BoolArray = near[r[:, None], c[None, :]] != 0
     return out
 
 
