@@ -200,8 +200,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     name = f"parproj {args.command}"
     previous = signal.getsignal(signal.SIGTERM)
-    with contextlib.suppress(ValueError):  # not the main thread: leave SIGTERM alone
+    previous_int = signal.getsignal(signal.SIGINT)
+    with contextlib.suppress(ValueError):  # not the main thread: leave the signals alone
         signal.signal(signal.SIGTERM, _on_sigterm)
+        # SIGINT stops a command (exit 130) even when it was started with SIGINT ignored, as
+        # a shell starts a background job (`parproj replay bag &`, then `kill -INT`): Python
+        # leaves an ignored SIGINT ignored
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with contextlib.nullcontext() if args.debug else one_line_warnings(name):
             return int(args.func(args))
@@ -236,6 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         with contextlib.suppress(ValueError, TypeError):
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGINT, previous_int)
 
 
 if __name__ == "__main__":

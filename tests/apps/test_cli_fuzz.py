@@ -537,12 +537,21 @@ def test_replay_refuses_a_decades_long_wait(replay_bags: dict[str, Path]) -> Non
     assert code == 0 and "published 4 messages" in out, err
 
 
-@pytest.mark.parametrize(("sig", "code"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.parametrize(
+    ("sig", "code", "ignored"),
+    [(signal.SIGINT, 130, False), (signal.SIGTERM, 143, False), (signal.SIGINT, 130, True)],
+    ids=["SIGINT", "SIGTERM", "SIGINT-ignored-at-start"],
+)
 def test_replay_stops_at_once_on_a_signal(
-    sig: signal.Signals, code: int, replay_bags: dict[str, Path]
+    sig: signal.Signals, code: int, ignored: bool, replay_bags: dict[str, Path]
 ) -> None:
+    """SIGINT and SIGTERM stop a replay at once; SIGINT too when the command was started with
+    it ignored, as a shell starts a background job (``parproj replay bag &``; before, it
+    waited out its 60 s)."""
+    # sh ignores SIGINT, then execs the command with it ignored (a background job's state)
+    start = ["sh", "-c", "trap '' INT; exec \"$@\"", "sh"] if ignored else []
     proc = subprocess.Popen(
-        [*PARPROJ, "replay", "-q", str(replay_bags["slow"])],
+        [*start, *PARPROJ, "replay", "-q", str(replay_bags["slow"])],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
