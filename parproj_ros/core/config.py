@@ -80,6 +80,7 @@ OutputExtent = Literal["overlap", "union"]
 TerrainChoice = Literal["tie_points", "prior"]
 HeightsFill = Literal["none", "nearest"]
 HeightsMatcher = Literal["sgbm_3way", "sgbm_8path"]
+HeightsCoarse = Literal["none", "support", "ranges"]
 
 #: (settings group, setting) -> its row of :data:`PARAMS`.
 _ROWS: dict[tuple[str, str], Param] = {p.target: p for p in PARAMS if p.target is not None}
@@ -201,6 +202,7 @@ class DenseSettings(_Settings):
     fill: HeightsFill = field(default=_default("heights_fill"))
     max_fill_cells: float = _default("heights_max_fill_cells")
     matcher: HeightsMatcher = field(default=_default("heights_matcher"))
+    coarse: HeightsCoarse = field(default=_default("heights_coarse"))
     fuse_mb: float = _default("heights_fuse_mb")
     cloud_step: int = _default("dsm_cloud_step")
     tile_px: int = _default("heights_tile_px")

@@ -287,6 +287,7 @@ def options_of(config: PipelineConfig) -> HeightsOptions:
         max_fill_cells=dense.max_fill_cells,
         tile_px=dense.tile_px,
         matcher=dense.matcher,
+        coarse=dense.coarse,
         nodata=float(config.output.nodata),
         measure_terrain=config.ties.terrain == "tie_points",
         prior_m=config.orientation.prior_heights,

@@ -511,6 +511,20 @@ PARAMS: tuple[Param, ...] = (
     ),
     _p(
         "dense",
+        "coarse",
+        "heights_coarse",
+        "string",
+        "support",
+        "a matching pass at 1/4 scale first: 'support' (a pixel with no match of that pass "
+        "within one reduced pixel is not taken: the blunders go, on the simulated bags RMS "
+        "against truth 2.61 -> 0.20 m, about 1 point less complete), 'ranges' (also each 256 px "
+        "tile searches only what that pass found around it: less time on wide disparity "
+        "ranges, but a small feature that pass missed is lost) or 'none'",
+        choices=("none", "support", "ranges"),
+        offline=True,
+    ),
+    _p(
+        "dense",
         "fuse_mb",
         "heights_fuse_mb",
         "double",

@@ -53,3 +53,37 @@ def test_the_support_rule_removes_the_blunders(
         assert got["rms"] <= a / 2, (coarse, got)
         assert got["nmad"] <= acc["none"]["nmad"] + 0.01 * a, (coarse, got)
         assert got["completeness"] >= 0.95, (coarse, got)
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("coarse", ["none", "ranges"])
+def test_the_heights_coarse_parameter_reaches_the_step(
+    coarse: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``heights_coarse`` (node parameter, ``parproj process --heights-coarse``) is the step's
+    ``HeightsOptions.coarse``: 'none' gives crab_foreaft's blunders back (RMS over half a pixel
+    of x-parallax), 'ranges' keeps them out."""
+    from parproj_ros.apps.cli import main as cli_main
+    from parproj_ros.core import heights as core_heights
+    from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
+
+    seen: list[Any] = []
+    step = core_heights.measure_heights
+
+    def spy(*args: Any) -> Any:
+        res = step(*args)
+        seen.append((args[0], args[4], res[0]))
+        return res
+
+    monkeypatch.setattr(core_heights, "measure_heights", spy)
+    out = tmp_path / "out"
+    argv = ["process", str(BAGS / "crab_foreaft"), "-o", str(out), "--heights", "-q"]
+    assert cli_main([*argv, "--heights-coarse", coarse]) == 0
+    ((pair, options, res),) = seen
+    assert options.coarse == coarse
+    truth = scenario_terrain("crab_foreaft")
+    assert truth is not None
+    acc = dsm_accuracy(res.dsm.heights, res.dsm.grid, truth, res.dsm.filled)
+    a = abs(pair.height_per_disparity_px)
+    assert (acc["rms"] > a / 2) == (coarse == "none"), acc
