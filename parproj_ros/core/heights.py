@@ -139,6 +139,13 @@ class HeightsOptions:
     quicklook_only: bool = False
 
 
+def coarse_guide(options: HeightsOptions) -> CoarseGuide | None:
+    """The reduced pass of ``options.coarse`` (None for "none"), for the whole pair and tiles."""
+    if options.coarse == "none":
+        return None
+    return CoarseGuide(ranges=options.coarse == "ranges")
+
+
 def measure_heights(
     pair: PairResult,
     left: NDArray[np.generic],
@@ -216,7 +223,7 @@ def measure_heights(
             subpixel=opt.subpixel,
             min_ncc=opt.min_ncc,
         ),
-        guide=None if opt.coarse == "none" else CoarseGuide(ranges=opt.coarse == "ranges"),
+        guide=coarse_guide(opt),
     )
     if res.status != DenseStatus.OK:
         message = res.message

@@ -45,7 +45,6 @@ from numpy.typing import NDArray
 
 from ..geometry import AffineModel, Normalization
 from ..imaging.dense import (
-    CoarseGuide,
     DenseStatus,
     SgbmParams,
     disparity_range,
@@ -59,6 +58,7 @@ from .heights import (
     MATCHER_MODES,
     HeightsOptions,
     cell_problem,
+    coarse_guide,
     options_of,
 )
 from .ledger import StreamPair
@@ -326,11 +326,7 @@ class TileLevel:
         )
         # The full resolution is guided by a reduced pass as the whole-pair step is
         # (HeightsOptions.coarse); the quick-look, itself reduced, is not.
-        self.guide = (
-            CoarseGuide(ranges=options.coarse == "ranges")
-            if factor == 1 and options.coarse != "none"
-            else None
-        )
+        self.guide = coarse_guide(options) if factor == 1 else None
 
     # ---- blocks in ----------------------------------------------------------------------
     def takes(self, pair_id: str) -> bool:

@@ -896,9 +896,8 @@ def match_pair(
         raise ValueError("tile sizes must be >= 16 px and the overlap >= 0 px")
     h, w = left.shape
     dmin, dmax = sorted(int(v) for v in d_range)
-    ndisp = max(16, math.ceil((dmax - dmin + 1) / 16.0) * 16)
+    ndisp, shift, pad = _search(dmin, dmax)
     rng = (dmin, dmin + ndisp - 1)
-    shift = dmin + ndisp // 2
     # Data masks and stretch limits, one row band at a time (no full-size temporary).
     # Per row, the first and last column with data of each image (-1, -1: none).
     n_data = n_right = 0
@@ -968,7 +967,7 @@ def match_pair(
         (limits[0], limits[1]),
         dmin - shift,
         ndisp,
-        max(abs(rng[0] - shift), abs(rng[1] - shift)) + 1,
+        pad,
         shift,
     )
     matcher = sgbm_matcher(p, prep.dmin, ndisp)
@@ -1126,12 +1125,23 @@ def _tile_range(
     return (lo, hi) if lo <= hi else None
 
 
-def _tile_prepared(prep: _Prepared, d_range: tuple[int, int]) -> _Prepared:
-    """``prep`` for a tile searching ``d_range`` (pixels, inclusive): its own shift and pad."""
-    dmin, dmax = d_range
+def _search(dmin: int, dmax: int) -> tuple[int, int, int]:
+    """(ndisp, shift, pad) of a search from ``dmin`` over at least ``dmax`` (:class:`_Prepared`).
+
+    ``ndisp``: the disparities SGBM searches (a multiple of 16, at least 16); ``shift``: the
+    right window's shift that centres them on 0; ``pad``: the columns each side of a tile that
+    hold every partner. Pixels.
+    """
     ndisp = max(16, math.ceil((dmax - dmin + 1) / 16.0) * 16)
     shift = dmin + ndisp // 2
     pad = max(abs(dmin - shift), abs(dmin + ndisp - 1 - shift)) + 1
+    return ndisp, shift, pad
+
+
+def _tile_prepared(prep: _Prepared, d_range: tuple[int, int]) -> _Prepared:
+    """``prep`` for a tile searching ``d_range`` (pixels, inclusive): its own shift and pad."""
+    dmin, dmax = d_range
+    ndisp, shift, pad = _search(dmin, dmax)
     return replace(prep, dmin=dmin - shift, ndisp=ndisp, pad=pad, shift=shift)
 
 

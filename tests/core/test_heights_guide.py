@@ -17,6 +17,22 @@ import pytest
 from testkit.paths import BAGS
 
 
+def _steps(monkeypatch: pytest.MonkeyPatch) -> list[tuple[tuple[Any, ...], Any]]:
+    """Every call of the heights step from now on: (its arguments, its result)."""
+    from parproj_ros.core import heights as core_heights
+
+    calls: list[tuple[tuple[Any, ...], Any]] = []
+    step = core_heights.measure_heights
+
+    def spy(*args: Any) -> Any:
+        res = step(*args)
+        calls.append((args, res))
+        return res
+
+    monkeypatch.setattr(core_heights, "measure_heights", spy)
+    return calls
+
+
 @pytest.mark.ros
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["crab_foreaft", "ikonos_agile"])
@@ -27,16 +43,10 @@ def test_the_support_rule_removes_the_blunders(
     from parproj_ros.core import heights as core_heights
     from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
 
-    calls: list[tuple[Any, ...]] = []
     step = core_heights.measure_heights
-
-    def spy(*args: Any) -> Any:
-        calls.append(args)
-        return step(*args)
-
-    monkeypatch.setattr(core_heights, "measure_heights", spy)
+    calls = _steps(monkeypatch)
     process_bag(BAGS / name, tmp_path / "out", progress=False, overrides={"heights": True})
-    (args,) = calls
+    ((args, _),) = calls
     pair, left, right, z, options = args
     assert options.coarse == "support"  # the default
     truth = scenario_terrain(name)
@@ -65,22 +75,14 @@ def test_the_heights_coarse_parameter_reaches_the_step(
     ``HeightsOptions.coarse``: 'none' gives crab_foreaft's blunders back (RMS over half a pixel
     of x-parallax), 'ranges' keeps them out."""
     from parproj_ros.apps.cli import main as cli_main
-    from parproj_ros.core import heights as core_heights
     from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
 
-    seen: list[Any] = []
-    step = core_heights.measure_heights
-
-    def spy(*args: Any) -> Any:
-        res = step(*args)
-        seen.append((args[0], args[4], res[0]))
-        return res
-
-    monkeypatch.setattr(core_heights, "measure_heights", spy)
+    calls = _steps(monkeypatch)
     out = tmp_path / "out"
     argv = ["process", str(BAGS / "crab_foreaft"), "-o", str(out), "--heights", "-q"]
     assert cli_main([*argv, "--heights-coarse", coarse]) == 0
-    ((pair, options, res),) = seen
+    ((args, (res, _)),) = calls
+    pair, options = args[0], args[4]
     assert options.coarse == coarse
     truth = scenario_terrain("crab_foreaft")
     assert truth is not None
