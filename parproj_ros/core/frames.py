@@ -14,19 +14,71 @@ The rule (the same for ``parproj process`` and parproj_node):
   both (the outputs stay in the first); before any input names one, and if none ever does,
   :data:`DEFAULT_FRAME`.
 
+A frame with a place on Earth is a local east-north-up tangent plane on WGS84, named
+``enu_wgs84:lat=...,lon=...,h=...`` (:func:`frame_id_of`, :func:`frame_from_id`,
+:func:`tangent_plane`): the frame of an imported real pair, in which a DEM's heights can be
+placed (:mod:`parproj_ros.core.dem_terrain`).
+
 Nothing here imports ROS.
 """
 
 from __future__ import annotations
 
+import re
 import threading
 
+from ..geometry.geodesy import LocalTangentPlane
 from .results import Issue, Level
 
-__all__ = ["DEFAULT_FRAME", "ObjectFrame"]
+__all__ = [
+    "DEFAULT_FRAME",
+    "FRAME_PREFIX",
+    "ObjectFrame",
+    "frame_from_id",
+    "frame_id_of",
+    "tangent_plane",
+]
 
 #: The outputs' frame when neither the user nor any input names one.
 DEFAULT_FRAME = "map"
+
+#: The frame_id prefix of a local tangent plane on WGS84 (an imported pair's object frame).
+FRAME_PREFIX = "enu_wgs84"
+
+
+def frame_id_of(frame: LocalTangentPlane) -> str:
+    """The frame_id naming a local tangent plane (1e-7 deg, 1 cm: exact for a rounded origin)."""
+    return f"{FRAME_PREFIX}:lat={frame.lat0:.7f},lon={frame.lon0:.7f},h={frame.h0:.2f}"
+
+
+def frame_from_id(frame_id: str) -> LocalTangentPlane:
+    """Inverse of :func:`frame_id_of`.
+
+    Raises:
+        ValueError: not such a frame_id (or an origin that cannot be: latitude beyond +-90 deg,
+            a figure not finite).
+
+    """
+    m = re.fullmatch(
+        re.escape(FRAME_PREFIX) + r":lat=([-+0-9.eE]+),lon=([-+0-9.eE]+),h=([-+0-9.eE]+)",
+        frame_id.strip(),
+    )
+    if m is None:
+        raise ValueError(f"not a local tangent plane frame_id: {frame_id!r}")
+    return LocalTangentPlane(float(m.group(1)), float(m.group(2)), float(m.group(3)))
+
+
+def tangent_plane(frame_id: str) -> LocalTangentPlane | None:
+    """The tangent plane a frame_id names; None for a frame with no place on Earth (``map``).
+
+    A frame_id of the ``enu_wgs84:`` form that does not parse has no place on Earth either.
+    """
+    if not frame_id.strip().startswith(FRAME_PREFIX + ":"):
+        return None
+    try:
+        return frame_from_id(frame_id)
+    except ValueError:
+        return None
 
 
 class ObjectFrame:

@@ -62,7 +62,6 @@ the estimated roll.
 from __future__ import annotations
 
 import math
-import re
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -72,6 +71,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..core.frames import FRAME_PREFIX, frame_from_id, frame_id_of
 from ..rpc import (
     DOMAIN_LIMIT,
     RPC_TIFF_TAG,
@@ -112,8 +112,6 @@ CHECK_GRID = (4, 4, 2)
 TRUTH_POINTS = 300
 #: Half height range about the DEM (or about the mid height without a DEM), metres.
 DEM_MARGIN = 100.0
-#: Object frame_id prefix.
-FRAME_PREFIX = "enu_wgs84"
 #: GeoTIFF ModelTransformationTag.
 MODEL_TRANSFORMATION_TAG = 34264
 #: Fewest rows and columns of an image, pixels: one correlation patch of the tie-point matcher
@@ -343,12 +341,7 @@ def load_image(
 
 
 # ---------------------------------------------------------------------------------------------
-# The object frame
-
-
-def frame_id_of(frame: LocalTangentPlane) -> str:
-    """The GroundControlPoints frame_id naming a local tangent plane (exact, see module doc)."""
-    return f"{FRAME_PREFIX}:lat={frame.lat0:.7f},lon={frame.lon0:.7f},h={frame.h0:.2f}"
+# The object frame (its frame_id: parproj_ros/core/frames.py, frame_id_of and frame_from_id)
 
 
 #: How a tangent-plane frame_id is written (for messages refusing one).
@@ -356,22 +349,6 @@ TANGENT_PLANE_FORM = (
     f"a tangent plane on WGS84 is {FRAME_PREFIX}:lat=LAT,lon=LON,h=H "
     "(degrees, |LAT| <= 90; metres)"
 )
-
-
-def frame_from_id(frame_id: str) -> LocalTangentPlane:
-    """Inverse of :func:`frame_id_of`.
-
-    Raises:
-        ValueError: not such a frame_id.
-
-    """
-    m = re.fullmatch(
-        re.escape(FRAME_PREFIX) + r":lat=([-+0-9.eE]+),lon=([-+0-9.eE]+),h=([-+0-9.eE]+)",
-        frame_id.strip(),
-    )
-    if m is None:
-        raise ValueError(f"not a local tangent plane frame_id: {frame_id!r}")
-    return LocalTangentPlane(float(m.group(1)), float(m.group(2)), float(m.group(3)))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -877,6 +854,7 @@ def geodetic_of(points: Sequence[Any], frame_id: str) -> FloatArray:
 
 
 __all__ = [
+    "FRAME_PREFIX",
     "ImportedImage",
     "SceneImportError",
     "check_image",
