@@ -489,6 +489,22 @@ class DemHeights:
         """The DEM file (or files, joined by ', ') as given."""
         return ", ".join(self.names)
 
+    @property
+    def label(self) -> str:
+        """The DEM file names without their folders, joined by ', ' (for messages)."""
+        return ", ".join(Path(n).name or n for n in self.names)
+
+    @property
+    def reference(self) -> str:
+        """The vertical reference in words: what makes the DEM's heights ellipsoidal."""
+        if self.geoid_grid is not None:
+            return f"geoid {self.geoid_grid.label}"
+        if self.geoid is None:
+            return "ellipsoidal heights"
+        if self._undulation == 0.0:
+            return "heights taken as ellipsoidal (geoid undulation 0)"
+        return f"geoid undulation {self._undulation:g} m"
+
     def reset_usage(self) -> None:
         """Forget the points asked so far."""
         self.usage = _Usage()
@@ -555,6 +571,20 @@ class DemHeights:
                 box = self.geoid_grid.bounds_lonlat()
                 text = coverage_text(und, what, need, box, kind="geoid grid")
                 raise DemError(self.geoid_grid.label, text)
+
+    def gap_error(self, lon: ArrayLike, lat: ArrayLike, what: str) -> str | None:
+        """:meth:`check_covers` as a message: None when the DEM (and geoid grid) cover the points.
+
+        Returns:
+            One line naming the file at fault (the DEM, or the geoid grid), the share covered,
+            the area needed and the area the file covers.
+
+        """
+        try:
+            self.check_covers(lon, lat, what)
+        except DemError as err:
+            return str(err)
+        return None
 
     def check_usage(self, what: str) -> None:
         """:meth:`check_covers` for the points asked since :meth:`reset_usage` (their box).
@@ -714,6 +744,81 @@ def add_dem_arguments(parser: Any, use: str) -> None:
     )
 
 
+#: How the DEM options are named to a user of ``parproj`` (the node names its parameters).
+CLI_NAMES = {
+    "dem": "--dem",
+    "geoid": "--geoid",
+    "geoid_undulation": "--geoid-undulation",
+    "dem_ellipsoidal": "--dem-ellipsoidal",
+}
+
+
+def dem_from_options(
+    files: Sequence[str | Path],
+    *,
+    geoid_undulation: float = 0.0,
+    geoid: str = "",
+    ellipsoidal: bool = False,
+    names: dict[str, str] | None = None,
+) -> DemHeights | None:
+    """The DEM of ``--dem`` and its vertical reference (or of the node's parameters).
+
+    Args:
+        files: the DEM files (none: no DEM, and then no geoid option may be given).
+        geoid_undulation: a constant undulation N, metres (0: the heights as they are).
+        geoid: a grid file of undulations or a model name of :data:`GEOID_MODELS` ("": none).
+        ellipsoidal: the DEM holds ellipsoidal heights already.
+        names: how the options are named in messages (default :data:`CLI_NAMES`).
+
+    Raises:
+        InputError: a geoid option without a DEM; two vertical references at once; a DEM or
+            geoid file missing or unreadable (named).
+        DemError: see :func:`load_dem`.
+
+    """
+    from .files import input_path
+
+    n = names or CLI_NAMES
+    if not math.isfinite(float(geoid_undulation)):
+        raise InputError(n["geoid_undulation"], f"must be finite, got {geoid_undulation}")
+    given = [
+        key
+        for key, on in (
+            ("geoid", bool(geoid)),
+            ("geoid_undulation", float(geoid_undulation) != 0.0),
+            ("dem_ellipsoidal", bool(ellipsoidal)),
+        )
+        if on
+    ]
+    if len(given) > 1:
+        raise InputError(
+            n[given[1]],
+            f"and {n[given[0]]} both give the DEM's vertical reference: give one of "
+            f"{n['geoid_undulation']}, {n['geoid']}, {n['dem_ellipsoidal']}",
+        )
+    ref: Geoid
+    if ellipsoidal:
+        ref = None
+    elif geoid:
+        ref = str(geoid)
+        if ref.lower() not in GEOID_MODELS:
+            try:
+                input_path(ref, "file")
+            except InputError as err:  # named with the option: the value may be a typo
+                known = ", ".join(GEOID_MODELS)
+                raise InputError(n["geoid"], f"{err} (a grid file, or a model: {known})") from None
+    else:
+        ref = float(geoid_undulation)
+    if not files:
+        for key in ("geoid", "dem_ellipsoidal"):  # a constant undulation alone does no harm
+            if key in given:
+                raise InputError(n[key], f"describes the DEM's heights: give {n['dem']} too")
+        return None
+    for path in files:
+        input_path(path, "file")
+    return load_dem(files, geoid=ref)
+
+
 def dem_from_args(args: Any) -> DemHeights | None:
     """The DEM of the options of :func:`add_dem_arguments` (None without ``--dem``).
 
@@ -722,26 +827,9 @@ def dem_from_args(args: Any) -> DemHeights | None:
         DemError: see :func:`load_dem`.
 
     """
-    from .files import input_path
-
-    geoid: Geoid
-    if args.dem_ellipsoidal:
-        geoid = None
-    elif args.geoid:
-        geoid = str(args.geoid)
-        if geoid.lower() not in GEOID_MODELS:
-            try:
-                input_path(geoid, "file")
-            except InputError as err:  # named with the option: the value may be a typo
-                known = ", ".join(GEOID_MODELS)
-                raise InputError("--geoid", f"{err} (a grid file, or a model: {known})") from None
-    else:
-        geoid = float(args.geoid_undulation)
-    if not args.dem:
-        for flag, given in (("--geoid", args.geoid), ("--dem-ellipsoidal", args.dem_ellipsoidal)):
-            if given:
-                raise InputError(flag, "describes the DEM's heights: give --dem too")
-        return None
-    for path in args.dem:
-        input_path(path, "file")
-    return load_dem(args.dem, geoid=geoid)
+    return dem_from_options(
+        args.dem or [],
+        geoid_undulation=float(args.geoid_undulation),
+        geoid=str(args.geoid or ""),
+        ellipsoidal=bool(args.dem_ellipsoidal),
+    )

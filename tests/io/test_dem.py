@@ -542,3 +542,45 @@ def test_dsm_against_a_dem_elsewhere_is_refused(
     assert code == 2 and err.count("\n") == 1, err
     assert f"{far}: the DEM gives heights at 0 % of the DSMs' cells" in err, err
     assert not (tmp_path / "dsm2").exists()
+
+
+# ---- what the node and parproj process use (io/dem.py dem_from_options, gap_error) --------------
+
+
+def test_the_options_as_the_node_names_them(forms: dict[str, Any], tmp_path: Path) -> None:
+    """dem_from_options: one vertical reference, a geoid needing a DEM, named as the caller
+    names its options (the node: its parameters); the reference and files in words."""
+    from parproj_ros.io.dem import dem_from_options
+    from parproj_ros.io.files import InputError
+
+    names = {k: f"parameter {k}" for k in ("dem", "geoid", "geoid_undulation", "dem_ellipsoidal")}
+    dem = dem_from_options([forms["geotiff"]], geoid_undulation=50.0, names=names)
+    assert dem is not None and dem.label == "crop.tif" and dem.name == str(forms["geotiff"])
+    assert dem.reference == "geoid undulation 50 m"
+    flat = dem_from_options([forms["geotiff"]], ellipsoidal=True)
+    assert flat is not None and flat.reference == "ellipsoidal heights"
+    assert dem_from_options([], geoid_undulation=50.0) is None  # as before: harmless alone
+    with pytest.raises(InputError, match=r"^parameter geoid_undulation: and parameter geoid both"):
+        dem_from_options([forms["geotiff"]], geoid="egm2008", geoid_undulation=50.0, names=names)
+    with pytest.raises(InputError, match=r"^parameter geoid: describes the DEM.s heights: give "):
+        dem_from_options([], geoid="egm2008", names=names)
+    with pytest.raises(InputError, match=r"^parameter geoid: .*no_such\.gtx: no such file"):
+        dem_from_options([forms["geotiff"]], geoid=str(tmp_path / "no_such.gtx"), names=names)
+    with pytest.raises(DemError, match="has no CRS"):
+        plain = tmp_path / "plain.tif"
+        with rasterio.open(
+            plain, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32"
+        ) as dst:
+            dst.write(np.zeros((1, 4, 4), dtype=np.float32))
+        dem_from_options([plain])
+
+
+def test_gap_error_names_the_file_and_both_areas(forms: dict[str, Any], tmp_path: Path) -> None:
+    dem = load_dem(forms["geotiff"], geoid=50.0)
+    t = forms["transform"]
+    lon, lat = _xy(t, np.array([20.0, 60.0]), np.array([20.0, 60.0]))
+    assert dem.gap_error(lon, lat, "pair a+b's ground") is None
+    far = load_dem(_elsewhere(forms, tmp_path), geoid=50.0)
+    text = far.gap_error(lon, lat, "pair a+b's ground")
+    assert text is not None and text.startswith(f"{_elsewhere(forms, tmp_path)}: the DEM gives")
+    assert "at 0 % of pair a+b's ground (needed: lon 5.1" in text and "covers lon 10.1" in text
