@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import cv2
 import numpy as np
@@ -34,7 +34,10 @@ from ..imaging.dense import (
 from ..imaging.heights import Dsm, GroundMapping, make_dsm, orthoimage
 from .config import PipelineConfig
 from .results import BlockResult, HeightsResult, HeightTile, Issue, Level, Outputs, PairResult
-from .terrain import Terrain, TerrainSource, measure_terrain
+from .terrain import FROM_TIE_POINTS, Terrain, TerrainSource, measure_terrain, with_dem
+
+if TYPE_CHECKING:
+    from .dem_terrain import DemTerrain
 
 Float32Array = NDArray[np.float32]
 
@@ -325,6 +328,8 @@ class HeightsStage:
 
     def __init__(self, options: HeightsOptions) -> None:
         self.options = options
+        #: The DEM of the pairs' terrain (:meth:`.pipeline.Pipeline.use_dem`), or None.
+        self.dem: DemTerrain | None = None
         self._blocks: dict[tuple[str, str], list[BlockResult]] = {}
         #: The full-resolution streamed tiles of the pairs in progress (core/tiles.py), by pair.
         self._tiles: dict[str, list[HeightTile]] = {}
@@ -392,12 +397,30 @@ class HeightsStage:
     ) -> tuple[Terrain, list[Issue]]:
         """The terrain to search for ``pair`` (its own, or measured now), and its issues.
 
-        A WARN when only the prior is known although a measurement was asked for.
+        A WARN when only the prior is known although a measurement was asked for. With a DEM
+        (:attr:`dem`): a pair that comes without the DEM's heights (streamed) gets them now,
+        and tie points measured now are joined with them (:func:`~.terrain.with_dem`); with
+        too few tie points the DEM's heights are searched (OK, not WARN).
         """
         opt = self.options
         terrain = pair.terrain or Terrain(*opt.prior_m, TerrainSource.PRIOR)
-        if not opt.measure_terrain or terrain.source == TerrainSource.TIE_POINTS:
+        if terrain.source in FROM_TIE_POINTS:
             return terrain, []
+        issues: list[Issue] = []
+        if self.dem is not None and terrain.source != TerrainSource.DEM:
+            k = pair.normalization.parallax_per_height
+            dem = self.dem.pair_terrain(
+                pair.pair_id,
+                pair.left,
+                pair.right,
+                pair.normalization,
+                z0=0.5 * (terrain.low_m + terrain.high_m),
+                metres_per_px=pair.left_grid.pixel / k,
+            )
+            issues += self.dem.take_issues()
+            terrain = dem or terrain
+        if not opt.measure_terrain:
+            return terrain, issues
         measured = measure_terrain(
             left,
             right,
@@ -407,16 +430,28 @@ class HeightsStage:
             terrain,
             nodata=opt.nodata,
         )
+        dem_terrain = terrain if terrain.source == TerrainSource.DEM else None
         if measured.source == TerrainSource.TIE_POINTS:
-            return measured, []
+            return with_dem(dem_terrain, measured), issues
+        if dem_terrain is not None:
+            return terrain, [
+                *issues,
+                Issue(
+                    Level.OK,
+                    f"pair {pair.pair_id}",
+                    "too few tie points agree to measure the terrain from the pair: the heights "
+                    f"searched are the DEM's, {terrain.describe()}",
+                ),
+            ]
         return terrain, [
+            *issues,
             Issue(
                 Level.WARN,
                 f"pair {pair.pair_id}",
                 "too few tie points agree to measure the terrain from the pair: the heights "
                 f"searched are the prior, {terrain.describe()} (if the ground lies outside it, "
                 "few pixels match: give a DEM at import, or set z_avg / height_range)",
-            )
+            ),
         ]
 
     def keep(self, blk: BlockResult) -> None:

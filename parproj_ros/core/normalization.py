@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Collection
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,7 +34,17 @@ from .config import OrientationSettings, OutputSettings, PipelineConfig
 from .gcp_store import GcpStore
 from .orientation import scene_from_gcp
 from .results import Issue, Level, Method, Outputs, PairGeometry, SceneResult, YParallaxSource
-from .terrain import Terrain, TerrainSource, measure_terrain, reduction_factor
+from .terrain import (
+    MEASURED,
+    Terrain,
+    TerrainSource,
+    measure_terrain,
+    reduction_factor,
+    with_dem,
+)
+
+if TYPE_CHECKING:
+    from .dem_terrain import DemTerrain
 
 FloatArray = NDArray[np.float64]
 
@@ -42,13 +53,16 @@ FloatArray = NDArray[np.float64]
 class NormalizedPair:
     """A pair's geometry, its two normalized images and the terrain of its output extent.
 
-    The images are in output grid pixels, of the scenes' dtype.
+    The images are in output grid pixels, of the scenes' dtype. ``dem_terrain``: the DEM's
+    terrain of the pair (None: no DEM, or it could not give one), which the full-resolution tie
+    points' terrain is joined with again (:func:`~.terrain.with_dem`).
     """
 
     geometry: PairGeometry
     left_image: NDArray[np.generic]
     right_image: NDArray[np.generic]
     terrain: Terrain
+    dem_terrain: Terrain | None = None
 
 
 def _output(settings: OutputSettings | PipelineConfig) -> OutputSettings:
@@ -242,12 +256,12 @@ def pair_heights(
 def zero_disparity_height(z_avg: float, terrain: Terrain) -> float:
     """The zero-disparity height of a pair's grids: ``z_avg`` on a measured terrain holding it.
 
-    Otherwise (the terrain measured elsewhere, e.g. an imported pair whose frame lies at the
-    RPC's height offset, hundreds of metres above the ground) the middle of the measured
-    terrain, to the metre: conjugate points then lie near the same column of both images, as
-    a stereo user expects, and the images hold the same ground.
+    Otherwise (the terrain measured elsewhere, by tie points or a DEM, e.g. an imported pair
+    whose frame lies at the RPC's height offset, hundreds of metres above the ground) the middle
+    of the measured terrain, to the metre: conjugate points then lie near the same column of
+    both images, as a stereo user expects, and the images hold the same ground.
     """
-    if terrain.source != TerrainSource.TIE_POINTS or terrain.low_m <= z_avg <= terrain.high_m:
+    if terrain.source not in MEASURED or terrain.low_m <= z_avg <= terrain.high_m:
         return z_avg
     return float(round(0.5 * (terrain.low_m + terrain.high_m)))
 
@@ -328,27 +342,45 @@ def resample_scene(
 
 
 def normalize_pair(
-    left: SceneResult, right: SceneResult, config: PipelineConfig, gcps: GcpStore
+    left: SceneResult,
+    right: SceneResult,
+    config: PipelineConfig,
+    gcps: GcpStore,
+    dem: DemTerrain | None = None,
 ) -> NormalizedPair | Issue:
     """A pair of whole scenes normalized: geometry (:func:`pair_geometry`), both resampled.
 
     With ``terrain`` "tie_points" the output extent is chosen at the terrain measured from the
     pair (:func:`terrain_prepass`), which :attr:`NormalizedPair.terrain` then holds; otherwise
-    at the heights of its GCP or the prior (:func:`pair_terrain`).
+    at the heights of its GCP or the prior (:func:`pair_terrain`). With a DEM (``dem``, whose
+    issues it keeps), its heights over the pair's ground join the tie points' (their hull), or
+    replace the prior (:func:`~.terrain.with_dem`).
     """
     frame = pair_frame(left, right, (left.scene.lines, right.scene.lines), config)
     if isinstance(frame, Issue):
         return frame
     terrain = pair_terrain(left, right, config.orientation, gcps)
+    dem_terrain = None
+    if dem is not None:
+        k = frame.normalization.parallax_per_height
+        dem_terrain = dem.pair_terrain(
+            frame.pair_id,
+            left,
+            right,
+            frame.normalization,
+            z0=0.5 * (terrain.low_m + terrain.high_m),
+            metres_per_px=frame.pixel / k,
+        )
     if config.ties.terrain == "tie_points":
         terrain = terrain_prepass(frame, left, right, config.output, terrain)
-        frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
+    terrain = with_dem(dem_terrain, terrain)
+    frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
     geo = pair_grids(frame, config.output, terrain.range_m)
     if isinstance(geo, Issue):
         return geo
     img_l = resample_scene(left, geo.left_geom, geo.left_grid, config.output)
     img_r = resample_scene(right, geo.right_geom, geo.right_grid, config.output)
-    return NormalizedPair(geo, img_l, img_r, terrain)
+    return NormalizedPair(geo, img_l, img_r, terrain, dem_terrain)
 
 
 def y_parallax(

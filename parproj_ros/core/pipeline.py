@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from ..imaging.assembly import OpenScene, Scene, SceneAssembler, SceneEnd, StripRejectedError
 from .config import PipelineConfig as PipelineConfig
 from .config import ViewConfig as ViewConfig
+from .dem_terrain import DemTerrain, terrain_issue
 from .fusion import FusionStage
 from .gcp_store import GcpStore
 from .heights import HeightsStage, options_of
@@ -67,7 +68,7 @@ from .results import (
     YParallaxSource,
 )
 from .streaming import Streamer
-from .terrain import terrain_from_heights
+from .terrain import TerrainSource, terrain_from_heights, with_dem
 from .tiepoints import TieRefinement, refine_with_tie_points
 from .tiles import TileStage, TileThread
 from .trajectory import NavSample, TrajectoryBuffer
@@ -120,6 +121,20 @@ class Pipeline:
             if config.dense.enabled and config.dense.fuse_mb > 0
             else None
         )
+        #: The DEM of the pairs' terrain, given by the front end (:meth:`use_dem`), or None.
+        self.dem: DemTerrain | None = None
+
+    def use_dem(self, dem: DemTerrain | None) -> None:
+        """Measure each pair's terrain with this DEM too (None: no DEM).
+
+        The front end reads the DEM (the node's ``dem`` parameter, ``parproj process --dem``)
+        and says in which object frame it is placed (:class:`~.dem_terrain.DemTerrain`); the
+        output extent (step 4) and the heights step's disparity range (step 7) then search its
+        heights over the pair's ground joined with the tie points' (:func:`~.terrain.with_dem`).
+        """
+        self.dem = dem
+        if self.heights is not None:
+            self.heights.dem = dem
 
     def use_render_process(self, renderer: RenderProcess) -> None:
         """Render streamed blocks in ``renderer``'s process; line buffers in its shared memory.
@@ -545,7 +560,9 @@ class Pipeline:
         """Steps 4 (normalize), 5 (refine) and 6 (publish) for a pair of whole scenes."""
         out = Outputs()
         # 4. normalize: paper 2 Eq 8, the output grids, both scenes resampled.
-        normalized = normalize_pair(left, right, self.config, self.gcps)
+        normalized = normalize_pair(left, right, self.config, self.gcps, self.dem)
+        if self.dem is not None:  # the DEM's issues with this pair, whatever came of it
+            out.issues += self.dem.take_issues()
         if isinstance(normalized, Issue):
             out.issues.append(normalized)
             return out
@@ -573,11 +590,22 @@ class Pipeline:
                 if self.config.ties.terrain == "tie_points":
                     # The full-resolution tie points measure the terrain more finely than the
                     # reduced pair the extent was chosen on.
-                    terrain = terrain_from_heights(
+                    fine = terrain_from_heights(
                         tie.heights_m,
                         terrain,
                         metres_per_px=geo.left_grid.pixel / geo.normalization.parallax_per_height,
                     )
+                    if fine is not terrain:  # measured: joined with the DEM's again
+                        terrain = with_dem(normalized.dem_terrain, fine)
+        if self.dem is not None:
+            # Which heights the pair's extent (and its heights step) searches, and whence.
+            why = (
+                ": too few tie points agree to measure the terrain from the pair, the DEM's "
+                "heights are searched"
+                if terrain.source == TerrainSource.DEM and self.config.ties.terrain == "tie_points"
+                else ""
+            )
+            out.issues.append(terrain_issue(geo.pair_id, terrain, why))
         # 6. publish: the pair result, with its y-parallax and terrain.
         pair = finish_pair(
             left,

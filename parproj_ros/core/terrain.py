@@ -12,6 +12,13 @@ Without it the pipeline assumes the terrain: the span of the pair's GCP (for an 
 virtual points spread over the RPC's height span, often hundreds of metres away from the crop's
 ground) or ``z_avg`` +- ``height_range``. That prior stays the fallback, and a WARN says so,
 when too few tie points agree.
+
+A DEM given (the node's ``dem`` parameter, ``parproj process --dem``) adds its heights over the
+pair's ground (:mod:`parproj_ros.core.dem_terrain`): the terrain is then the hull of the DEM's
+span and the tie points' (:func:`with_dem`, source ``dem+tie_points``), so that neither's gaps
+shrink the search (a DEM misses trees, buildings and what changed since it was made; tie points
+miss what has no texture); with too few tie points the DEM's alone (source ``dem``) replaces
+the prior.
 """
 
 from __future__ import annotations
@@ -54,6 +61,17 @@ class TerrainSource(StrEnum):
     GCP = "gcp"
     #: Assumed: ``z_avg`` +- ``height_range``.
     PRIOR = "prior"
+    #: A DEM's heights over the pair's ground (too few tie points, or ``terrain`` prior).
+    DEM = "dem"
+    #: The hull of the DEM's heights and the tie points' (:func:`with_dem`).
+    DEM_TIE_POINTS = "dem+tie_points"
+
+
+#: Sources of a terrain measured on the pair's ground (not assumed): the output grids' zero
+#: disparity height may move to their middle (:func:`~.normalization.zero_disparity_height`).
+MEASURED = frozenset({TerrainSource.TIE_POINTS, TerrainSource.DEM, TerrainSource.DEM_TIE_POINTS})
+#: Sources holding tie points measured on the pair (nothing more to measure on its images).
+FROM_TIE_POINTS = frozenset({TerrainSource.TIE_POINTS, TerrainSource.DEM_TIE_POINTS})
 
 
 @dataclass(frozen=True)
@@ -64,9 +82,12 @@ class Terrain:
         low_m: lowest height, metres in the object frame.
         high_m: highest height, metres in the object frame.
         source: where they come from.
-        points: tie points measured (0 unless ``source`` is tie points).
+        points: tie points measured (0 unless ``source`` holds tie points).
         measured_m: (lowest, highest) percentile of the tie points' heights before the margin,
             metres; None unless measured.
+        dem_m: (lowest, highest) height of the DEM over the pair's ground before the margin,
+            metres in the object frame; None unless ``source`` holds the DEM.
+        dem: the DEM in words (its files and vertical reference); "" without one.
     """
 
     low_m: float
@@ -74,6 +95,8 @@ class Terrain:
     source: TerrainSource
     points: int = 0
     measured_m: tuple[float, float] | None = None
+    dem_m: tuple[float, float] | None = None
+    dem: str = ""
 
     @property
     def range_m(self) -> tuple[float, float]:
@@ -83,17 +106,74 @@ class Terrain:
     def describe(self) -> str:
         """Words for logs: "terrain 52..371 m from 381 tie points" and the like."""
         text = f"terrain {self.low_m:.0f}..{self.high_m:.0f} m"
-        if self.source == TerrainSource.TIE_POINTS:
-            assert self.measured_m is not None
+        ties = ""
+        if self.measured_m is not None:
             lo, hi = self.measured_m
-            return (
-                f"{text} from {self.points} tie points (percentiles "
-                f"{TERRAIN_PERCENTILES[0]:g}-{TERRAIN_PERCENTILES[1]:g}: {lo:.0f}..{hi:.0f} m, "
-                "plus a margin)"
+            ties = (
+                f"{self.points} tie points (percentiles {TERRAIN_PERCENTILES[0]:g}-"
+                f"{TERRAIN_PERCENTILES[1]:g}: {lo:.0f}..{hi:.0f} m"
             )
+        dem = ""
+        if self.dem_m is not None:
+            lo, hi = self.dem_m
+            dem = f"the DEM {self.dem} (its heights over the pair's ground: {lo:.0f}..{hi:.0f} m"
+        if self.source == TerrainSource.TIE_POINTS:
+            return f"{text} from {ties}, plus a margin)"
+        if self.source == TerrainSource.DEM:
+            return f"{text} from {dem}, plus a margin)"
+        if self.source == TerrainSource.DEM_TIE_POINTS:
+            return f"{text} from {dem}) and {ties}), plus a margin"
         if self.source == TerrainSource.GCP:
             return f"{text} from the pair's GCP"
         return f"{text} assumed (z_avg +- height_range)"
+
+
+def with_dem(dem: Terrain | None, measured: Terrain) -> Terrain:
+    """The terrain searched, from the DEM's (or None) and what the tie points measured.
+
+    Both: their hull (source ``dem+tie_points``), neither's gaps shrinking the search; too few
+    tie points (``measured`` is the prior, or the GCP's span): the DEM's alone; no DEM:
+    ``measured``.
+    """
+    if dem is None:
+        return measured
+    if measured.source not in FROM_TIE_POINTS:
+        return dem
+    return Terrain(
+        min(dem.low_m, measured.low_m),
+        max(dem.high_m, measured.high_m),
+        TerrainSource.DEM_TIE_POINTS,
+        measured.points,
+        measured.measured_m,
+        dem.dem_m,
+        dem.dem,
+    )
+
+
+#: The tie points' heights and the DEM's lying further apart than this are said (a WARN): a
+#: DEM above another datum than the one its option says (the geoid undulation forgotten), of
+#: another place or time, metres.
+DISAGREE_M = 30.0
+
+
+def disagreement(terrain: Terrain) -> str | None:
+    """Why the DEM's heights and the tie points' of ``terrain`` do not agree; None if they do.
+
+    They disagree when their spans (before the margins) lie more than :data:`DISAGREE_M` apart.
+    """
+    if terrain.measured_m is None or terrain.dem_m is None:
+        return None
+    (tlo, thi), (dlo, dhi) = terrain.measured_m, terrain.dem_m
+    gap = max(tlo - dhi, dlo - thi)
+    if gap <= DISAGREE_M:
+        return None
+    where = "above" if tlo > dhi else "below"
+    return (
+        f"the tie points' heights ({tlo:.0f}..{thi:.0f} m) lie {gap:.0f} m {where} the DEM's "
+        f"({dlo:.0f}..{dhi:.0f} m, {terrain.dem}): a DEM of another datum (its vertical "
+        "reference: geoid_undulation, geoid, dem_ellipsoidal), place or time? Both spans are "
+        "searched"
+    )
 
 
 def match_heights(

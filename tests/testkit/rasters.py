@@ -111,3 +111,73 @@ def render_crop(full: RPCModel, crop: tuple[int, int, int, int]) -> np.ndarray:
     img = cv2.remap(tex, x, y, cv2.INTER_LINEAR)
     img = (img - img.min()) / (img.max() - img.min())
     return (200 + 3000 * img).astype(np.uint16)
+
+
+#: The SRTM 3" crop of tests/data/ventoux (heights above EGM96): its file, the latitude of row 0
+#: and longitude of column 0 (node centres) and the spacing, degrees (the file's header).
+SRTM_CROP = DATA / "srtm_N44E005_crop.txt"
+SRTM_LAT0, SRTM_LON0, SRTM_STEP = 45 - 927 / 1200, 5 + 206 / 1200, 1 / 1200
+
+
+def srtm_crop_geotiff(path: Path, *, shift_lon_deg: float = 0.0) -> Path:
+    """The SRTM crop as a GeoTIFF (EPSG:4326, int16 as the tile, nodata -32768).
+
+    Its nodes are cell centres (GDAL's convention for an ``.hgt``): the same surface as
+    ``grid_height`` of the crop. ``shift_lon_deg``: the same heights that many degrees east (a
+    DEM of another place).
+    """
+    from rasterio.transform import from_origin
+
+    data = np.loadtxt(SRTM_CROP).astype(np.int16)
+    west = SRTM_LON0 + shift_lon_deg - SRTM_STEP / 2
+    north = SRTM_LAT0 + SRTM_STEP / 2
+    profile = {
+        "driver": "GTiff",
+        "width": data.shape[1],
+        "height": data.shape[0],
+        "count": 1,
+        "dtype": "int16",
+        "crs": "EPSG:4326",
+        "transform": from_origin(west, north, SRTM_STEP, SRTM_STEP),
+        "nodata": -32768,
+    }
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(data, 1)
+    return path
+
+
+def srtm_crop_z(frame_id: str, x: Any, y: Any, undulation: float = 50.0) -> Any:
+    """The SRTM crop's heights + ``undulation`` as object Z of the plane ``frame_id`` at (X, Y).
+
+    Through the crop's own reader (``grid_height``, not the GeoTIFF) and the plane's curvature
+    (``core.dem_terrain.surface_z``); NaN outside the crop.
+    """
+    from parproj_ros.core.dem_terrain import surface_z
+    from parproj_ros.core.frames import frame_from_id
+    from parproj_ros.io.dem import grid_height
+
+    ref = grid_height(
+        np.loadtxt(SRTM_CROP),
+        lat_max=SRTM_LAT0,
+        lon_min=SRTM_LON0,
+        step_deg=SRTM_STEP,
+        geoid_undulation=undulation,
+    )
+    return surface_z(frame_from_id(frame_id), ref, x, y, 0.0)  # type: ignore[arg-type]
+
+
+def pair_ground_slack(side_m: float = 250.0) -> float:
+    """How far a DEM span sampled on the pair-ground grid may miss a span over the same ground.
+
+    The grid's node spacing (``side_m``, a Ventoux crop: 500 px of 0.5 m, over
+    ``FOOTPRINT_GRID - 1`` steps, diagonal) times the crop's steepest slope (metres).
+    """
+    import math
+
+    from parproj_ros.core.dem_terrain import FOOTPRINT_GRID
+
+    h = np.loadtxt(SRTM_CROP)
+    dy = SRTM_STEP * math.pi / 180 * 6.371e6
+    dx = dy * math.cos(math.radians(SRTM_LAT0))
+    slope = float(np.hypot(*np.gradient(h, dy, dx)).max())
+    return slope * side_m / (FOOTPRINT_GRID - 1) * math.sqrt(2.0)
