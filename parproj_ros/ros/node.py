@@ -24,6 +24,7 @@ from sensor_msgs.msg import Image
 from ..core import contract
 from ..core.admission import PairAdmission, prefault, working_set_floor
 from ..core.config import config_from_values
+from ..core.dem_terrain import DemTerrain
 from ..core.frames import ObjectFrame
 from ..core.results import BlockResult, Issue, Level, Outputs
 from ..core.session import InputKind, Session, Worker
@@ -37,6 +38,7 @@ from .startup import (
     GIVEN_PARAMS_FILES,
     declare_all,
     exit_with,
+    load_dem_parameters,
     machine_memory_mb,
     memory_issues,
     params_file_issues,
@@ -73,6 +75,7 @@ class ParprojNode(Node):
         """The body of :meth:`__init__` after the rclpy node exists."""
         issues: list[Issue] = []
         vals = declare_all(self, issues)
+        dem = load_dem_parameters(vals)  # read now: a DEM that cannot serve does not start
         # outputs in the frame_id parameter, or ("") in the frame of the inputs (core/frames.py)
         self._frame = ObjectFrame(str(vals["frame_id"]))
         self.reporter = Reporter(self, lambda: self.frame_id, float(vals["error_hold_s"]))
@@ -83,6 +86,9 @@ class ParprojNode(Node):
         config = config_from_values(vals)
         self.session = Session(config)
         self.pipeline = self.session.pipeline
+        if dem is not None:  # placed in the outputs' object frame as it is at each pair
+            self.pipeline.use_dem(DemTerrain(dem, lambda: self.frame_id))
+            self.log("info", f"dem {dem.name} ({dem.reference}): the pairs' terrain from it")
         if bool(vals["render_process"]):
             issues += self.session.start_renderer()
         if bool(vals["tile_thread"]):

@@ -258,6 +258,17 @@ def declare(node: Node, name: str, p: Param, issues: list[Issue]) -> Any:
     desc = descriptor(p)
     overrides = node._parameter_overrides  # rclpy: the values given for this node
     given = overrides.get(name)
+    if given is not None and given.value is None and p.default == []:
+        # A parameters file's "dem: []" (config/parproj_node.yaml) reaches rclpy as no value:
+        # it is the default, an empty list, not a parameter without a value.
+        return node.declare_parameter(name, p.default, desc, ignore_override=True).value
+    if given is not None and p.strict and p.type not in ("string_array", "double_array"):
+        # No safe default (the DEM's vertical reference): a bad value does not start the node.
+        value, problem = p.check(given.value)
+        if problem:
+            raise StartupError(f"parameter {name}: {problem}")
+        if type(value) is not type(given.value):  # 50 for a double
+            overrides[name] = Parameter(name, value=value)
     if given is not None and not p.strict:
         value, problem = p.check(given.value)
         if problem:
@@ -282,15 +293,82 @@ def declare(node: Node, name: str, p: Param, issues: list[Issue]) -> Any:
         return node.declare_parameter(name, p.default, desc, ignore_override=True).value
 
 
+def check_dem_files(value: Any) -> list[str]:
+    """The ``dem`` parameter as a list of files ([]: no DEM).
+
+    A parameters file's ``dem: []`` reaches the node as no value at all (rcl), and one file
+    given as a string (``-p dem:=N44E005.hgt``) is taken as that file.
+
+    Raises:
+        StartupError: not a list of file names, or an empty name in it.
+    """
+    if value is None or (isinstance(value, array.array | list | tuple) and len(value) == 0):
+        return []
+    files = [value] if isinstance(value, str) else value
+    if not isinstance(files, list | tuple) or not all(isinstance(f, str) for f in files):
+        raise StartupError(
+            f"parameter dem: {shown(value)} is not a list of DEM files (e.g. [N44E005.hgt], "
+            "or [] for none)"
+        )
+    if not all(f.strip() for f in files):
+        raise StartupError(f"parameter dem: {shown(value)} holds an empty file name")
+    return [os.path.expanduser(f) for f in files]
+
+
+#: How messages name the DEM's parameters (parproj_ros/io/dem.py ``dem_from_options``).
+DEM_PARAMETERS = {
+    "dem": "parameter dem",
+    "geoid": "parameter geoid",
+    "geoid_undulation": "parameter geoid_undulation",
+    "dem_ellipsoidal": "parameter dem_ellipsoidal",
+}
+
+
+def load_dem_parameters(vals: Mapping[str, Any]) -> Any:
+    """The DEM of the parameters ``dem`` .. ``dem_ellipsoidal`` (None without ``dem``).
+
+    Read at start, so that a DEM that cannot serve does not start the node.
+
+    Returns:
+        A ``parproj_ros.io.dem.DemHeights``, or None.
+
+    Raises:
+        StartupError: a DEM file missing, unreadable (GDAL) or without a CRS, a geoid grid
+            likewise or an unknown geoid model, two vertical references at once, a geoid
+            option without ``dem``: one line naming the parameter and the file.
+    """
+    from ..io.dem import dem_from_options
+    from ..io.files import InputError
+
+    try:
+        return dem_from_options(
+            vals["dem"],
+            geoid_undulation=float(vals["geoid_undulation"]),
+            geoid=str(vals["geoid"]),
+            ellipsoidal=bool(vals["dem_ellipsoidal"]),
+            names=DEM_PARAMETERS,
+        )
+    except InputError as err:  # DemError too: the file at fault, and what is wrong
+        if err.path.startswith("parameter "):  # named so by dem_from_options
+            raise StartupError(str(err)) from None
+        which = "dem" if err.path in {*vals["dem"], ", ".join(vals["dem"])} else "geoid"
+        path = str(vals["geoid"]) if err.path == "--geoid" else err.path
+        missing = err.problem.startswith("no such file") and not os.path.isabs(path)
+        folder = f" (from the node's working folder, {os.getcwd()})" if missing else ""
+        raise StartupError(f"parameter {which}: {path}{folder}: {err.problem}") from None
+
+
 def declare_all(node: Node, issues: list[Issue]) -> dict[str, Any]:
     """Declare every parameter of the table (and of each view): name -> value.
 
     Raises:
-        StartupError: ``views``, ``frame_id`` or a ``<view>.mounting_rpy_deg`` is invalid.
+        StartupError: ``views``, ``frame_id``, ``dem`` or a ``<view>.mounting_rpy_deg`` is
+            invalid (the DEM's files themselves: :func:`load_dem_parameters`).
     """
     vals = {p.name: declare(node, p.name, p, issues) for p in PARAMS}
     vals["views"] = check_views(vals["views"])
     vals["frame_id"] = check_frame_id(vals["frame_id"])
+    vals["dem"] = check_dem_files(vals["dem"])
     for view in vals["views"]:
         for p in VIEW_PARAMS:
             vals[f"{view}.{p.name}"] = declare(node, f"{view}.{p.name}", p, issues)

@@ -253,6 +253,26 @@ def test_process_has_an_option_per_offline_parameter_with_its_default() -> None:
         assert getattr(args, p.name) == p.default, p.name
 
 
+def test_the_dem_rows_name_the_process_options_that_set_them() -> None:
+    """The node's DEM parameters are parproj process's --dem options (io/dem.py's, shared with
+    import and dsm): the table's `process` option column names them, and process has them."""
+    rows = [p for p in PARAMS if p.process_options]
+    assert [p.name for p in rows] == ["dem", "geoid_undulation", "geoid", "dem_ellipsoidal"]
+    assert all(p.strict and not p.offline and p.fills == "node" for p in rows)
+    args = _process_args("--dem", "a.tif", "b.tif", "--geoid-undulation", "50")
+    assert (args.dem, args.geoid_undulation, args.geoid, args.dem_ellipsoidal) == (
+        ["a.tif", "b.tif"],
+        50.0,
+        None,
+        False,
+    )
+    assert _process_args("--dem", "a.tif", "--dem-ellipsoidal").dem_ellipsoidal is True
+    table = param_docs.parameters_markdown().splitlines()
+    for p in rows:
+        (line,) = [x for x in table if x.startswith(f"| `{p.name}` |")]
+        assert f"| `{p.process_options[0]}` |" in line, line
+
+
 def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
     code = cli.main(argv)
     return code, capsys.readouterr().err

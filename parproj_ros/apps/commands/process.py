@@ -7,6 +7,7 @@ import sys
 from typing import TYPE_CHECKING, Any
 
 from ...core.params import PARAMS
+from ...io.dem import add_dem_arguments
 from ...io.files import (
     check_output,
     input_path,
@@ -64,6 +65,7 @@ def overrides_from(args: argparse.Namespace) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     """``parproj process``: the pipeline over a bag without DDS."""
+    from ...io.dem import dem_from_args
     from ...ros.inputs import check_input_bag
     from ..process import process_bag
 
@@ -74,6 +76,7 @@ def run(args: argparse.Namespace) -> int:
     check_input_bag(bag)
     _check_frame_id(args.frame_id)
     overrides = overrides_from(args)
+    dem = dem_from_args(args)  # read now: a DEM that cannot serve is refused before the run
     with staged_output(out, force=args.force) as work:
         summary = process_bag(
             bag,
@@ -82,6 +85,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.quiet,
             direct=args.direct,
             frame_id=args.frame_id,
+            dem=dem,
         )
     for iss in summary.issues:
         print(f"[{iss.level}] {iss.where}: {iss.message}", file=sys.stderr)
@@ -155,6 +159,11 @@ def add_parser(sub: Any) -> None:
         "turns into a CRS), else map",
     )
     add_parameter_options(p)
+    add_dem_arguments(
+        p,
+        "the pairs' ground (parameter dem): its heights over each pair join the tie points' as "
+        "the terrain searched (an enu_wgs84 object frame only)",
+    )
     p.add_argument(
         "--direct",
         action=argparse.BooleanOptionalAction,
