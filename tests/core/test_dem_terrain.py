@@ -233,6 +233,45 @@ def test_a_dem_elsewhere_is_an_error_and_the_pair_comes(agile: dict[str, Any]) -
     assert "the DEM is not used for this pair" in errors[0].message
 
 
+class HalfDem(FlatDem):
+    """Heights on one side of a meridian only: part of the pair's ground."""
+
+    def __init__(self, h: float, lon0: float) -> None:
+        super().__init__(h)
+        self.lon0 = lon0
+
+    def __call__(self, lon: ArrayLike, lat: ArrayLike) -> Any:
+        lon = np.asarray(lon, float)
+        return np.where(lon > self.lon0, self.h, np.nan) + 0.0 * np.asarray(lat, float)
+
+    def gap_error(self, lon: ArrayLike, lat: ArrayLike, what: str) -> str | None:
+        share = float(np.isfinite(self(lon, lat)).mean())
+        return None if share >= 0.9 else f"{self.name}: {100 * share:.0f} % of {what}"
+
+
+def test_a_dem_over_part_of_the_pair_is_a_warning(agile: dict[str, Any]) -> None:
+    """Under 90 % of the pair's ground but some: WARN (not ERROR), the pair without the DEM."""
+    plane = tangent_plane(PLANE_ID)
+    assert plane is not None
+    pipe = Pipeline(agile["scn"].pipeline_config(streaming=False))
+    seen = DemTerrain(FlatDem(0.0), lambda: PLANE_ID)
+    pipe.use_dem(seen)
+    out = feed(pipe, agile["events"])
+    (pair,) = out.pairs
+    # the meridian through the middle of the pair's ground
+    from parproj_ros.core.dem_terrain import footprint_lonlat
+
+    lon, _ = footprint_lonlat(pair.left, pair.right, pair.normalization, plane, z0=0.0)
+    half = HalfDem(0.0, float(np.median(lon)))
+    out = _run(agile, half, PLANE_ID)
+    (pair,) = out.pairs
+    assert pair.terrain.source == TerrainSource.TIE_POINTS
+    (warn,) = [i for i in out.issues if "of pair" in i.message and "ground" in i.message]
+    share = float(warn.message.split(": ")[1].split(" %")[0])
+    assert warn.level == Level.WARN and 30.0 < share < 70.0, warn.message
+    assert "the DEM is not used for this pair" in warn.message
+
+
 def test_a_dem_in_a_map_frame_is_said_once(agile: dict[str, Any]) -> None:
     dem = FlatDem(500.0)
     pipe = Pipeline(agile["scn"].pipeline_config(streaming=False))
