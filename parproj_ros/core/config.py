@@ -203,6 +203,7 @@ class DenseSettings(_Settings):
     max_fill_cells: float = _default("heights_max_fill_cells")
     matcher: HeightsMatcher = field(default=_default("heights_matcher"))
     coarse: HeightsCoarse = field(default=_default("heights_coarse"))
+    scale: int = _default("heights_scale")
     fuse_mb: float = _default("heights_fuse_mb")
     cloud_step: int = _default("dsm_cloud_step")
     tile_px: int = _default("heights_tile_px")

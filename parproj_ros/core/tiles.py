@@ -315,14 +315,17 @@ class TileLevel:
         lr_check = options.lr_check
         if factor > 1 and lr_check == "flip":
             lr_check = QUICKLOOK_LR_CHECK
-        # The full resolution refines its sub-pixel disparities as the whole-pair step does
-        # (HeightsOptions.subpixel), so that a streamed pair's DSM is the step's; the
-        # quick-look keeps SGBM's own (its pixels are 2-8 times coarser, its CPU the limit).
+        # The full resolution refines its sub-pixel disparities, and matches at the
+        # resolution, as the whole-pair step does (HeightsOptions.subpixel, .scale), so that a
+        # streamed pair's DSM is the step's; the quick-look keeps SGBM's own sub-pixel
+        # disparities (its pixels are 2-8 times coarser, its CPU the limit) and its own
+        # resolution.
         self.params = SgbmParams(
             mode=MATCHER_MODES[options.matcher],
             lr_check=lr_check,
             stretch_percentiles=(0, 100),
             subpixel=options.subpixel if factor == 1 else "sgbm",
+            scale=options.scale if factor == 1 else 1,
         )
         # The full resolution is guided by a reduced pass as the whole-pair step is
         # (HeightsOptions.coarse); the quick-look, itself reduced, is not.

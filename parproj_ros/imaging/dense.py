@@ -139,6 +139,13 @@ class SgbmParams:
         ncc_noise_dn: windows whose difference (left minus right resampled, less its mean)
             has a standard deviation below this pass the photometric check, DN of the
             8-bit stretched images.
+        scale: 1: SGBM on the full-resolution images; 2: SGBM on both images reduced by 2
+            (2 x 2 means: a quarter of the pixels, half the disparities), its disparities
+            (both passes of the left-right check) enlarged back to every pixel, checked
+            there (texture, partners, left-right within ``lr_tolerance_px`` x 2), and refined
+            at full resolution (``subpixel="gradient"``, within ``subpixel_max_px`` x 2; a
+            pixel the refinement moves farther is dropped). Some 0.3 of a full-resolution
+            pass instead of 1.6 for both passes (docs/performance.md).
     """
 
     block_size: int = 5
@@ -162,8 +169,15 @@ class SgbmParams:
     min_ncc: float | None = None
     ncc_sigma_px: float = 1.5
     ncc_noise_dn: float = 4.0
+    scale: int = 1
 
     def __post_init__(self) -> None:
+        if self.scale not in (1, 2):
+            raise ValueError(f"scale must be 1 or 2, got {self.scale}")
+        if self.scale == 2 and self.lr_check == "reduced":
+            raise ValueError(
+                "scale 2 matches at half resolution already: lr_check 'reduced' is for scale 1"
+            )
         if self.lr_check not in ("flip", "reduced", "none"):
             raise ValueError(
                 f"lr_check must be 'flip', 'reduced' or 'none', got {self.lr_check!r}"
@@ -480,6 +494,112 @@ def _average_with_partner(
     return out
 
 
+def _half_search(dmin: int, ndisp: int) -> tuple[int, int]:
+    """(dmin, ndisp) of the half-resolution search of a full-resolution one, half pixels."""
+    lo = math.floor(dmin / 2) - 1
+    hi = math.ceil((dmin + ndisp - 1) / 2) + 1
+    return lo, max(16, math.ceil((hi - lo + 1) / 16) * 16)
+
+
+def _matcher_of(params: SgbmParams, prep: _Prepared) -> cv2.StereoSGBM:
+    """The matcher of a search (``prep``): at full resolution, or at half (``params.scale``).
+
+    At half resolution the speckle filter's region is a quarter of the pixels and its range
+    half the disparity.
+    """
+    if params.scale == 1:
+        return sgbm_matcher(params, prep.dmin, prep.ndisp)
+    lo, nd = _half_search(prep.dmin, prep.ndisp)
+    half = replace(
+        params,
+        speckle_window=params.speckle_window // 4,
+        speckle_range=max(1, params.speckle_range // 2),
+    )
+    return sgbm_matcher(half, lo, nd)
+
+
+def _half_passes(
+    lwin: UInt8Array,
+    rwin: UInt8Array,
+    matcher: cv2.StereoSGBM,
+    params: SgbmParams,
+    invalid: int,
+    search: tuple[int, int],
+    origin: tuple[int, int],
+) -> tuple[NDArray[Any], NDArray[Any] | None]:
+    """Both SGBM passes of a tile at half resolution, enlarged to the windows (OpenCV's units).
+
+    The windows are reduced by 2 x 2 means in blocks at even image rows and columns (a row or
+    column before the window and one after repeated where needed: tiles are reduced as the
+    whole image), padded on both sides with the columns OpenCV leaves without a disparity (no
+    data: zeros), matched left to right and, with ``lr_check`` "flip", right to left on both
+    mirrored (every ``lr_rows``-th half row, from an even multiple of it in the image; the
+    rows between take the matched row above, the first rows the one below); each map's
+    disparities are doubled and enlarged back bilinearly, a pixel between half pixels of
+    which one has none having none (``invalid``), as a pixel outside the full-resolution
+    ``search`` (dmin, ndisp: the half-resolution one, whole multiples of 16, reaches farther).
+
+    Args:
+        lwin: the left window (uint8).
+        rwin: the right window, the same shape.
+        matcher: the half-resolution matcher (:func:`_matcher_of`).
+        params: the settings.
+        invalid: the full-resolution code of a pixel without disparity.
+        search: the full-resolution search (dmin, ndisp), pixels.
+        origin: (row, column) of the windows' first pixel in the left image.
+
+    Returns:
+        (left disparities, right disparities or None), int16, 16 x full-resolution pixels,
+        the windows' shape.
+    """
+    rows, cols = lwin.shape
+    pt, pl = origin[0] % 2, origin[1] % 2
+    eb, er = (pt + rows) % 2, (pl + cols) % 2
+    size = ((pl + cols + er) // 2, (pt + rows + eb) // 2)
+
+    def reduce(img: UInt8Array) -> UInt8Array:
+        if pt or pl or eb or er:
+            img = cast("UInt8Array", cv2.copyMakeBorder(img, pt, eb, pl, er, cv2.BORDER_REPLICATE))
+        return cast("UInt8Array", cv2.resize(img, size, interpolation=cv2.INTER_AREA))
+
+    l2, r2 = reduce(lwin), reduce(rwin)
+    lo, nd = _half_search(*search)  # the matcher's (only its compute is called: spies)
+    left_pad, right_pad = max(lo + nd, 0), max(-lo, 0)
+    none = (lo - 1) * 16  # OpenCV's code of a half pixel without disparity
+
+    def run(a: UInt8Array, b: UInt8Array) -> NDArray[Any]:
+        pa, pb = (
+            cv2.copyMakeBorder(im, 0, 0, left_pad, right_pad, cv2.BORDER_CONSTANT, value=0)
+            for im in (a, b)
+        )
+        return cast("NDArray[Any]", matcher.compute(pa, pb)[:, left_pad : left_pad + size[0]])
+
+    def enlarge(raw: NDArray[Any]) -> NDArray[Any]:
+        # bilinear, 2 x: every pixel between 4 half pixels, each weighted 1/16 .. 9/16, so a
+        # pixel is valid where all 4 are (the enlarged validity is 255, not less)
+        ok = (raw != none).view(np.uint8)
+        full = (size[0] * 2, size[1] * 2)
+        held = cv2.resize(ok * np.uint8(255), full, interpolation=cv2.INTER_LINEAR)
+        doubled = raw * np.int16(2)
+        doubled[ok == 0] = 0
+        out = cast("NDArray[Any]", cv2.resize(doubled, full, interpolation=cv2.INTER_LINEAR))
+        lo16, hi16 = 16 * search[0], 16 * (search[0] + search[1] - 1)
+        out[(held != 255) | (out < lo16) | (out > hi16)] = invalid
+        return out[pt : pt + rows, pl : pl + cols]
+
+    raw_l = enlarge(run(l2, r2))
+    if params.lr_check != "flip":
+        return raw_l, None
+    k = params.lr_rows
+    first = -((origin[0] - pt) // 2) % k  # the half rows matched: multiples of k in the image
+    flipped = [cast("UInt8Array", cv2.flip(im[first::k], 1)) for im in (r2, l2)]
+    matched = cast("NDArray[Any]", cv2.flip(run(*flipped), 1))
+    raw_r = np.empty_like(l2, dtype=matched.dtype)
+    raw_r[first:] = np.repeat(matched, k, axis=0)[: l2.shape[0] - first]
+    raw_r[:first] = matched[0]
+    return raw_l, enlarge(raw_r)
+
+
 def _match_tile(
     prep: _Prepared,
     matcher: cv2.StereoSGBM,
@@ -501,17 +621,25 @@ def _match_tile(
     rwin, rok = prep.window(1, rows, (ext[0] - prep.shift, ext[1] - prep.shift))
     invalid = (prep.dmin - 1) * 16
     s = slice(prep.pad, prep.pad + (b - a))
-    raw_l = matcher.compute(lwin, rwin)
-    raw_r = right_d = var = None
-    if params.lr_check == "flip":
-        # disparity of each right pixel u: its left partner is u + d (every k-th row matched,
-        # each row between taking the matched row above it)
-        k = params.lr_rows
-        raw_r = cv2.flip(matcher.compute(cv2.flip(rwin[::k], 1), cv2.flip(lwin[::k], 1)), 1)
-        if k > 1:
-            raw_r = np.repeat(raw_r, k, axis=0)[: lwin.shape[0]]
-    elif params.lr_check == "reduced":
-        right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
+    raw_r: NDArray[Any] | None = None
+    right_d = var = None
+    raw_l: NDArray[Any]
+    if params.scale == 2:
+        raw_l, raw_r = _half_passes(
+            lwin, rwin, matcher, params, invalid, (prep.dmin, prep.ndisp), (rows[0], ext[0])
+        )
+    else:
+        raw_l = matcher.compute(lwin, rwin)
+        if params.lr_check == "flip":
+            # disparity of each right pixel u: its left partner is u + d (every k-th row
+            # matched, each row between taking the matched row above it)
+            k = params.lr_rows
+            raw_r = cv2.flip(matcher.compute(cv2.flip(rwin[::k], 1), cv2.flip(lwin[::k], 1)), 1)
+            if k > 1:
+                raw_r = np.repeat(raw_r, k, axis=0)[: lwin.shape[0]]
+        elif params.lr_check == "reduced":
+            right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
+    tolerance = params.lr_tolerance_px * params.scale
     half = params.block_size // 2
     # No data, or a block that reaches into no data.
     lbad = (~lok).view(np.uint8)
@@ -554,7 +682,7 @@ def _match_tile(
             diff = back.astype(np.float32)
             diff *= np.float32(1.0 / 16.0)
             diff -= dl
-            lr_ok &= (back != invalid) & (np.abs(diff) <= params.lr_tolerance_px)
+            lr_ok &= (back != invalid) & (np.abs(diff) <= tolerance)
             dl = _average_with_partner(dl, xr, raw_r, lr_ok, invalid, r0)
         elif right_d is not None:
             diff = partner(right_d, math.nan)  # NaN outside the window and where it has none
@@ -573,7 +701,27 @@ def _match_tile(
 
     run_parts(checks, row_parts(disp.shape[0], workers()))
     if params.subpixel == "gradient":
-        disp = _refine_subpixel(lwin, rwin, disp, s, prep.shift, params, origin=(rows[0], a))
+        refine = replace(params, subpixel_max_px=params.subpixel_max_px * params.scale)
+        disp = _refine_subpixel(
+            lwin,
+            rwin,
+            disp,
+            s,
+            prep.shift,
+            refine,
+            origin=(rows[0], a),
+            drop_far=params.scale > 1,
+        )
+        code[np.isnan(disp) & (code == _VALID)] = _NO_MATCH
+    if params.scale == 2 and params.speckle_window > 0:
+        # the islands the checks left of a region (a half-resolution match they cut off at
+        # its edge): the full-resolution pass's own speckle filter, on the checked map
+        rel = (disp - np.float32(prep.shift)) * np.float32(16.0)
+        fixed = np.where(np.isfinite(rel), np.rint(rel), -32768).astype(np.int16)
+        cv2.filterSpeckles(fixed, -32768, params.speckle_window, 16 * params.speckle_range)
+        gone = (fixed == -32768) & (code == _VALID)
+        disp[gone] = np.nan
+        code[gone] = _NO_MATCH
     if params.min_ncc is not None:
         ncc = _window_ncc(
             lwin, rwin, disp, s, prep.shift, params.ncc_sigma_px, params.ncc_noise_dn
@@ -1038,7 +1186,7 @@ def match_pair(
         pad,
         shift,
     )
-    matcher = sgbm_matcher(p, prep.dmin, ndisp)
+    matcher = _matcher_of(p, prep)
     coarse = near = None
     if guide is not None:
         coarse = _coarse_disparity(
@@ -1062,7 +1210,7 @@ def match_pair(
                 d, code = _match_tile(prep, matcher, p, (ra, rb), (ca, cb))
             else:
                 tprep = _tile_prepared(prep, local)
-                tmatcher = sgbm_matcher(p, tprep.dmin, tprep.ndisp)
+                tmatcher = _matcher_of(p, tprep)
                 d, code = _match_tile(tprep, tmatcher, p, (ra, rb), (ca, cb))
             if near is not None and guide is not None:
                 lost = (code == _VALID) & ~_supported(near, guide.scale, (ra, rb), (ca, cb))

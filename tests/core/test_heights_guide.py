@@ -89,3 +89,52 @@ def test_the_heights_coarse_parameter_reaches_the_step(
     acc = dsm_accuracy(res.dsm.heights, res.dsm.grid, truth, res.dsm.filled)
     a = abs(pair.height_per_disparity_px)
     assert (acc["rms"] > a / 2) == (coarse == "none"), acc
+
+
+@pytest.mark.ros
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["crab_foreaft", "ikonos_agile"])
+def test_the_heights_scale_parameter_reaches_the_step(
+    name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``heights_scale`` 2 (``parproj process --heights-scale 2``): SGBM sees the pair reduced
+    2 x 2, and the DSM keeps scale 1's accuracy against the truth (RMS within half a pixel of
+    x-parallax, NMAD within a tenth of one of scale 1's, as complete to 2 points)."""
+    from parproj_ros.apps.cli import main as cli_main
+    from parproj_ros.core import heights as core_heights
+    from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
+    from parproj_ros.imaging import dense
+
+    calls = _steps(monkeypatch)
+    shapes: list[tuple[int, ...]] = []
+    made = dense.sgbm_matcher
+
+    class Spy:
+        def __init__(self, matcher: Any) -> None:
+            self.matcher = matcher
+
+        def compute(self, a: Any, b: Any) -> Any:
+            shapes.append(a.shape)
+            return self.matcher.compute(a, b)
+
+    monkeypatch.setattr(dense, "sgbm_matcher", lambda *args: Spy(made(*args)))
+    argv = ["process", str(BAGS / name), "-o", str(tmp_path / "out"), "--heights", "-q"]
+    assert cli_main([*argv, "--heights-scale", "2"]) == 0
+    ((args, (res, _)),) = calls
+    pair, left, right, z, options = args
+    assert options.scale == 2
+    # the passes at half resolution (the reduced guide's at a quarter): none at full
+    assert shapes and max(s[0] for s in shapes) <= (left.shape[0] + 1) // 2
+    truth = scenario_terrain(name)
+    assert truth is not None
+    a = abs(pair.height_per_disparity_px)
+    acc = dsm_accuracy(res.dsm.heights, res.dsm.grid, truth, res.dsm.filled)
+    monkeypatch.setattr(dense, "sgbm_matcher", made)
+    full, _ = core_heights.measure_heights(
+        pair, left, right, z, dataclasses.replace(options, scale=1)
+    )
+    ref = dsm_accuracy(full.dsm.heights, full.dsm.grid, truth, full.dsm.filled)
+    print(name, f"|a| {a:.3f} m/px", "scale 2", acc, "scale 1", ref)
+    assert acc["rms"] <= a / 2, acc
+    assert acc["nmad"] <= ref["nmad"] + 0.1 * a, (acc, ref)
+    assert acc["completeness"] >= ref["completeness"] - 0.02, (acc, ref)

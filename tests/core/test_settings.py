@@ -30,7 +30,9 @@ VIEWS = tuple(make_platform(64, 64).views)
 
 def test_each_pipeline_row_lands_in_exactly_one_group_and_back() -> None:
     filling = [p for p in PARAMS if p.fills.startswith("PipelineConfig.") and p.name != "views"]
-    assert len(filling) == 33  # 30, dsm_cloud_step (25), heights_quicklook (26), heights_coarse
+    assert (
+        len(filling) == 34
+    )  # 30, dsm_cloud_step, heights_quicklook, heights_coarse, heights_scale
     places = {(c, f.name) for c, cls in GROUPS.items() for f in fields(cls)}
     targets = [p.target for p in filling]
     assert None not in targets

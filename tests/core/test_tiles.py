@@ -196,6 +196,32 @@ def test_assembled_tiles_equal_the_whole_pair_dsm(streamed: dict[str, Any]) -> N
     assert abs(float(np.median(d_near))) <= a / 10
 
 
+def test_tiles_matched_at_half_resolution_equal_the_whole_pair_dsm() -> None:
+    """``heights_scale`` 2 reaches the streamed tiles: they match at half resolution as the
+    whole-pair step does, and assembled they are its DSM within the same bounds."""
+    cfg = config_from_bag(
+        BagReader(BAG), scene_lines=LINES, heights=True, tie_points=False, heights_scale=2
+    )
+    pipe = Pipeline(cfg)
+    calls, flushed = _run(pipe=pipe)
+    out = _all(calls, flushed)
+    tiles = [t for t in out.tiles if t.factor == 1]
+    assert tiles and all(t.ok for t in tiles), [t.message for t in tiles]
+    assert options_of(cfg).scale == 2
+    ref = HeightsStage(options_of(cfg))(Outputs(pairs=list(out.pairs), blocks=list(out.blocks)))
+    (whole,) = ref.heights
+    dsm = assemble_tiles(tiles)
+    assert dsm is not None and whole.dsm is not None
+    on = _on_grid(whole.dsm, dsm.grid)
+    a = abs(whole.height_per_disparity_px)
+    both = np.isfinite(on) & np.isfinite(dsm.heights)
+    diff = (dsm.heights - on)[both]
+    print(f"|a| {a:.3f} m/px: NMAD {_nmad(diff):.4f} m, median {np.median(diff):.4f} m")
+    assert _nmad(diff) <= a / 4
+    assert abs(float(np.median(diff))) <= a / 10
+    assert both.sum() >= 0.97 * int(np.isfinite(whole.dsm.heights).sum())
+
+
 def test_quicklook_tiles_follow_the_dsm(streamed: dict[str, Any]) -> None:
     out = streamed["out"]
     (whole,) = out.heights
