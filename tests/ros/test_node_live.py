@@ -390,3 +390,31 @@ def test_object_frame_on_earth_live_and_offline(live: dict, tmp_path: Path) -> N
             ]
         )
         assert np.abs(r_up - up).max() < 1e-9, bag
+
+
+def test_heights_scale_2_through_the_live_node(tmp_path: Path) -> None:
+    """``heights_scale`` 2 in the live node: its DSM is the one ``parproj process
+    --heights-scale 2`` makes of the bag (to the bit), not scale 1's, and as accurate against
+    the terrain (NMAD within a pixel of x-parallax, RMS within half a pixel, >= 90 %)."""
+    from parproj_ros.eval.heights import dsm_accuracy, scenario_terrain
+    from parproj_ros.ros.conversions import elevation_grid_from_msg
+
+    bag = BAGS / "crab_foreaft"
+    out, counts, log = run_live(bag, tmp_path / "live", heights=True, heights_scale=2)
+    assert counts["dsm"] == 1, log
+    (on,) = [m.msg for m in BagReader(out).messages(topics=["dsm"])]
+    dsms = {}
+    for scale in (1, 2):
+        off = tmp_path / f"offline{scale}"
+        process_bag(bag, off, progress=False, overrides={"heights": True, "heights_scale": scale})
+        (dsms[scale],) = [m.msg for m in BagReader(off).messages(topics=["dsm"])]
+    live_h = image_to_array(on.heights)
+    assert np.array_equal(image_to_array(dsms[2].heights), live_h, equal_nan=True)
+    assert not np.array_equal(image_to_array(dsms[1].heights), live_h, equal_nan=True)
+    heights, grid, _ = elevation_grid_from_msg(on)
+    truth = scenario_terrain("crab_foreaft")
+    assert truth is not None
+    a = abs(on.height_per_disparity_px)
+    acc = dsm_accuracy(heights, grid, truth)
+    print(f"crab_foreaft, heights_scale 2 live: |a| {a:.3f} m/px, {acc}")
+    assert acc["nmad"] <= a and acc["rms"] <= a / 2 and acc["completeness"] >= 0.90, acc
