@@ -52,7 +52,7 @@ import tempfile
 import time
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager, redirect_stderr, redirect_stdout
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, cast
 
@@ -483,6 +483,7 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
     The step is timed in an in-process ``parproj process --heights`` run.
     """
     from parproj_ros.apps.cli import main as cli_main
+    from parproj_ros.core.heights import measure_heights
 
     times: list[float] = []
     calls: list[tuple[Any, ...]] = []
@@ -508,6 +509,9 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
 
     known = [args for k, args in by_id.items() if k in pairs]
     best, bare_alt = step_best_s(known, bare_of) if known else (math.nan, math.nan)
+    # the same step matching at half resolution (heights_scale 2), in turns with the bare pass
+    half = [(*args[:4], replace(args[4], scale=2)) for args in known]
+    best2, bare2 = step_best_s(half, bare_of) if half else (math.nan, math.nan)
     in_sgbm, rest = step_parts_s(known) if known else (math.nan, math.nan)
     narrow = sum(narrowest_pass(*pairs[k]) for k in by_id if k in pairs)
     floor = (narrow + rest) / bare_alt if bare_alt else math.nan
@@ -522,6 +526,8 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "heights_best_s": best,
         "sgbm_alternated_s": bare_alt,
         "ratio_best": best / bare_alt if bare_alt and math.isfinite(best / bare_alt) else None,
+        "heights_best_s_scale2": best2,
+        "ratio_best_scale2": best2 / bare2 if bare2 and math.isfinite(best2 / bare2) else None,
         "step_sgbm_s": in_sgbm,
         "step_rest_s": rest,
         "rest_over_sgbm": rest / bare_alt if bare_alt else None,
@@ -533,12 +539,18 @@ def heights_speed(bag: Path, work: Path, log: Callable[[str], None]) -> dict[str
         "match_pair_over_sgbm": match / sgbm if sgbm else None,
         "heights_s_by_call": times,
         "cv2_threads": _cv2_threads(),
+        # pair id -> the heights_scale 2 step's result (scored by run_case, then dropped)
+        "_scale2": {str(args[0].pair_id): measure_heights(*args)[0] for args in half},
     }
     log(
         f"  heights step {step:.2f} s for {mpx:.2f} Mpx ({res['heights_s_per_mpx']:.2f} s/Mpx), "
         f"bare SGBM {sgbm:.2f} s: x{res['ratio']:.2f} (the two in turns, best of 5: "
         f"{best:.2f} s and {bare_alt:.2f} s, x{res['ratio_best'] or math.nan:.2f}); "
         f"match_pair alone {match:.2f} s"
+    )
+    log(
+        f"  heights_scale 2: the step {best2:.2f} s against {bare2:.2f} s in turns, "
+        f"x{res['ratio_best_scale2'] or math.nan:.2f}"
     )
     log(
         f"  of the step, {in_sgbm:.3f} s in SGBM and {rest:.3f} s outside it "
@@ -726,13 +738,20 @@ def run_case(case: Case, work: Path, log: Callable[[str], None]) -> dict[str, An
         # the pairs too, against the same references on the same footprint: like with like
         also.update(dsms)
         rows += score(fused, refs, case.footprints["fused"], label="fused", also=also)
+    res["speed"] = speed = heights_speed(bag, work, log)
+    # the same pairs matched at half resolution (heights_scale 2), scored the same way
+    for pair_id, h2 in speed.pop("_scale2", {}).items():
+        refs = {k: read_geotiff_dsm(p, name=p.stem) for k, p in case.refs.get(pair_id, {}).items()}
+        if h2.dsm is None or not refs or frame is None:
+            continue
+        d2 = FrameDsm(h2.dsm.heights, h2.dsm.grid, frame, f"{pair_id} (heights_scale 2)")
+        rows += score(d2, refs, case.footprints.get(pair_id, case.images), label=d2.name)
     res["rows"] = rows
     for r in rows:
         log(
             f"  {r['dsm']} - {r['vs']}: median {r['median']:+.2f} NMAD {r['nmad']:.2f} m, "
             f"completeness {100 * r['completeness']:.1f} %"
         )
-    res["speed"] = heights_speed(bag, work, log)
     return res
 
 
@@ -811,6 +830,16 @@ def verdicts(doc: dict[str, Any]) -> list[tuple[str, str, str, bool]]:
                     r["completeness"] >= b["completeness"],
                 )
             )
+            r2 = _row(case, "left+right (heights_scale 2)", "s2p")
+            if r2 is not None:
+                out.append(
+                    (
+                        f"{name}: with heights_scale 2, NMAD vs s2p; completeness",
+                        f"{r2['nmad']:.2f} m; {100 * r2['completeness']:.1f} %",
+                        f"<= {b['nmad_m']} m; >= {100 * b['completeness']:.0f} %",
+                        r2["nmad"] <= b["nmad_m"] and r2["completeness"] >= b["completeness"],
+                    )
+                )
             t = _row(case, "left+right (GeoTIFF)", "s2p")
             if t is not None:
                 shift = math.hypot(t.get("shift_e_m", math.nan), t.get("shift_n_m", math.nan))
@@ -865,7 +894,9 @@ def verdicts(doc: dict[str, Any]) -> list[tuple[str, str, str, bool]]:
             )
         sp = case.get("speed", {})
         for key, how in (("ratio", "(first call) / bare SGBM"),
-                         ("ratio_best", "/ bare SGBM (in turns, best of 5)")):  # fmt: skip
+                         ("ratio_best", "/ bare SGBM (in turns, best of 5)"),
+                         ("ratio_best_scale2",
+                          "with heights_scale 2 / bare SGBM (in turns, best of 5)")):  # fmt: skip
             if sp.get(key) is not None:
                 out.append(
                     (
@@ -906,8 +937,9 @@ def markdown(doc: dict[str, Any]) -> str:
         "",
         "| case | import s | process s | dsm s | fuse s | heights step s/Mpx | bare SGBM s/Mpx "
         "| heights / SGBM (first call) | heights / SGBM (in turns, best of 5) "
+        "| with heights_scale 2 (in turns) "
         "| match_pair / SGBM | step outside SGBM / SGBM | 16-disparity pass + outside / SGBM |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for case in doc["cases"]:
         s = case.get("seconds", {})
@@ -917,6 +949,7 @@ def markdown(doc: dict[str, Any]) -> str:
             f"| {_f(s.get('dsm'), '.1f')} | {_f(s.get('fuse'), '.1f')} "
             f"| {_f(sp.get('heights_s_per_mpx'), '.2f')} | {_f(sp.get('sgbm_s_per_mpx'), '.2f')} "
             f"| {_f(sp.get('ratio'), '.2f')} | {_f(sp.get('ratio_best'), '.2f')} "
+            f"| {_f(sp.get('ratio_best_scale2'), '.2f')} "
             f"| {_f(sp.get('match_pair_over_sgbm'), '.2f')} "
             f"| {_f(sp.get('rest_over_sgbm'), '.2f')} | {_f(sp.get('floor_over_sgbm'), '.2f')} |"
         )
