@@ -592,6 +592,8 @@ def _half_passes(
         return raw_l, None
     k = params.lr_rows
     first = -((origin[0] - pt) // 2) % k  # the half rows matched: multiples of k in the image
+    # (a window of fewer half rows than that, with lr_rows over half a tile's rows: its last)
+    first = min(first, l2.shape[0] - 1)
     flipped = [cast("UInt8Array", cv2.flip(im[first::k], 1)) for im in (r2, l2)]
     matched = cast("NDArray[Any]", cv2.flip(run(*flipped), 1))
     raw_r = np.empty_like(l2, dtype=matched.dtype)

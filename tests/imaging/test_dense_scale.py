@@ -167,3 +167,17 @@ def test_bad_settings_raise() -> None:
         SgbmParams(scale=4)
     with pytest.raises(ValueError, match="lr_check 'reduced' is for scale 1"):
         SgbmParams(scale=2, lr_check="reduced")
+
+
+def test_a_right_pass_sparser_than_a_tiles_half_rows_gives_a_status() -> None:
+    """``lr_rows`` 12 on tiles of some 11 rows (6 half rows): the second tile's first half row
+    that is a multiple of 12 in the image lies past its window; it still matches (its last
+    half row), as at scale 1, instead of OpenCV raising on an empty image."""
+    left, right, truth = smooth_pair()
+    for scale in (1, 2):
+        p = SgbmParams(subpixel="gradient", scale=scale, lr_rows=12)
+        res = match_pair(left[:23], right[:23], d_range=(0, 24), params=p, tile_rows=16, overlap=0)
+        assert res.disparity.shape == (23, left.shape[1])
+        ok = np.isfinite(res.disparity)
+        assert ok.any(), (scale, res.message)
+        assert np.median(np.abs(res.disparity[ok] - truth[:23][ok])) < 0.1
