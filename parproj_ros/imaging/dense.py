@@ -1247,8 +1247,9 @@ def _coarse_disparity(
     """Disparities of the pair reduced ``scale`` times, reduced pixels (NaN: none), or None.
 
     Means of ``scale`` x ``scale`` blocks (:func:`_reduced`). Matched over ``d_range / scale``
-    with ``params`` (no sub-pixel refinement, no speckle filter); None when the reduced pair
-    does not match (its status is not OK) or is smaller than a block.
+    with ``params`` (no sub-pixel refinement, no speckle filter, and SGBM on the reduced pair
+    itself: ``scale`` 1 whatever ``params.scale``); None when the reduced pair does not match
+    (its status is not OK) or is smaller than a block.
     """
     lo, hi = d_range
     if min(left.shape) < scale:
@@ -1256,7 +1257,7 @@ def _coarse_disparity(
     small = [
         _reduced(img, nodata, mask, scale) for img, mask in zip((left, right), masks, strict=True)
     ]
-    p = replace(params or SgbmParams(), subpixel="sgbm", min_ncc=None, speckle_window=0)
+    p = replace(params or SgbmParams(), subpixel="sgbm", min_ncc=None, speckle_window=0, scale=1)
     res = match_pair(
         small[0],
         small[1],
