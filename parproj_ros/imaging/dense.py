@@ -217,8 +217,9 @@ class DisparityResult:
         d_range: (dmin, dmax) searched, pixels (inclusive).
         valid_share: valid pixels / left pixels with data (0 when there are none).
         counts: pixels per outcome: ``valid``, ``nodata`` (left no-data, or within half a
-            block of it), ``low_texture``, ``no_match`` (SGBM found no unique match),
-            ``lr_failure`` (left-right check failed or the partner has no data).
+            block of it; at scale 2, of the half-resolution blocks), ``low_texture``,
+            ``no_match`` (SGBM found no unique match), ``lr_failure`` (left-right check
+            failed or the partner has no data).
         message: what happened, in words.
     """
 
@@ -602,6 +603,32 @@ def _half_passes(
     return raw_l, enlarge(raw_r)
 
 
+def _half_reach(bad: UInt8Array, half: int, origin: tuple[int, int]) -> UInt8Array:
+    """1 where a pixel's disparity at scale 2 comes from a block that reaches a ``bad`` pixel.
+
+    :func:`_half_passes`' 2 x 2 blocks (at even image rows and columns, ``origin`` as there):
+    a half pixel is bad where any of its 4 pixels is, its SGBM block (``half`` half pixels
+    around it) where any half pixel of it is, and a pixel where any of the 4 half pixels its
+    disparity is enlarged from is: some 2 ``half`` + 2 pixels of reach, not ``half``.
+
+    Args:
+        bad: 1 where a window has no data (uint8 0 / 1).
+        half: half the block side, half pixels.
+        origin: (row, column) of the window's first pixel in the left image.
+    """
+    rows, cols = bad.shape
+    pt, pl = origin[0] % 2, origin[1] % 2
+    eb, er = (pt + rows) % 2, (pl + cols) % 2
+    b = cv2.copyMakeBorder(bad, pt, eb, pl, er, cv2.BORDER_REPLICATE)
+    h2, w2 = b.shape[0] // 2, b.shape[1] // 2
+    b2 = b.reshape(h2, 2, w2, 2).max(axis=(1, 3))
+    if half > 0:
+        b2 = cv2.dilate(b2, np.ones((2 * half + 1, 2 * half + 1), np.uint8))
+    # bilinear 2 x: each of the 4 half pixels weighs 1/16 .. 9/16, so > 0 where any is bad
+    full = cv2.resize(b2 * np.uint8(255), (2 * w2, 2 * h2), interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray((full[pt : pt + rows, pl : pl + cols] != 0).view(np.uint8))
+
+
 def _match_tile(
     prep: _Prepared,
     matcher: cv2.StereoSGBM,
@@ -643,10 +670,14 @@ def _match_tile(
             right_d = _reduced_right_pass(lwin, rwin, prep.dmin, prep.ndisp, params)
     tolerance = params.lr_tolerance_px * params.scale
     half = params.block_size // 2
-    # No data, or a block that reaches into no data.
+    # No data, or a block that reaches into no data (at scale 2, the half-resolution blocks
+    # its disparity is enlarged from).
     lbad = (~lok).view(np.uint8)
     rbad = (~rok).view(np.uint8)
-    if half > 0:
+    if params.scale == 2:
+        lbad = _half_reach(lbad, half, (rows[0], ext[0]))
+        rbad = _half_reach(rbad, half, (rows[0], ext[0]))
+    elif half > 0:
         kernel = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
         lbad = cast("UInt8Array", cv2.dilate(lbad, kernel))
         rbad = cast("UInt8Array", cv2.dilate(rbad, kernel))
