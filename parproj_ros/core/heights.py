@@ -104,8 +104,10 @@ class HeightsOptions:
             of 2.5 px, which removes SGBM's pull towards whole pixels; NMAD against s2p on the
             Marseille pairs 1-2 / 1-3 / 2-3 0.711 / 0.416 / 0.739 m against 0.918 / 0.449 /
             0.873 with "sgbm", against truth on the simulated bags 0.012 / 0.154 / 0.142 m
-            against 0.029 / 0.175 / 0.172; some 0.05 s per Mpx, +20 % of the step) or "sgbm"
-            (OpenCV's own). docs/heights.md has the figures.
+            against 0.029 / 0.175 / 0.172 (run 5); since the fit's sums on a half grid and its
+            bicubic resampling, 0.694 / 0.393 / 0.707 m and 0.011 / 0.132 / 0.129 m (run 10);
+            some 0.06 s of CPU per Mpx) or "sgbm" (OpenCV's own). docs/heights.md and
+            docs/performance.md have the figures.
         min_ncc: the matcher's photometric check (:class:`SgbmParams` ``min_ncc``; None:
             off): a pixel whose window correlates less than this with the right image at
             its disparities is rejected. With ``lr_check="reduced"`` and 0.7: the step 3.5x
@@ -123,9 +125,9 @@ class HeightsOptions:
             lost); "none": as before 2026-11-28. docs/performance.md has the figures.
         scale: the matching's resolution (:class:`SgbmParams` ``scale``): 1 (SGBM on the
             full-resolution images) or 2 (SGBM on both images reduced 2 x 2, its disparities
-            checked and refined at full resolution: the step 1.4-1.9x faster on the Marseille
-            pairs, NMAD against s2p 0.694 / 0.405 / 0.715 m against 0.694 / 0.393 / 0.707 m,
-            96.0 / 91.9 / 96.5 % complete against 97.5 / 94.8 / 97.5 %; docs/performance.md).
+            checked and refined at full resolution: the step 1.4-1.7x faster on the Marseille
+            pairs, NMAD against s2p 0.695 / 0.405 / 0.716 m against 0.694 / 0.393 / 0.707 m,
+            97.2 / 94.0 / 97.6 % complete against 97.4 / 95.7 / 97.8 %; docs/performance.md).
         quicklook_only: streamed pairs get quick-look tiles only (``heights_quicklook`` < 0,
             core/tiles.py): no full-resolution heights for them (their blocks are not kept).
     """

@@ -586,8 +586,8 @@ PARAMS: tuple[Param, ...] = (
         1,
         "matching resolution: 1 (SGBM on the full-resolution images) or 2 (SGBM on both images "
         "reduced 2 x 2, its disparities checked and refined at full resolution: on the "
-        "Marseille pairs the heights step 1.4-1.9x faster, NMAD against s2p within 0.012 m of "
-        "1's, 1.0-2.9 points less complete)",
+        "Marseille pairs the heights step 1.4-1.7x faster, NMAD against s2p within 0.012 m of "
+        "1's, 0.2-1.7 points less complete)",
         low=1,
         high=2,
         offline=True,
