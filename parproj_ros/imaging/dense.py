@@ -519,6 +519,22 @@ def _matcher_of(params: SgbmParams, prep: _Prepared) -> cv2.StereoSGBM:
     return sgbm_matcher(half, lo, nd)
 
 
+def _even_blocks(img: UInt8Array, origin: tuple[int, int]) -> tuple[UInt8Array, int, int]:
+    """``img`` bordered so that its 2 x 2 blocks start at even image rows and columns.
+
+    A row (column) before it where ``origin`` (its first pixel's row, column in the image) is
+    odd, and one after where the bordered size is odd, repeated. Returns the bordered image and
+    the rows and columns added before it (crop an enlargement with ``[pt : pt + rows, pl : pl
+    + cols]``).
+    """
+    rows, cols = img.shape
+    pt, pl = origin[0] % 2, origin[1] % 2
+    eb, er = (pt + rows) % 2, (pl + cols) % 2
+    if pt or pl or eb or er:
+        img = cast("UInt8Array", cv2.copyMakeBorder(img, pt, eb, pl, er, cv2.BORDER_REPLICATE))
+    return img, pt, pl
+
+
 def _half_passes(
     lwin: UInt8Array,
     rwin: UInt8Array,
@@ -554,16 +570,11 @@ def _half_passes(
         the windows' shape.
     """
     rows, cols = lwin.shape
-    pt, pl = origin[0] % 2, origin[1] % 2
-    eb, er = (pt + rows) % 2, (pl + cols) % 2
-    size = ((pl + cols + er) // 2, (pt + rows + eb) // 2)
-
-    def reduce(img: UInt8Array) -> UInt8Array:
-        if pt or pl or eb or er:
-            img = cast("UInt8Array", cv2.copyMakeBorder(img, pt, eb, pl, er, cv2.BORDER_REPLICATE))
-        return cast("UInt8Array", cv2.resize(img, size, interpolation=cv2.INTER_AREA))
-
-    l2, r2 = reduce(lwin), reduce(rwin)
+    (lb, pt, pl), (rb, _, _) = _even_blocks(lwin, origin), _even_blocks(rwin, origin)
+    size = (lb.shape[1] // 2, lb.shape[0] // 2)
+    l2, r2 = (
+        cast("UInt8Array", cv2.resize(im, size, interpolation=cv2.INTER_AREA)) for im in (lb, rb)
+    )
     lo, nd = _half_search(*search)  # the matcher's (only its compute is called: spies)
     left_pad, right_pad = max(lo + nd, 0), max(-lo, 0)
     none = (lo - 1) * 16  # OpenCV's code of a half pixel without disparity
@@ -617,9 +628,7 @@ def _half_reach(bad: UInt8Array, half: int, origin: tuple[int, int]) -> UInt8Arr
         origin: (row, column) of the window's first pixel in the left image.
     """
     rows, cols = bad.shape
-    pt, pl = origin[0] % 2, origin[1] % 2
-    eb, er = (pt + rows) % 2, (pl + cols) % 2
-    b = cv2.copyMakeBorder(bad, pt, eb, pl, er, cv2.BORDER_REPLICATE)
+    b, pt, pl = _even_blocks(bad, origin)
     h2, w2 = b.shape[0] // 2, b.shape[1] // 2
     # a block's mean of 0 / 255 is not 0 where any of its 4 is bad (numpy's max over the block
     # axes: the same, 14 times slower)
