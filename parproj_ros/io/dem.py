@@ -14,8 +14,9 @@ from __future__ import annotations
 import importlib.util
 import math
 import re
+import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -257,10 +258,15 @@ class RasterSampler:
     or when one of the four is nodata (or NaN). lon/lat (EPSG:4326) go to the raster's CRS
     through pyproj (none when the raster is in EPSG:4326). A geographic raster whose
     longitudes run 0..360 is sampled at lon + 360 where lon is outside it. Values read are
-    scaled (GDAL scale and offset). Rows and columns are read from the file as needed (the
-    window read grows to hold every point asked so far), so a large mosaic costs only the area
-    used.
+    scaled (GDAL scale and offset). Rows and columns are read from the file as needed: the
+    window held grows to hold every point asked so far while it stays within
+    :attr:`hold_cells` cells (a pass's DEM is read once); beyond, a request outside it replaces
+    it (a long pass over a large mosaic holds what its last pairs need, not all it crossed).
     """
+
+    #: Most cells held at once from several requests (float64: 8 bytes each; 32 MB). One
+    #: request larger than this is read and held whole.
+    hold_cells: int = 1 << 22
 
     def __init__(self, source: str | Path, label: str, *, crs: str | None = None) -> None:
         """Open ``source`` (a file, or a GDAL dataset name); ``label`` names it in errors.
@@ -357,14 +363,19 @@ class RasterSampler:
         return row, col
 
     def _read(self, r0: int, r1: int, c0: int, c1: int) -> None:
-        """Hold rows r0..r1 - 1 and columns c0..c1 - 1 (and what was held) in memory."""
+        """Hold rows r0..r1 - 1 and columns c0..c1 - 1 in memory.
+
+        With what was held, while the union stays within :attr:`hold_cells` cells.
+        """
         from rasterio.windows import Window
 
         if self._window is not None:
             o = self._window
-            r0, r1, c0, c1 = min(r0, o[0]), max(r1, o[1]), min(c0, o[2]), max(c1, o[3])
-            if (r0, r1, c0, c1) == o:
+            if o[0] <= r0 and r1 <= o[1] and o[2] <= c0 and c1 <= o[3]:
                 return
+            u = min(r0, o[0]), max(r1, o[1]), min(c0, o[2]), max(c1, o[3])
+            if (u[1] - u[0]) * (u[3] - u[2]) <= self.hold_cells:
+                r0, r1, c0, c1 = u
         try:
             band = self._ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
         except Exception as err:  # a truncated or corrupt file: name it
@@ -760,6 +771,7 @@ def dem_from_options(
     geoid: str = "",
     ellipsoidal: bool = False,
     names: dict[str, str] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> DemHeights | None:
     """The DEM of ``--dem`` and its vertical reference (or of the node's parameters).
 
@@ -769,6 +781,8 @@ def dem_from_options(
         geoid: a grid file of undulations or a model name of :data:`GEOID_MODELS` ("": none).
         ellipsoidal: the DEM holds ellipsoidal heights already.
         names: how the options are named in messages (default :data:`CLI_NAMES`).
+        warn: told (one line) when a constant undulation is given without a DEM: it applies
+            to nothing and is ignored (taken, as ``--geoid-undulation`` always was).
 
     Raises:
         InputError: a geoid option without a DEM; two vertical references at once; a DEM or
@@ -813,6 +827,11 @@ def dem_from_options(
         for key in ("geoid", "dem_ellipsoidal"):  # a constant undulation alone does no harm
             if key in given:
                 raise InputError(n[key], f"describes the DEM's heights: give {n['dem']} too")
+        if "geoid_undulation" in given and warn is not None:
+            warn(
+                f"{n['geoid_undulation']} {float(geoid_undulation):g} m without {n['dem']}: "
+                f"ignored (it is added to a DEM's heights; give {n['dem']} to use one)"
+            )
         return None
     for path in files:
         input_path(path, "file")
@@ -832,4 +851,5 @@ def dem_from_args(args: Any) -> DemHeights | None:
         geoid_undulation=float(args.geoid_undulation),
         geoid=str(args.geoid or ""),
         ellipsoidal=bool(args.dem_ellipsoidal),
+        warn=lambda text: print(f"warning: {text}", file=sys.stderr),
     )

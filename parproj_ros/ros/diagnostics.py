@@ -153,9 +153,10 @@ class Reporter:
         """Level and message of the summary.
 
         ERROR while any of these holds, OK otherwise: a parameter was refused at start (or the
-        gcp_file could not be loaded), for the node's life; ``worker_problem`` (the worker is
-        not running, or has been on one input longer than ``worker_stall_s``); an ERROR status
-        was reported less than :attr:`error_hold_s` ago. WARN statuses do not change the level
+        gcp_file could not be loaded: an ERROR at start), for the node's life;
+        ``worker_problem`` (the worker is not running, or has been on one input longer than
+        ``worker_stall_s``); an ERROR status was reported less than :attr:`error_hold_s` ago.
+        WARN statuses (at start too) do not change the level
         (they are counted in ``warnings``).
         """
         problems = [worker_problem] if worker_problem else []
@@ -165,10 +166,9 @@ class Reporter:
                 f"{self.counts['errors']} errors so far, the latest "
                 f"{time.monotonic() - last[0]:.0f} s ago: {last[1]}"
             )
-        if self.startup_issues:
-            problems.append(
-                "at start: " + "; ".join(f"{i.where}: {i.message}" for i in self.startup_issues)
-            )
+        refused = [i for i in self.startup_issues if i.level == "error"]
+        if refused:  # a WARN at start (an option ignored, a memory note) is counted, no more
+            problems.append("at start: " + "; ".join(f"{i.where}: {i.message}" for i in refused))
         if problems:
             return DiagnosticStatus.ERROR[0], "running; " + "; ".join(problems)
         return DiagnosticStatus.OK[0], "running"

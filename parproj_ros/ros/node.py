@@ -75,7 +75,7 @@ class ParprojNode(Node):
         """The body of :meth:`__init__` after the rclpy node exists."""
         issues: list[Issue] = []
         vals = declare_all(self, issues)
-        dem = load_dem_parameters(vals)  # read now: a DEM that cannot serve does not start
+        dem = load_dem_parameters(vals, issues)  # read now: a DEM that cannot serve does not start
         # outputs in the frame_id parameter, or ("") in the frame of the inputs (core/frames.py)
         self._frame = ObjectFrame(str(vals["frame_id"]))
         self.reporter = Reporter(self, lambda: self.frame_id, float(vals["error_hold_s"]))

@@ -324,10 +324,11 @@ DEM_PARAMETERS = {
 }
 
 
-def load_dem_parameters(vals: Mapping[str, Any]) -> Any:
+def load_dem_parameters(vals: Mapping[str, Any], issues: list[Issue] | None = None) -> Any:
     """The DEM of the parameters ``dem`` .. ``dem_ellipsoidal`` (None without ``dem``).
 
-    Read at start, so that a DEM that cannot serve does not start the node.
+    Read at start, so that a DEM that cannot serve does not start the node. A WARN in
+    ``issues`` for a ``geoid_undulation`` without ``dem`` (ignored: it applies to no DEM).
 
     Returns:
         A ``parproj_ros.io.dem.DemHeights``, or None.
@@ -347,6 +348,9 @@ def load_dem_parameters(vals: Mapping[str, Any]) -> Any:
             geoid=str(vals["geoid"]),
             ellipsoidal=bool(vals["dem_ellipsoidal"]),
             names=DEM_PARAMETERS,
+            warn=None
+            if issues is None
+            else lambda text: issues.append(Issue(Level.WARN, "parameter geoid_undulation", text)),
         )
     except InputError as err:  # DemError too: the file at fault, and what is wrong
         if err.path.startswith("parameter "):  # named so by dem_from_options

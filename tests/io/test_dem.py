@@ -559,7 +559,15 @@ def test_the_options_as_the_node_names_them(forms: dict[str, Any], tmp_path: Pat
     assert dem.reference == "geoid undulation 50 m"
     flat = dem_from_options([forms["geotiff"]], ellipsoidal=True)
     assert flat is not None and flat.reference == "ellipsoidal heights"
-    assert dem_from_options([], geoid_undulation=50.0) is None  # as before: harmless alone
+    said: list[str] = []
+    # as before: taken alone, but said to be ignored (it applies to no DEM)
+    assert dem_from_options([], geoid_undulation=50.0, names=names, warn=said.append) is None
+    assert said == [
+        "parameter geoid_undulation 50 m without parameter dem: ignored (it is added to a DEM's "
+        "heights; give parameter dem to use one)"
+    ]
+    assert dem_from_options([forms["geotiff"]], geoid_undulation=50.0, warn=said.append)
+    assert dem_from_options([], warn=said.append) is None and len(said) == 1
     with pytest.raises(InputError, match=r"^parameter geoid_undulation: and parameter geoid both"):
         dem_from_options([forms["geotiff"]], geoid="egm2008", geoid_undulation=50.0, names=names)
     with pytest.raises(InputError, match=r"^parameter geoid: describes the DEM.s heights: give "):
@@ -584,3 +592,44 @@ def test_gap_error_names_the_file_and_both_areas(forms: dict[str, Any], tmp_path
     text = far.gap_error(lon, lat, "pair a+b's ground")
     assert text is not None and text.startswith(f"{_elsewhere(forms, tmp_path)}: the DEM gives")
     assert "at 0 % of pair a+b's ground (needed: lon 5.1" in text and "covers lon 10.1" in text
+
+
+def test_a_sampler_holds_a_bounded_window(forms: dict[str, Any]) -> None:
+    """Far-apart requests replace the held window once their union passes ``hold_cells``.
+
+    The values are those of a sampler holding the union (the same nodes and weights: equal to
+    the bit); the cells held never exceed the cap or the last request, whichever is larger.
+    """
+    from parproj_ros.io.dem import RasterSampler
+
+    t, (h, w) = forms["transform"], forms["crop"].shape
+    corners = [((2.5, 3.5), (2.5, 3.5)), ((w - 4.0, w - 3.0), (h - 4.0, h - 3.0))]
+    union = RasterSampler(forms["geotiff"], "union")
+    small = RasterSampler(forms["geotiff"], "bounded")
+    small.hold_cells = 100  # a window of 3 x 3 nodes per request; the two corners' union: 1e4
+    for cols, rows in [*corners, *corners]:
+        lon, lat = _xy(t, np.array(cols), np.array(rows))
+        assert np.array_equal(small(lon, lat), union(lon, lat))
+        r0, r1, c0, c1 = small._window or (0, 0, 0, 0)
+        assert (r1 - r0) * (c1 - c0) <= small.hold_cells
+    r0, r1, c0, c1 = union._window or (0, 0, 0, 0)
+    assert (r1 - r0) * (c1 - c0) > 0.8 * h * w  # the default holds both corners
+
+
+def test_the_cli_says_an_undulation_without_a_dem_is_ignored(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``--geoid-undulation`` alone (process, import, dsm): taken, and one warning line."""
+    import argparse
+
+    from parproj_ros.io.dem import add_dem_arguments, dem_from_args
+
+    parser = argparse.ArgumentParser()
+    add_dem_arguments(parser, "test")
+    assert dem_from_args(parser.parse_args(["--geoid-undulation", "48.5"])) is None
+    assert capsys.readouterr().err == (
+        "warning: --geoid-undulation 48.5 m without --dem: ignored (it is added to a DEM's "
+        "heights; give --dem to use one)\n"
+    )
+    assert dem_from_args(parser.parse_args([])) is None
+    assert capsys.readouterr().err == ""

@@ -12,6 +12,8 @@ with ``dem`` the SRTM crop of tests/data/ventoux as a GeoTIFF and ``geoid_undula
 - the same heights 5 degrees east (a DEM of another place): an ERROR status naming the file,
   the area needed and the area covered, and the pair and its DSM still published (terrain
   from the tie points);
+- ``geoid_undulation`` 50 without ``dem``: a WARN saying it is ignored, the pair and its DSM
+  published (terrain from the tie points);
 - a DEM GDAL cannot read, two vertical references, a geoid without a DEM: the node does not
   start (exit 2, one line naming the parameter and the file).
 """
@@ -40,9 +42,10 @@ BAG = BAGS / "ventoux"
 FRAME = "enu_wgs84:lat=44.2069738,lon=5.1950231,h=519.80"
 
 
-def _live(tmp: Path, dem: Path) -> dict[str, Any]:
+def _live(tmp: Path, dem: Path | None) -> dict[str, Any]:
     views = views_from_bag(BagReader(BAG))
-    params = node_parameters(views, heights=True, dem=[str(dem)], geoid_undulation=50.0)
+    files = [] if dem is None else [str(dem)]
+    params = node_parameters(views, heights=True, dem=files, geoid_undulation=50.0)
     run = run_through_node(BAG, tmp, params=params, log=lambda s: None, also=("dsm",))
     assert run.discovered and run.code == 0, run.log
     diags = [
@@ -51,8 +54,20 @@ def _live(tmp: Path, dem: Path) -> dict[str, Any]:
         for s in m.msg.status
         if s.name != "parproj_node: summary"
     ]
+    summary = {
+        level(s)
+        for m in BagReader(run.output).messages(topics=["/diagnostics"])
+        for s in m.msg.status
+        if s.name == "parproj_node: summary"
+    }
     dsm = [m.msg for m in BagReader(run.output).messages(topics=["dsm"])]
-    return {"counts": run.counts, "log": run.log, "diags": diags, "dsm": dsm}
+    return {
+        "counts": run.counts,
+        "log": run.log,
+        "diags": diags,
+        "dsm": dsm,
+        "summary_levels": summary,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -63,6 +78,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
     return {
         "here": {"dem": here, **_live(root / "here", here)},
         "elsewhere": {"dem": elsewhere, **_live(root / "elsewhere", elsewhere)},
+        "none": _live(root / "none", None),
     }
 
 
@@ -106,6 +122,26 @@ def test_a_dem_elsewhere_is_an_error_and_the_pair_comes(
     assert f"{got['dem']}: the DEM gives heights at 0 % of pair left+right's ground" in e.message
     assert "(needed: lon 5.19" in e.message and "the DEM covers lon 10.1" in e.message
     assert "the DEM is not used for this pair" in e.message
+
+
+def test_an_undulation_without_a_dem_is_said_to_be_ignored(
+    runs: dict[str, dict[str, Any]],
+) -> None:
+    got = runs["none"]
+    c = got["counts"]
+    assert c["stereo_pair"] == 1 and c["dsm"] == 1, got["log"]
+    (m,) = got["dsm"]
+    assert m.terrain_source == "tie_points", m
+    # said once at start (logged; /diagnostics then has no subscriber yet), and a WARN is no
+    # reason for an ERROR summary: the node runs as asked
+    line = (
+        "[WARN] [{}] [parproj_node]: parameter geoid_undulation: parameter geoid_undulation 50 m "
+        "without parameter dem: ignored (it is added to a DEM's heights; give parameter dem"
+    )
+    head, tail = line.split("[{}]")
+    assert any(ln.startswith(head) and tail in ln for ln in got["log"].splitlines()), got["log"]
+    assert got["summary_levels"] == {0}, got["summary_levels"]
+    assert not [s for s in got["diags"] if level(s) >= 2], show(got["diags"])
 
 
 def _start(tmp: Path, params: dict[str, Any]) -> tuple[int, str]:
