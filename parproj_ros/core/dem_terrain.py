@@ -251,6 +251,11 @@ def dem_span_terrain(z: FloatArray, dem: DemSampler, *, metres_per_px: float) ->
     )
 
 
+#: Pairs whose DEM terrain :class:`DemTerrain` remembers (a pair is asked at most twice: at
+#: its stream's start and when finished; pairs in flight at once: a few).
+SEEN_PAIRS = 16
+
+
 class DemTerrain:
     """The DEM the front end gave, and the object frame it is placed in at pair time.
 
@@ -266,6 +271,10 @@ class DemTerrain:
         #: Issues not yet handed to the outputs (:meth:`take_issues`).
         self.issues: list[Issue] = []
         self._frames_said: set[str] = set()
+        #: The last pairs' terrains (pair id, frame, its scenes' first line times) -> result: a
+        #: streamed pair asked at its start and again when finished is sampled (and its
+        #: problems said) once.
+        self._seen: dict[tuple[str, str, int, int], Terrain | None] = {}
 
     def take_issues(self) -> list[Issue]:
         """The issues of the pairs seen since the last call (and forget them)."""
@@ -294,6 +303,30 @@ class DemTerrain:
         """
         where = f"pair {pair_id}"
         frame_id = self.frame()
+        # a pair id may come again (a bag replayed, ids reused): its scenes' first lines too
+        key = (pair_id, frame_id, left.scene.first_line_ns, right.scene.first_line_ns)
+        if key in self._seen:
+            return self._seen[key]
+        terrain = self._pair_terrain(
+            where, frame_id, left, right, norm, z0=z0, metres_per_px=metres_per_px
+        )
+        self._seen[key] = terrain
+        while len(self._seen) > SEEN_PAIRS:
+            del self._seen[next(iter(self._seen))]
+        return terrain
+
+    def _pair_terrain(
+        self,
+        where: str,
+        frame_id: str,
+        left: SceneResult,
+        right: SceneResult,
+        norm: Normalization,
+        *,
+        z0: float,
+        metres_per_px: float,
+    ) -> Terrain | None:
+        """:meth:`pair_terrain` of a pair not seen yet."""
         plane = tangent_plane(frame_id)
         if plane is None:
             if frame_id not in self._frames_said:

@@ -27,6 +27,7 @@ from enum import StrEnum
 from ..imaging.assembly import Scene
 from ..imaging.resample import OutputGrid, SceneGeometry, Tile
 from .results import PairGeometry, SceneResult
+from .terrain import Terrain
 
 #: Scenes done with, and single-camera pairs made, remembered (the latest ones) so that late
 #: inputs naming them are reported.
@@ -93,6 +94,9 @@ class StreamPair:
     sides: dict[str, SideStream]
     stamp_ns: int
     scenes: dict[str, Scene] = field(default_factory=dict)
+    #: The heights its geometry was chosen at when a DEM gave them (source ``dem``), else
+    #: None (its GCP's or the prior, taken again when it is finished).
+    terrain: Terrain | None = None
 
 
 class AdmissionBook:

@@ -211,17 +211,38 @@ def pair_geometry(
     lines: tuple[int, int],
     config: PipelineConfig,
     gcps: GcpStore,
-) -> PairGeometry | Issue:
-    """Normalization and output grids of a pair at the heights its GCP (or the prior) give.
+    dem: DemTerrain | None = None,
+) -> tuple[PairGeometry, Terrain] | Issue:
+    """Normalization and output grids of a pair before its pixels exist, and their heights.
 
-    An ERROR issue instead when the pair cannot be normalized: degenerate geometry, no overlap,
-    or output images over ``max_output_pixels``.
+    The heights its GCP (or the prior) give; with a DEM (``dem``, whose issues it keeps) the
+    DEM's heights over the pair's ground instead, and the zero-disparity height at their
+    middle, as :func:`normalize_pair` takes them for a whole pair without tie points. A
+    streamed pair's geometry (its images are made block by block from it).
+
+    Returns:
+        (geometry, terrain), or an ERROR issue when the pair cannot be normalized:
+        degenerate geometry, no overlap, or output images over ``max_output_pixels``.
     """
     frame = pair_frame(left, right, lines, config)
     if isinstance(frame, Issue):
         return frame
     terrain = pair_terrain(left, right, config.orientation, gcps)
-    return pair_grids(frame, config.output, terrain.range_m)
+    if dem is not None:
+        k = frame.normalization.parallax_per_height
+        dem_terrain = dem.pair_terrain(
+            frame.pair_id,
+            left,
+            right,
+            frame.normalization,
+            z0=0.5 * (terrain.low_m + terrain.high_m),
+            metres_per_px=frame.pixel / k,
+        )
+        if dem_terrain is not None:
+            terrain = with_dem(dem_terrain, terrain)
+            frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
+    geo = pair_grids(frame, config.output, terrain.range_m)
+    return geo if isinstance(geo, Issue) else (geo, terrain)
 
 
 def pair_terrain(

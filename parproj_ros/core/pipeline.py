@@ -131,8 +131,11 @@ class Pipeline:
         and says in which object frame it is placed (:class:`~.dem_terrain.DemTerrain`); the
         output extent (step 4) and the heights step's disparity range (step 7) then search its
         heights over the pair's ground joined with the tie points' (:func:`~.terrain.with_dem`).
+        A streamed pair's extent and its DSM tiles search the DEM's heights from the stream's
+        start (the tiles' first window's tie points joined with them).
         """
         self.dem = dem
+        self.streamer.dem = dem  # a streamed pair's extent and tiles: at the stream's start
         if self.heights is not None:
             self.heights.dem = dem
 

@@ -43,6 +43,7 @@ from ..imaging.resample import (
     render_block,
 )
 from .config import PipelineConfig
+from .dem_terrain import DemTerrain, terrain_issue
 from .gcp_store import GcpStore
 from .ledger import Block, PairLedger, SideStream, StreamPair
 from .navigation import NavigationFeed
@@ -51,6 +52,7 @@ from .orientation import start_seen
 from .publish import finish_pair
 from .render_process import RenderProcess
 from .results import BlockResult, Issue, Level, Outputs, SceneResult
+from .terrain import TerrainSource
 from .trajectory import NavigationError
 
 FloatArray = NDArray[np.float64]
@@ -441,6 +443,9 @@ class Streamer:
         self.ledger = ledger
         #: Renders blocks out of the caller's GIL (the node's), or None: in the calling thread.
         self.renderer: RenderProcess | None = None
+        #: The DEM a stream's extent and heights are chosen at (the pipeline's, set by
+        #: :meth:`~.pipeline.Pipeline.use_dem`), or None: its GCP's or the prior.
+        self.dem: DemTerrain | None = None
         #: Takes each block as soon as it is rendered, instead of :attr:`Outputs.blocks`; its
         #: pixels may be a view of the render process's output, valid only during the call
         #: (copy them to keep them). With the render process the next block is rendered
@@ -627,10 +632,13 @@ class Streamer:
     def _open_stream(self, k: int, results: list[SceneResult]) -> Outputs:
         out = Outputs()
         lines = (results[0].scene.lines, results[1].scene.lines)
-        geo = pair_geometry(results[0], results[1], lines, self.config, self.gcps)
-        if isinstance(geo, Issue):
-            self._record(StreamDecision(k, Decision.WHOLE, issue=geo), out)
+        made = pair_geometry(results[0], results[1], lines, self.config, self.gcps, self.dem)
+        if self.dem is not None:  # the DEM's issues with this pair, whatever came of it
+            out.issues += self.dem.take_issues()
+        if isinstance(made, Issue):
+            self._record(StreamDecision(k, Decision.WHOLE, issue=made), out)
             return out
+        geo, terrain = made
         sides: dict[str, SideStream] = {}
         for name, res, geom, grid in (
             ("left", results[0], geo.left_geom, geo.left_grid),
@@ -646,8 +654,11 @@ class Streamer:
                 plan_blocks(geom, grid, res.scene.lines),
             )
         stamp = max(r.scene.last_line_ns for r in results)
-        stream = StreamPair(k, geo, sides, stamp)
+        from_dem = terrain if terrain.source == TerrainSource.DEM else None
+        stream = StreamPair(k, geo, sides, stamp, terrain=from_dem)
         self.ledger.stream(stream)
+        if from_dem is not None:  # which heights its extent and tiles search, and whence
+            out.issues.append(terrain_issue(geo.pair_id, from_dem))
         out.issues.append(
             Issue(
                 Level.OK,
@@ -885,6 +896,7 @@ class Streamer:
                 config=self.config,
                 gcps=self.gcps,
                 ledger=self.ledger,
+                terrain=stream.terrain,
             )
         )
         return out

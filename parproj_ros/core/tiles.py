@@ -63,7 +63,7 @@ from .heights import (
 )
 from .ledger import StreamPair
 from .results import BlockResult, HeightTile, Issue, Level, Outputs, PairResult
-from .terrain import Terrain, TerrainSource, measure_terrain
+from .terrain import Terrain, TerrainSource, measure_terrain, with_dem
 
 Float32Array = NDArray[np.float32]
 
@@ -118,6 +118,9 @@ class _Geometry:
     #: From a stream under way (then its end before the last blocks is a break); False: from
     #: a finished pair's result.
     streamed: bool = True
+    #: The DEM's heights over the pair's ground (source ``dem``: the pipeline's DEM, sampled
+    #: when the stream began), or None: the tiles search the prior and the tie points'.
+    dem_terrain: Terrain | None = None
 
     @property
     def height_relation(self) -> tuple[float, float]:
@@ -526,20 +529,29 @@ class TileLevel:
         geo = tiles.geo
         left = tiles.sides["left"].columns(0, n)
         right = tiles.sides["right"].columns(0, n)
-        prior = Terrain(*opt.prior_m, TerrainSource.PRIOR)
+        # the DEM's heights (the stream's, sampled when it began) stand for the prior
+        prior = geo.dem_terrain or Terrain(*opt.prior_m, TerrainSource.PRIOR)
         terrain = prior
         where = f"pair {geo.pair_id}"
         a, b = geo.height_relation
         margin = max(2.0, opt.margin_px / self.factor)
+        known = "the DEM's heights" if geo.dem_terrain is not None else "the prior"
         if opt.measure_terrain and self.factor > 1 and _searched(a, b, prior, margin) <= 16:
             # The prior already needs no more than SGBM's fewest disparities: tie points
             # cannot narrow the search, and measured on the reduced window (its pixels
             # 388 m of height at 1/8 of the benchmark's pair, the terrain padded by 4 of
             # them) they would widen it: 0.42 s a pair and twice the matching at 1/8.
-            tiles.note = "; tie points not measured: the prior fits SGBM's 16 disparities"
+            tiles.note = f"; tie points not measured: {known} fit SGBM's 16 disparities"
         elif opt.measure_terrain:
-            terrain = _window_terrain(left, right, geo, prior, opt.nodata)
-            if terrain.source != TerrainSource.TIE_POINTS:
+            terrain = with_dem(
+                geo.dem_terrain, _window_terrain(left, right, geo, prior, opt.nodata)
+            )
+            if terrain.source == TerrainSource.DEM:
+                tiles.note = (
+                    f"; too few tie points agree on the first {n} columns: the DEM's heights "
+                    "are searched"
+                )
+            elif terrain.source not in (TerrainSource.TIE_POINTS, TerrainSource.DEM_TIE_POINTS):
                 tiles.issues.append(
                     Issue(
                         Level.WARN,
@@ -777,6 +789,7 @@ class TileStage:
             geo.left_grid,
             geo.right_grid,
             s.stamp_ns,
+            dem_terrain=s.terrain,
         )
 
     def _geometry(self, pair_id: str, pairs: list[PairResult]) -> _Geometry | None:
@@ -785,6 +798,8 @@ class TileStage:
                 return self.stream_geometry(s)
         for p in pairs:  # the stream began and ended within one call
             if p.pair_id == pair_id:
+                t = p.terrain
+                dem = t if t is not None and t.source == TerrainSource.DEM else None
                 return _Geometry(
                     pair_id,
                     p.normalization,
@@ -793,6 +808,7 @@ class TileStage:
                     p.right_grid,
                     p.stamp_ns,
                     streamed=False,
+                    dem_terrain=dem,
                 )
         return None
 

@@ -300,3 +300,97 @@ def test_a_dem_that_fails_is_an_error_and_the_pair_comes(agile: dict[str, Any]) 
     assert pair.terrain.source == TerrainSource.TIE_POINTS
     (err,) = [i for i in out.issues if i.level == Level.ERROR]
     assert "the DEM flat.tif could not be sampled (OSError: read error" in err.message
+
+
+# ---- a streamed pair (its extent and DSM tiles chosen when the stream begins) ---------------
+# The airborne fore/aft bag (two views: it streams; tests/core/test_tiles.py), its frame taken
+# as the tangent plane PLANE_ID and its scenario's terrain as the DEM.
+
+
+@pytest.fixture(scope="module")
+def airborne() -> dict[str, Any]:
+    from parproj_ros.sim.scenarios import SCENARIOS
+    from parproj_ros.sim.terrain import procedural_terrain
+
+    scn = SCENARIOS["airborne_foreaft"]()
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    return {"terrain": terrain}
+
+
+def _streamed(dem: Any) -> Any:
+    from testkit.paths import BAGS
+
+    from parproj_ros.core.results import Outputs
+    from parproj_ros.ros import conversions as conv
+    from parproj_ros.ros.bag import BagReader
+    from parproj_ros.ros.inputs import config_from_bag
+
+    bag = BAGS / "airborne_foreaft"
+    reader = BagReader(bag)
+    cfg = config_from_bag(reader, scene_lines=768, heights=True)
+    pipe = Pipeline(cfg)
+    pipe.use_dem(DemTerrain(dem, lambda: PLANE_ID))
+    out = Outputs()
+    strips = {"left/image_strip": "left", "right/image_strip": "right"}
+    for item in reader.messages(topics=["navigation", *strips]):
+        if item.topic == "navigation":
+            out.extend(pipe.add_navigation(conv.odometry_to_sample(item.msg)))
+            continue
+        stamp = conv.stamp_to_ns(item.msg.header.stamp)
+        strip = conv.image_to_array(item.msg)
+        out.extend(pipe.add_strip(strips[item.topic], stamp, item.msg.header.frame_id, strip))
+    out.extend(pipe.flush())
+    assert [i for i in out.issues if i.message.startswith("streaming: ")], [
+        i.message for i in out.issues
+    ]
+    return out
+
+
+@pytest.mark.ros  # reads a bag
+def test_a_streamed_pair_searches_the_dem_from_its_start(airborne: dict[str, Any]) -> None:
+    """The DEM's heights, sampled when the stream begins, are the streamed pair's extent and
+    its tiles' search (joined with the first window's tie points), and the finished pair's
+    terrain: the DEM sampled once for the pair (its problems said once)."""
+    terrain = airborne["terrain"]
+    dem = TerrainDem(terrain, tangent_plane(PLANE_ID))  # type: ignore[arg-type]
+    out = _streamed(dem)
+    (pair,) = out.pairs
+    t = pair.terrain
+    assert t.source in (TerrainSource.DEM, TerrainSource.DEM_TIE_POINTS), t
+    lo, hi = t.dem_m
+    assert terrain.min_height - 1e-6 <= lo < hi <= terrain.max_height + 1e-6
+    said = [i for i in out.issues if i.where == f"pair {pair.pair_id}" and "DEM" in i.message]
+    assert said, [i.message for i in out.issues]
+    first = said[0]
+    assert first.level == Level.OK and first.message.startswith("terrain "), first.message
+    assert "from the DEM terrain.tif, ellipsoidal heights" in first.message
+    full = [tile for tile in out.tiles if tile.factor == 1]
+    assert full, "no tiles"
+    for tile in full:
+        assert tile.terrain is not None and tile.terrain.dem_m == (lo, hi), tile.terrain
+        assert tile.terrain.low_m <= lo and tile.terrain.high_m >= hi
+    (res,) = out.heights
+    assert res.ok and res.dsm is not None, res.message
+    calls = dem.calls
+    again = DemTerrain(dem, lambda: PLANE_ID)
+    k = pair.normalization.parallax_per_height
+    args = (pair.pair_id, pair.left, pair.right, pair.normalization)
+    z0 = 0.5 * (t.low_m + t.high_m)
+    assert again.pair_terrain(*args, z0=z0, metres_per_px=pair.left_grid.pixel / k) is not None
+    per_pair = dem.calls - calls  # what one pair's sampling costs
+    assert calls == per_pair, (calls, per_pair)  # at the stream's start only: once
+
+
+@pytest.mark.ros  # reads a bag
+def test_a_streamed_pair_with_a_dem_elsewhere_is_one_error() -> None:
+    out = _streamed(FlatDem(500.0, cover=False))
+    (pair,) = out.pairs
+    assert pair.terrain.source in (TerrainSource.TIE_POINTS, TerrainSource.PRIOR), pair.terrain
+    errors = [i for i in out.issues if i.level == Level.ERROR]
+    assert len(errors) == 1 and errors[0].where == f"pair {pair.pair_id}", errors
+    assert "flat.tif: the DEM gives heights at 0 %" in errors[0].message
+    assert out.tiles and all(
+        tile.terrain is None or tile.terrain.dem_m is None for tile in out.tiles
+    )

@@ -12,6 +12,10 @@ with ``dem`` the SRTM crop of tests/data/ventoux as a GeoTIFF and ``geoid_undula
 - the same heights 5 degrees east (a DEM of another place): an ERROR status naming the file,
   the area needed and the area covered, and the pair and its DSM still published (terrain
   from the tie points);
+- a streamed pair (bags/airborne_foreaft, 768-line scenes, its outputs labelled with the frame
+  ``frame_id`` PLANE and its scenario's terrain as the DEM, testkit.rasters.terrain_geotiff):
+  its DSM tiles and its DSM search the DEM's heights from the stream's start (terrain source
+  ``dem+tie_points``, the DEM's span held), said once in an OK line naming the DEM;
 - ``geoid_undulation`` 50 without ``dem``: a WARN saying it is ignored, the pair and its DSM
   published (terrain from the tie points);
 - a DEM GDAL cannot read, two vertical references, a geoid without a DEM: the node does not
@@ -29,8 +33,9 @@ import numpy as np
 import pytest
 import yaml
 from testkit.diagnostics import level, show
+from testkit.live import thinned_navigation
 from testkit.paths import BAGS
-from testkit.rasters import pair_ground_slack, srtm_crop_geotiff, srtm_crop_z
+from testkit.rasters import pair_ground_slack, srtm_crop_geotiff, srtm_crop_z, terrain_geotiff
 
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.inputs import node_parameters, views_from_bag
@@ -187,3 +192,55 @@ def test_a_dem_that_cannot_serve_refuses_the_start(case: str, tmp_path: Path) ->
     }[case]
     assert want in lines[0], lines[0]
     assert "Traceback" not in out
+
+
+#: The frame the streamed bag's outputs are labelled with (a place on Earth for the DEM).
+PLANE = "enu_wgs84:lat=44.0000000,lon=5.0000000,h=0.00"
+
+
+def test_a_streamed_pair_and_its_tiles_search_the_dem(tmp_path: Path) -> None:
+    from parproj_ros.sim.scenarios import SCENARIOS
+    from parproj_ros.sim.terrain import procedural_terrain
+
+    # a slow replay of the bag thinned as the tiles' live test replays it: the pair streams
+    bag = thinned_navigation(BAGS / "airborne_foreaft", tmp_path / "input")
+    scn = SCENARIOS["airborne_foreaft"]()
+    terrain = procedural_terrain(
+        scn.terrain_extent_m, scn.terrain_spacing_m, scn.relief_m, seed=scn.seed
+    )
+    half = scn.terrain_extent_m / 2
+    dem = terrain_geotiff(tmp_path / "terrain.tif", terrain.height, PLANE, half, 1.0)
+    views = views_from_bag(BagReader(bag))
+    params = node_parameters(
+        views, heights=True, scene_lines=768, dem=[str(dem)], dem_ellipsoidal=True, frame_id=PLANE
+    )
+    run = run_through_node(
+        bag,
+        tmp_path,
+        params=params,
+        rate=0.2,
+        max_gap_s=0.05,
+        timeout_s=180.0,
+        log=lambda s: None,
+        also=("dsm",),
+    )
+    assert run.discovered and run.code == 0, run.log
+    reader = BagReader(run.output)
+    diags = [
+        s
+        for m in reader.messages(topics=["/diagnostics"])
+        for s in m.msg.status
+        if s.name != "parproj_node: summary"
+    ]
+    assert [s for s in diags if s.message.startswith("streaming: ")], show(diags)
+    tiles = [m.msg for m in reader.messages(topics=["dsm_tile"])]
+    (dsm,) = [m.msg for m in reader.messages(topics=["dsm"])]
+    assert tiles, run.log
+    lo, hi = terrain.min_height, terrain.max_height
+    for m in [*tiles, dsm]:
+        assert m.terrain_source == "dem+tie_points", (m.terrain_source, m.terrain_points)
+        # the DEM's span over the pair's ground (within the scenario's) is searched
+        assert m.terrain_min_m <= hi and m.terrain_max_m >= lo, (m.terrain_min_m, m.terrain_max_m)
+    said = [s for s in diags if "from the DEM terrain.tif, ellipsoidal heights" in s.message]
+    assert said and level(said[0]) == 0, show(diags)
+    assert not [s for s in diags if level(s) >= 2], show(diags)

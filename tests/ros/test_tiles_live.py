@@ -16,18 +16,18 @@ The tiles must equal those ``parproj process`` makes of the same bag with the sa
 
 from __future__ import annotations
 
-import math
 import os
 import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
+from testkit.live import thinned_navigation
 from testkit.paths import BAGS
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core import contract
-from parproj_ros.ros.bag import BagReader, BagWriter
+from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.conversions import elevation_grid_from_msg
 from parproj_ros.ros.inputs import node_parameters, views_from_bag
 from parproj_ros.ros.live import NodeProcess, Recorder, node_params_yaml, replay, ros_environment
@@ -37,32 +37,10 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]  # live node over DDS
 BAG = BAGS / "airborne_foreaft"
 SETTINGS = {"scene_lines": 768, "heights": True, "heights_quicklook": 2}  # 1/4
 RATE = 0.2
-#: Navigation kept whole before the first and after the last strip of each view, seconds.
-NAV_AROUND_S = 1.0
-#: Navigation kept between the views' strips: one sample every this many seconds.
-NAV_BETWEEN_S = 0.5
 
 
 def _trimmed(path: Path) -> Path:
-    """The bag with its navigation thinned to NAV_BETWEEN_S farther than NAV_AROUND_S from every
-    view's strips."""
-    reader = BagReader(BAG)
-    spans = []
-    for view in ("left", "right"):
-        t = [m.log_time_ns for m in reader.messages(topics=[contract.strip_topic(view)])]
-        spans.append((min(t) - NAV_AROUND_S * 1e9, max(t) + NAV_AROUND_S * 1e9))
-    kept = -math.inf
-    with BagWriter(path, overwrite=True) as bw:
-        for topic, msgtype in reader.topics().items():
-            bw.add_topic(topic, msgtype, reader.qos(topic))
-        for m in reader.messages():
-            t = m.log_time_ns
-            if m.topic == contract.NAVIGATION and not any(a <= t <= b for a, b in spans):
-                if t < kept + NAV_BETWEEN_S * 1e9:
-                    continue
-                kept = t
-            bw.write(m.topic, m.msg, t)
-    return path
+    return thinned_navigation(BAG, path)
 
 
 def test_tiles_arrive_while_the_strips_are_sent_and_equal_the_offline_ones(

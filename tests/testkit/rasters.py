@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -181,3 +182,46 @@ def pair_ground_slack(side_m: float = 250.0) -> float:
     dx = dy * math.cos(math.radians(SRTM_LAT0))
     slope = float(np.hypot(*np.gradient(h, dy, dx)).max())
     return slope * side_m / (FOOTPRINT_GRID - 1) * math.sqrt(2.0)
+
+
+def terrain_geotiff(path: Path, surface: Any, frame_id: str, half_m: float, step_m: float) -> Path:
+    """A simulated terrain as a DEM: a GeoTIFF (EPSG:4326, float32, ellipsoidal heights).
+
+    ``surface(x, y)``: the terrain's Z in the tangent plane ``frame_id`` over the square
+    ``|x|, |y| <= half_m`` (metres). Each node at (lon, lat) holds the ellipsoidal height whose
+    point lies on the surface (6 fixed-point steps: the plane's curvature, micrometres here);
+    nodes about ``step_m`` apart. Sampled bilinearly, it gives the surface within the
+    interpolation's error (its slope times a node spacing, at most).
+    """
+    from rasterio.transform import from_origin
+
+    from parproj_ros.core.frames import tangent_plane
+
+    plane = tangent_plane(frame_id)
+    assert plane is not None, frame_id
+    xs = np.array([-half_m, half_m, -half_m, half_m])
+    ys = np.array([-half_m, -half_m, half_m, half_m])
+    lon, lat, _ = plane.to_geodetic(xs, ys, np.zeros(4))
+    dlat = step_m / 111_320.0
+    dlon = dlat / math.cos(math.radians(float(np.mean(lat))))
+    west, east = float(lon.min()) + dlon, float(lon.max()) - dlon
+    south, north = float(lat.min()) + dlat, float(lat.max()) - dlat
+    cols, rows = int((east - west) / dlon) + 1, int((north - south) / dlat) + 1
+    glon, glat = np.meshgrid(west + dlon * np.arange(cols), north - dlat * np.arange(rows))
+    h = np.full(glon.shape, plane.h0)
+    for _ in range(6):
+        x, y, z = plane.to_local(glon, glat, h)
+        h = h + (surface(x, y) - z)
+    profile = {
+        "driver": "GTiff",
+        "width": cols,
+        "height": rows,
+        "count": 1,
+        "dtype": "float32",
+        "crs": "EPSG:4326",
+        "transform": from_origin(west - dlon / 2, north + dlat / 2, dlon, dlat),
+        "nodata": float("nan"),
+    }
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(h.astype(np.float32), 1)
+    return path
