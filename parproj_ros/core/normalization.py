@@ -228,21 +228,33 @@ def pair_geometry(
     if isinstance(frame, Issue):
         return frame
     terrain = pair_terrain(left, right, config.orientation, gcps)
-    if dem is not None:
-        k = frame.normalization.parallax_per_height
-        dem_terrain = dem.pair_terrain(
-            frame.pair_id,
-            left,
-            right,
-            frame.normalization,
-            z0=0.5 * (terrain.low_m + terrain.high_m),
-            metres_per_px=frame.pixel / k,
-        )
-        if dem_terrain is not None:
-            terrain = with_dem(dem_terrain, terrain)
-            frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
+    dem_terrain = _dem_terrain(dem, frame, left, right, terrain)
+    if dem_terrain is not None:
+        terrain = with_dem(dem_terrain, terrain)
+        frame = replace(frame, z_ref=zero_disparity_height(config.orientation.z_avg, terrain))
     geo = pair_grids(frame, config.output, terrain.range_m)
     return geo if isinstance(geo, Issue) else (geo, terrain)
+
+
+def _dem_terrain(
+    dem: DemTerrain | None,
+    frame: PairFrame,
+    left: SceneResult,
+    right: SceneResult,
+    terrain: Terrain,
+) -> Terrain | None:
+    """The DEM's terrain of a pair (None without a DEM or when it cannot give it)."""
+    if dem is None:
+        return None
+    k = frame.normalization.parallax_per_height
+    return dem.pair_terrain(
+        frame.pair_id,
+        left,
+        right,
+        frame.normalization,
+        z0=0.5 * (terrain.low_m + terrain.high_m),
+        metres_per_px=frame.pixel / k,
+    )
 
 
 def pair_terrain(
@@ -381,17 +393,7 @@ def normalize_pair(
     if isinstance(frame, Issue):
         return frame
     terrain = pair_terrain(left, right, config.orientation, gcps)
-    dem_terrain = None
-    if dem is not None:
-        k = frame.normalization.parallax_per_height
-        dem_terrain = dem.pair_terrain(
-            frame.pair_id,
-            left,
-            right,
-            frame.normalization,
-            z0=0.5 * (terrain.low_m + terrain.high_m),
-            metres_per_px=frame.pixel / k,
-        )
+    dem_terrain = _dem_terrain(dem, frame, left, right, terrain)
     if config.ties.terrain == "tie_points":
         terrain = terrain_prepass(frame, left, right, config.output, terrain)
     terrain = with_dem(dem_terrain, terrain)
