@@ -188,7 +188,15 @@ def evaluate_bag(
     scenario named like the truth bag, if there is one; else only their completeness).
     """
     if truth_bag:
+        from .same_input import check_same_input, truth_bag_lines
+
         check_truth_frame(Path(out_bag), Path(truth_bag))
+        check_same_input(
+            Path(out_bag),
+            truth_bag_lines(Path(truth_bag)),
+            option="--truth",
+            source=str(truth_bag),
+        )
     reader = BagReader(out_bag)
     if not reader.recovery.complete:
         warnings.warn(

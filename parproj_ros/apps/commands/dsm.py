@@ -16,6 +16,22 @@ from ...io.files import check_output, input_path, staged_output
 from .common import FORCE_HELP, report
 
 
+def _check_scenario(bag: Any, name: str) -> None:
+    """Refuse ``--scenario`` when the bag's pairs were not computed from its images.
+
+    A real pair's frame (``enu_wgs84:``) is left to the export, which refuses it in words.
+    """
+    from ...core import contract
+    from ...core.frames import FRAME_PREFIX
+    from ...eval.evaluate import first_frame_id
+    from ...eval.same_input import check_same_input, scenario_lines
+    from ...ros.bag import BagReader
+
+    frame = first_frame_id(BagReader(bag), contract.STEREO_PAIR) or ""
+    if not frame.startswith(FRAME_PREFIX):
+        check_same_input(bag, scenario_lines(name), option="--scenario", source=f"scenario {name}")
+
+
 def run(args: argparse.Namespace) -> int:
     """Export every DSM of the bag; print one line per pair (or JSON)."""
     from ...eval.heights import scenario_terrain
@@ -32,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
         from ...sim.scenarios import SCENARIOS
 
         raise InputError("--scenario", f"unknown; known: {', '.join(SCENARIOS)}")
+    if args.scenario:
+        _check_scenario(bag, args.scenario)
     dem = dem_from_args(args)
     geoid = _heights_geoid(args.heights_geoid)
     from ..export import MIN_VALID_FRACTION, NoHeightsError
