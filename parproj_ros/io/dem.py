@@ -238,9 +238,52 @@ class _Usage:
 
 
 def _short(err: BaseException) -> str:
-    """An exception as one short line (GDAL's messages can span lines)."""
-    text = " ".join(str(err).split()) or type(err).__name__
+    """An exception as one short line: GDAL's own words from rasterio's chain of exceptions.
+
+    rasterio's "Read failed. See previous exception for details." hides the cause (a VRT's
+    missing source, a truncated block) in ``__cause__``: :func:`~parproj_ros.io.raster.gdal_error`
+    brings it out.
+    """
+    from .raster import gdal_error
+
+    text = gdal_error(err)
     return text if len(text) <= 200 else text[:197] + "..."
+
+
+#: Values a raster of each kind can hold, metres: (least, most, what they are). A DEM's heights
+#: (ellipsoidal or above a geoid) lie between the ocean's deepest, -10,935 m, and Everest's
+#: 8,849 m; the geoid's undulations between -106.6 and 85.8 m (EGM2008). A value beyond is no
+#: height: an undeclared no-data value, another unit, or another kind of raster.
+PLAUSIBLE: dict[str, tuple[float, float, str]] = {
+    "DEM": (-11_500.0, 9_000.0, "any height on Earth"),
+    "geoid grid": (-150.0, 150.0, "the undulations of a geoid (Earth's: -107..86 m)"),
+}
+
+#: No-data values often left undeclared in DEM files.
+_COMMON_NODATA = (-32768.0, -32767.0, 32767.0, 65535.0, -99999.0, 99999.0)
+
+
+def _implausible(kind: str, data: FloatArray) -> str | None:
+    """Why ``data`` cannot be values of a ``kind`` raster (one clause), or None if it can."""
+    lo, hi, what = PLAUSIBLE[kind]
+    with np.errstate(invalid="ignore"):
+        bad = np.isfinite(data) & ((data < lo) | (data > hi))
+    if not bad.any():
+        return None
+    v = data[bad]
+    worst = float(v[np.argmax(np.abs(v))])
+    text = (
+        f"holds {worst:g} at {int(bad.sum())} of {data.size} cells read, outside {what} "
+        f"({lo:g}..{hi:g} m)"
+    )
+    if kind != "DEM":
+        return text + ": no geoid undulations (a DEM, or an image?); give the geoid model's grid"
+    if worst in _COMMON_NODATA or abs(worst) > 1e30:
+        return (
+            text + f": an undeclared no-data value? declare it (gdal_edit.py -a_nodata {worst:g} "
+            "FILE, or a VRT with <NoDataValue>)"
+        )
+    return text + ": heights in another unit than metres, or not a DEM? give one in metres"
 
 
 def _box_text(box: Sequence[float]) -> str:
@@ -268,22 +311,31 @@ class RasterSampler:
     #: request larger than this is read and held whole.
     hold_cells: int = 1 << 22
 
-    def __init__(self, source: str | Path, label: str, *, crs: str | None = None) -> None:
+    def __init__(
+        self, source: str | Path, label: str, *, crs: str | None = None, kind: str = "DEM"
+    ) -> None:
         """Open ``source`` (a file, or a GDAL dataset name); ``label`` names it in errors.
+
+        Its centre 2 x 2 cells are read at once, so a file whose data cannot be read (a VRT's
+        missing source, a cut file) is refused here, not when a pair first needs it.
 
         Args:
             source: what rasterio opens.
             label: the file as the user gave it (for messages).
             crs: the CRS to assume when the file has none (e.g. ``"EPSG:4326"``).
+            kind: ``"DEM"`` or ``"geoid grid"``: the values it may hold (:data:`PLAUSIBLE`).
 
         Raises:
-            DemError: GDAL cannot open it, it has no CRS, fewer than 2 x 2 pixels.
+            DemError: GDAL cannot open it or read its centre, it has no CRS, fewer than 2 x 2
+                pixels, more than one band, a geoid grid of 8-bit integers, or values outside
+                :data:`PLAUSIBLE` (here and at any later read).
 
         """
         import rasterio
         from pyproj import CRS, Transformer
 
         self.label = label
+        self.kind = kind
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # NotGeoreferencedWarning: checked below
@@ -297,7 +349,23 @@ class RasterSampler:
             ) from None
         ds = self._ds
         if ds.count < 1 or ds.width < 2 or ds.height < 2:
-            raise DemError(label, f"{ds.width} x {ds.height} pixels, {ds.count} bands: no grid")
+            raise DemError(
+                label,
+                f"{ds.width} x {ds.height} pixels, {ds.count} bands: no grid of {kind} values "
+                "(at least 2 x 2 cells of one band)",
+            )
+        if ds.count > 1:
+            raise DemError(
+                label,
+                f"{ds.count} bands of {ds.dtypes[0]}: a {kind} has one (an image?); give the "
+                "band of its values alone (gdal_translate -b N)",
+            )
+        if kind != "DEM" and np.dtype(ds.dtypes[0]).itemsize == 1:
+            raise DemError(
+                label,
+                f"{ds.dtypes[0]} values: no geoid grid (undulations need signed metres to the "
+                "centimetre; an image?); give the geoid model's grid",
+            )
         if ds.crs is None and crs is None:
             raise DemError(label, "has no CRS: cannot place it (give it one, e.g. with a VRT)")
         src_crs = CRS.from_user_input(crs if ds.crs is None else ds.crs.to_wkt())
@@ -315,6 +383,8 @@ class RasterSampler:
         self._offset = float(ds.offsets[0]) if ds.offsets else 0.0
         self._window: tuple[int, int, int, int] | None = None  # row0, row1, col0, col1
         self._data = np.empty((0, 0))
+        r, c = (ds.height - 2) // 2, (ds.width - 2) // 2
+        self._read(r, r + 2, c, c + 2)
 
     def bounds_lonlat(self) -> tuple[float, float, float, float]:
         """(west, south, east, north) of the raster's cell centres, WGS84 degrees."""
@@ -380,8 +450,11 @@ class RasterSampler:
             band = self._ds.read(1, window=Window(c0, r0, c1 - c0, r1 - r0), masked=True)
         except Exception as err:  # a truncated or corrupt file: name it
             raise DemError(self.label, f"cannot be read ({_short(err)})") from None
-        data = np.ma.filled(band.astype(np.float64), np.nan)
-        self._data = data * self._scale + self._offset
+        data = np.ma.filled(band.astype(np.float64), np.nan) * self._scale + self._offset
+        why = _implausible(self.kind, data)
+        if why is not None:
+            raise DemError(self.label, why)
+        self._data = data
         self._window = (r0, r1, c0, c1)
 
     def __call__(self, lon: ArrayLike, lat: ArrayLike) -> FloatArray:
@@ -637,8 +710,9 @@ def coverage_text(
         has = f"spans {_box_text(covered)} but has nodata there"
     else:
         has = f"covers {_box_text(covered)}"
+    values = "heights" if kind == "DEM" else "undulations"
     return (
-        f"the {kind} gives heights at {100 * fraction:.0f} % of {what} (needed: "
+        f"the {kind} gives {values} at {100 * fraction:.0f} % of {what} (needed: "
         f"{_box_text(need)}; the {kind} {has}): give a {kind} over the scene (several tiles: "
         "several files or one VRT)"
     )
@@ -652,7 +726,7 @@ def _geoid_sampler(geoid: str | Path) -> RasterSampler:
         if not path.is_file():
             known = ", ".join(GEOID_MODELS)
             raise DemError(str(geoid), f"no such geoid grid file (or model name: {known})")
-        return RasterSampler(path, str(geoid))
+        return RasterSampler(path, str(geoid), kind="geoid grid")
     package, data, gdal_name, _ = model
     spec = importlib.util.find_spec(package)  # located, not imported
     if spec is None or not spec.submodule_search_locations:
@@ -664,7 +738,9 @@ def _geoid_sampler(geoid: str | Path) -> RasterSampler:
     path = Path(next(iter(spec.submodule_search_locations))) / data
     if not path.is_file():
         raise DemError("--geoid", f"{geoid}: {path} is missing from the installed {package}")
-    return RasterSampler(gdal_name.format(path=path), f"{geoid} ({path.name})", crs="EPSG:4326")
+    return RasterSampler(
+        gdal_name.format(path=path), f"{geoid} ({path.name})", crs="EPSG:4326", kind="geoid grid"
+    )
 
 
 def load_dem(paths: str | Path | Sequence[str | Path], *, geoid: Geoid = None) -> DemHeights:

@@ -335,7 +335,7 @@ def test_loader_errors_name_the_file(forms: dict[str, Any], tmp_path: Path) -> N
         tmp_path / "far_geoid.tif", np.full((5, 5), 50.0, np.float32),
         Affine(0.25, 0, 20.0, 0, -0.25, 46.0), "EPSG:4326", -9999,
     )  # fmt: skip
-    with pytest.raises(DemError, match=r"far_geoid\.tif: the geoid grid gives heights at 0 %"):
+    with pytest.raises(DemError, match=r"far_geoid\.tif: the geoid grid gives undulations at 0 %"):
         load_dem(TILE, geoid=geoid).check_covers(lon, lat, "the scene")
     assert MIN_COVERAGE == 0.9
 
@@ -480,7 +480,9 @@ def test_import_errors_are_one_line(
         code, err = _cli(
             ["import", *pair, "--dem", str(TILE), "--geoid", str(geoid), *out], capsys
         )
-        expected = [r"far_geoid\.tif: the geoid grid gives heights at 0 % of left_image\.tif's"]
+        expected = [
+            r"far_geoid\.tif: the geoid grid gives undulations at 0 % of left_image\.tif's"
+        ]
     elif case == "geoid_without_dem":
         code, err = _cli(["import", *pair, "--geoid", "egm2008", *out], capsys)
         expected = [r"--geoid: describes the DEM's heights: give --dem too"]
@@ -633,3 +635,97 @@ def test_the_cli_says_an_undulation_without_a_dem_is_ignored(
     )
     assert dem_from_args(parser.parse_args([])) is None
     assert capsys.readouterr().err == ""
+
+
+def _missing_source_vrt(forms: dict[str, Any], tmp_path: Path) -> Path:
+    """A VRT of the crop's grid whose one source file is gone."""
+    t, (h, w) = forms["transform"], forms["crop"].shape
+    vrt = tmp_path / "gone.vrt"
+    vrt.write_text(
+        f'<VRTDataset rasterXSize="{w}" rasterYSize="{h}"><SRS>EPSG:4326</SRS>'
+        f"<GeoTransform>{t.c!r}, {t.a!r}, 0.0, {t.f!r}, 0.0, {t.e!r}</GeoTransform>"
+        '<VRTRasterBand dataType="Int16" band="1"><SimpleSource>'
+        '<SourceFilename relativeToVRT="1">gone.tif</SourceFilename><SourceBand>1</SourceBand>'
+        "</SimpleSource></VRTRasterBand></VRTDataset>"
+    )
+    return vrt
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["undeclared_void", "centimetres", "dem_as_geoid", "image_as_geoid", "byte_geoid", "vrt"],
+)
+def test_a_raster_of_no_heights_is_refused_naming_it(
+    forms: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str], case: str
+) -> None:
+    """Values no DEM (or geoid grid) holds are refused in one line naming the file and why.
+
+    Before (adversarial review 2026-12-02): an int16 DEM with its void -32768 undeclared was
+    imported (exit 0, "clipped to the RPC range", h = 190 m) and ``dsm --dem`` printed
+    "rms 33305 m" with exit 0; ``--geoid`` took a 3-band uint8 image or the DEM itself as
+    undulations (GCPs 100-150 m off, exit 0); a VRT whose source is gone said "Read failed. See
+    previous exception for details." without the exception.
+    """
+    crop, t = forms["crop"], forms["transform"]
+    dem, geoid = forms["geotiff"], None
+    if case == "undeclared_void":
+        holed = crop.copy()
+        holed[40:60, 45:65] = -32768  # over the pair's ground (rows ~51, columns ~54)
+        dem = _write(tmp_path / "void.tif", holed, t, "EPSG:4326", -32768)
+        with rasterio.open(dem, "r+") as d:
+            d.nodata = None  # the void left undeclared, as many conversions leave it
+        said = r"void\.tif: holds -32768 at \d+ of \d+ cells read, outside any height on Earth"
+        said += r".*undeclared no-data value\? declare it \(gdal_edit\.py -a_nodata -32768 FILE"
+    elif case == "centimetres":
+        dem = _write(tmp_path / "cm.tif", crop.astype(np.int32) * 100, t, "EPSG:4326", -1)
+        said = r"cm\.tif: holds \d+ at .*: heights in another unit than metres"
+    elif case == "dem_as_geoid":
+        geoid = forms["geotiff"]
+        said = r"crop\.tif: holds \d+ at .*outside the undulations of a geoid \(Earth's: -107"
+    elif case == "image_as_geoid":
+        geoid = tmp_path / "rgb.tif"
+        with rasterio.open(
+            geoid, "w", driver="GTiff", width=8, height=8, count=3, dtype="uint8",
+            crs="EPSG:4326", transform=t,
+        ) as d:  # fmt: skip
+            d.write(np.full((3, 8, 8), 40, np.uint8))
+        said = r"rgb\.tif: 3 bands of uint8: a geoid grid has one \(an image\?\)"
+    elif case == "byte_geoid":
+        geoid = _write(tmp_path / "byte.tif", np.full((8, 8), 40, np.uint8), t, "EPSG:4326", 0)
+        said = r"byte\.tif: uint8 values: no geoid grid"
+    else:
+        dem = _missing_source_vrt(forms, tmp_path)
+        said = r"gone\.vrt: cannot be read \(.*gone\.tif.*(No such file|does not exist)"
+    with pytest.raises(DemError, match=said):
+        load_dem(dem, geoid=geoid)
+    argv = ["import", *map(str, IMAGES), "--dem", str(dem), "-o", str(tmp_path / "bag")]
+    argv += ["--geoid", str(geoid)] if geoid else []
+    code, err = _cli(argv, capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert re.search(said, err) and "See previous exception" not in err, err
+    assert not (tmp_path / "bag").exists()
+
+
+@pytest.mark.ros
+def test_process_and_dsm_refuse_an_unreadable_dem_at_start(
+    forms: dict[str, Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A VRT whose source is gone: ``process`` refuses it before any message (its centre is read
+    at once), not pair by pair; ``dsm --dem`` with an undeclared void: exit 2, nothing written.
+    """
+    vrt = _missing_source_vrt(forms, tmp_path)
+    bag = REPO / "bags" / "ventoux"
+    out = tmp_path / "out"
+    code, err = _cli(["process", str(bag), "-o", str(out), "-q", "--dem", str(vrt)], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"parproj process: {vrt}: cannot be read (") and "gone.tif" in err
+    assert not out.exists()
+    assert _cli(["process", str(bag), "-o", str(out), "-q", "--heights"], capsys)[0] == 0
+    holed = forms["crop"].copy()
+    holed[40:60, 45:65] = -32768
+    void = _write(tmp_path / "void.tif", holed, forms["transform"], "EPSG:4326", -32768)
+    with rasterio.open(void, "r+") as d:
+        d.nodata = None
+    code, err = _cli(["dsm", str(out), "-o", str(tmp_path / "d"), "--dem", str(void)], capsys)
+    assert code == 2 and "void.tif: holds -32768" in err and "rms" not in err, err
+    assert not (tmp_path / "d").exists()

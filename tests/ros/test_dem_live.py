@@ -168,13 +168,22 @@ def _start(tmp: Path, params: dict[str, Any]) -> tuple[int, str]:
 
 @pytest.mark.parametrize(
     "case",
-    ["unreadable", "missing", "two references", "geoid without dem"],
+    ["unreadable", "missing", "source gone", "two references", "geoid without dem"],
 )
 def test_a_dem_that_cannot_serve_refuses_the_start(case: str, tmp_path: Path) -> None:
     bad = tmp_path / "N44E005.hgt"
     bad.write_bytes(b"\0" * 100)
+    vrt = tmp_path / "gone.vrt"  # opens (GDAL reads sources lazily); its data cannot be read
+    vrt.write_text(
+        '<VRTDataset rasterXSize="20" rasterYSize="20"><SRS>EPSG:4326</SRS>'
+        "<GeoTransform>5.0, 0.001, 0.0, 44.3, 0.0, -0.001</GeoTransform>"
+        '<VRTRasterBand dataType="Int16" band="1"><SimpleSource>'
+        '<SourceFilename relativeToVRT="1">gone.tif</SourceFilename><SourceBand>1</SourceBand>'
+        "</SimpleSource></VRTRasterBand></VRTDataset>"
+    )
     params: dict[str, Any] = {
         "unreadable": {"dem": [str(bad)]},
+        "source gone": {"dem": [str(vrt)]},
         "missing": {"dem": ["no_such_dem.tif"]},
         "two references": {"dem": [str(bad)], "geoid": "egm2008", "geoid_undulation": 50.0},
         "geoid without dem": {"dem_ellipsoidal": True},
@@ -185,6 +194,7 @@ def test_a_dem_that_cannot_serve_refuses_the_start(case: str, tmp_path: Path) ->
     want = {
         "unreadable": f"parameter dem: {bad}: GDAL cannot read it as a raster",
         "missing": "parameter dem: no_such_dem.tif (from the node's working folder, ",
+        "source gone": f"parameter dem: {vrt}: cannot be read (",
         "two references": "parameter geoid_undulation: and parameter geoid both give the DEM's "
         "vertical reference",
         "geoid without dem": "parameter dem_ellipsoidal: describes the DEM's heights: give "
@@ -192,6 +202,8 @@ def test_a_dem_that_cannot_serve_refuses_the_start(case: str, tmp_path: Path) ->
     }[case]
     assert want in lines[0], lines[0]
     assert "Traceback" not in out
+    if case == "source gone":  # GDAL's words, not "Read failed. See previous exception"
+        assert "gone.tif" in lines[0] and "See previous" not in lines[0], lines[0]
 
 
 #: The frame the streamed bag's outputs are labelled with (a place on Earth for the DEM).
