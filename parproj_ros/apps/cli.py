@@ -14,6 +14,7 @@ import sys
 import traceback
 import warnings
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from types import FrameType
 from typing import Any, NoReturn, TextIO
 
@@ -118,6 +119,29 @@ def _input_errors(command: str) -> tuple[type[BaseException], ...]:
     return tuple(kinds)
 
 
+def _shown(name: Any, outputs: Sequence[Any]) -> str:
+    """A file as the user knows it: ``<out> (<file>)`` for one inside an output's staging folder.
+
+    Outputs are written in ``.<out>.<random>.partial/<out>``
+    (:func:`~parproj_ros.io.files.staged_output`), a name the user never gave.
+    """
+    path = Path(str(name))
+    for out in outputs:
+        if not out:
+            continue
+        o = Path(str(out))
+        for parent in path.parents:
+            if (
+                parent.parent == o.parent
+                and parent.name.startswith(f".{o.name}.")
+                and parent.name.endswith(".partial")
+            ):
+                rel = path.relative_to(parent).parts
+                rel = rel[1:] if rel[:1] == (o.name,) else rel  # the output is <stage>/<name>
+                return f"{o} ({Path(*rel)})" if rel else str(o)
+    return str(name)
+
+
 def describe(err: BaseException, inputs: Sequence[Any] = (), outputs: Sequence[Any] = ()) -> str:
     """One line ``<file>: <problem>`` for a bad-input exception.
 
@@ -126,8 +150,12 @@ def describe(err: BaseException, inputs: Sequence[Any] = (), outputs: Sequence[A
     """
     if isinstance(err, OSError):
         if err.filename is not None:
-            names = f"{err.filename}" + (f" -> {err.filename2}" if err.filename2 else "")
+            names = _shown(err.filename, outputs)
+            names += f" -> {_shown(err.filename2, outputs)}" if err.filename2 else ""
             return f"{names}: {err.strerror or err}"
+        if err.strerror:  # "[Errno 28] No space left on device" without its number
+            named = ", ".join(str(f) for f in (outputs or inputs) if f)
+            return f"{named}: {err.strerror}" if named else str(err.strerror)
         inputs = outputs or inputs
     text = " ".join(str(err).split()) or type(err).__name__
     path = getattr(err, "path", None)

@@ -496,30 +496,109 @@ def _set_ellipsoidal(path: Path) -> None:
 
 
 @contextlib.contextmanager
+def _c_stderr() -> Iterator[list[str]]:
+    """What C code writes to file descriptor 2 inside the block, captured (one string).
+
+    libtiff's own error handler prints ``_tiffWriteProc: No space left on device.`` straight to
+    fd 2, past GDAL's and rasterio's handlers: a disk full showed seven such lines before the
+    command's one line. Captured into a temporary file; the caller gives it back or uses it.
+    Without a usable fd 2 (or temporary file) nothing is captured.
+    """
+    import sys
+    import tempfile
+
+    got: list[str] = []
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        tmp = tempfile.TemporaryFile()
+    except (OSError, ValueError):
+        yield got
+        return
+    try:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            yield got
+        finally:
+            with contextlib.suppress(OSError, ValueError):
+                sys.stderr.flush()
+            os.dup2(saved, 2)
+            tmp.seek(0)
+            got.append(tmp.read().decode(errors="replace"))
+    finally:
+        os.close(saved)
+        tmp.close()
+
+
+def _disk_full(err: BaseException, c_text: str, folder: Path) -> str | None:
+    """Why a GeoTIFF write failed, when the reason is a full file system (else None)."""
+    import errno
+    import shutil
+
+    from .raster import gdal_error
+
+    words = gdal_error(err)
+    full = isinstance(err, OSError) and err.errno == errno.ENOSPC
+    full = full or "No space left on device" in f"{words} {c_text}"
+    if not full:
+        return None
+    try:
+        free = f"{shutil.disk_usage(folder).free / 1e6:.1f} MB free there"
+    except OSError:
+        free = "its free space unknown"
+    return f"No space left on device ({free}; GDAL: {words}): free some space or write elsewhere"
+
+
+@contextlib.contextmanager
 def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Iterator[Any]:
     """A writer for ``path`` as a Cloud Optimized GeoTIFF in ``crs``.
 
     The body writes a tiled GeoTIFF (``.<name>.tiled.partial``); GDAL's COG driver copies it
     (:data:`COG_OPTIONS`) to ``.<name>.partial``, whose vertical key is set for ellipsoidal
     heights, then renamed onto ``path``. Nothing is left behind on an error.
+
+    Raises:
+        OSError: ENOSPC, naming ``path``, when the file system fills up ("No space left on
+            device", the free space and GDAL's words), instead of rasterio's "Write failed.
+            See previous exception for details." and libtiff's lines on stderr.
     """
+    import sys
+
     from rasterio.shutil import copy as rio_copy
 
     final = Path(path)
     plain = final.with_name(f".{final.name}.tiled.partial")
     staged = final.with_name(f".{final.name}.partial")
     written = _written_crs(crs)
+    failed = False
     try:
-        with _open_writer(plain, profile) as dst:
-            yield dst
-        with warnings.catch_warnings():
-            from rasterio.errors import NotGeoreferencedWarning
+        with _c_stderr() as c_text:
+            try:
+                with _open_writer(plain, profile) as dst:
+                    yield dst
+                with warnings.catch_warnings():
+                    from rasterio.errors import NotGeoreferencedWarning
 
-            warnings.simplefilter("ignore", NotGeoreferencedWarning)
-            rio_copy(plain, staged, driver="COG", **COG_OPTIONS)
-        if written is not crs:
-            _set_ellipsoidal(staged)
-        os.replace(staged, final)
+                    warnings.simplefilter("ignore", NotGeoreferencedWarning)
+                    rio_copy(plain, staged, driver="COG", **COG_OPTIONS)
+                if written is not crs:
+                    _set_ellipsoidal(staged)
+                os.replace(staged, final)
+            except Exception:
+                failed = True
+                raise
+        text = "".join(c_text)
+        if text and not failed:
+            sys.stderr.write(text)  # nothing of a success is lost
+    except Exception as err:
+        import errno
+
+        if isinstance(err, OSError) and err.errno == errno.ENOSPC and err.filename:
+            raise  # said already (another file of the same write, e.g. the DSM's ortho-image)
+        why = _disk_full(err, "".join(c_text), final.parent)
+        if why is None:
+            raise
+        raise OSError(errno.ENOSPC, why, str(final)) from None
     finally:
         for leftover in (plain, staged):
             leftover.unlink(missing_ok=True)

@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -268,7 +269,10 @@ def test_heights_off_the_ground_are_named_not_the_rpc(
 
     with rasterio.open(SRTM) as src:
         profile = src.profile | {"driver": "GTiff"}
-        feet = (src.read(1) * 3.28084).astype(np.int16)
+        h = src.read(1)
+        # the tile's 6 voids stay voids (x 3.28 they wrap around int16 to 23566, which the DEM
+        # reader refuses as no height on Earth: test_dem.py, "centimetres")
+        feet = np.where(h == src.nodata, h, h * 3.28084).astype(np.int16)
     dem = tmp_path / "feet.tif"
     with rasterio.open(dem, "w", **profile) as dst:
         dst.write(feet, 1)
@@ -675,3 +679,35 @@ def test_a_dem_beyond_the_rpc_height_range_is_noted(
     code, _, err = run(["import", left, right, "-o", str(tmp_path / "c"), "--dem", tile,
                           "--geoid-undulation", "50"], capsys)  # fmt: skip
     assert code == 0 and "beyond the RPC's height range" not in err, err
+
+
+def test_a_full_disk_is_named_in_one_line(
+    processed: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str], monkeypatch: Any
+) -> None:
+    """``dsm`` writing onto a full file system: "No space left on device", the output named.
+
+    The GeoTIFFs are written to ``/dev/full`` (every write fails with ENOSPC, as on a full
+    disk: the kernel's error, through GDAL and libtiff). Before: seven lines of libtiff's own
+    handler (``_tiffWriteProc: No space left on device.``) and "parproj dsm: <out>: Write
+    failed. See previous exception for details."; the same with a real 200 kB tmpfs.
+    """
+    from parproj_ros.io import geotiff
+
+    real = geotiff._open_writer
+
+    def onto_full_disk(tmp: Path, profile: dict[str, Any]) -> Any:
+        Path(tmp).symlink_to("/dev/full")
+        return real(tmp, profile)
+
+    monkeypatch.setattr(geotiff, "_open_writer", onto_full_disk)
+    out = tmp_path / "d"
+    # capfd: libtiff writes to file descriptor 2 itself, past sys.stderr
+    code, _, err = run(["dsm", str(processed), "-o", str(out)], capfd)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert re.match(
+        rf"parproj dsm: {re.escape(str(out))} \(left_right_\w+\.tif\): No space left", line
+    )
+    assert "GDAL: TIFF" in line and line.endswith("free some space or write elsewhere"), line
+    assert "See previous exception" not in line
+    assert not out.exists() and not list(tmp_path.iterdir())  # no staging folder left either
