@@ -204,6 +204,17 @@ def fuse_bags(
             "interpolated between them (no detail gained); give 0 (the finest input's cell) "
             f"or at least {finest / MAX_CELLS_PER_GSD:.3g} m",
         )
+    small = min(dsms, key=lambda d: min(d.grid.width, d.grid.height) * d.grid.cell)
+    side = min(small.grid.width, small.grid.height) * small.grid.cell
+    if cell_m is not None and cell_m > side / 2:
+        raise InputError(
+            "--cell-m",
+            f"{cell_m:g} m cells are too coarse for {small.name} (its grid spans "
+            f"{small.grid.width * small.grid.cell:.0f} x {small.grid.height * small.grid.cell:.0f}"
+            f" m): fewer than 2 x 2 of them would hold its heights; give at most "
+            f"{math.floor(5 * side) / 10:g} m "
+            "(or 0: the finest input's cell)",
+        )
     frames = []
     for d in dsms:
         f = d.frame_id

@@ -114,10 +114,41 @@ def common_grid(grids: Sequence[DsmGrid], cell: float | None = None) -> DsmGrid:
     return DsmGrid.covering(xmin, xmax, ymin, ymax, size)
 
 
+def block_means(heights: ArrayLike, grid: DsmGrid, k: int) -> tuple[Float32Array, DsmGrid]:
+    """A DSM averaged over blocks of k x k cells (NaN holes left out), and its grid.
+
+    A block is the mean of its cells with a height where they are at least a quarter of it,
+    else NaN; the last row and column of blocks may hold fewer cells. The blocks' grid: cell
+    ``k grid.cell``, its first centre the centre of the first block.
+    """
+    z = np.asarray(heights, dtype=np.float32)
+    rows, cols = -(-z.shape[0] // k), -(-z.shape[1] // k)
+    pad = np.full((rows * k, cols * k), np.nan, dtype=np.float32)
+    pad[: z.shape[0], : z.shape[1]] = z
+    blocks = pad.reshape(rows, k, cols, k)
+    have = np.isfinite(blocks)
+    n = have.sum(axis=(1, 3))
+    total = np.where(have, blocks, np.float32(0.0)).sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(4 * n >= k * k, total / np.maximum(n, 1), np.nan).astype(np.float32)
+    half = 0.5 * (k - 1) * grid.cell
+    coarse = DsmGrid(grid.x0 + half, grid.y0 - half, k * grid.cell, cols, rows)
+    return mean, coarse
+
+
 def on_grid(
     heights: ArrayLike, grid: DsmGrid, target: DsmGrid, *, min_weight: float = 0.5
 ) -> Float32Array:
-    """A DSM resampled onto ``target`` (same frame): :func:`sample_bilinear` at its centres."""
+    """A DSM resampled onto ``target`` (same frame): :func:`sample_bilinear` at its centres.
+
+    Onto a target at least twice as coarse, the DSM is first averaged over blocks of
+    ``floor(target.cell / grid.cell)`` cells (:func:`block_means`): a coarse cell is the mean of
+    the heights in it, not the one fine cell under its centre (which, with a cell larger than
+    the DSM, misses it altogether).
+    """
+    k = int(target.cell // grid.cell) if grid.cell > 0 else 1
+    if k >= 2:
+        heights, grid = block_means(heights, grid, k)
     x, y = target.centres()
     return sample_bilinear(heights, grid, x, y, min_weight=min_weight).astype(np.float32)
 

@@ -364,6 +364,32 @@ def test_fuse_cell_far_below_the_inputs_is_named(
     assert not out.exists()  # (a fusion at the least cell accepted takes 90 s here)
 
 
+def test_fuse_cell_coarser_than_an_input_is_named(
+    processed: Path, unfilled: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``fuse --cell-m 200`` on 240 x 180 m DSMs: exit 2 naming the option and the most cell.
+
+    Before: exit 1, "the fused DSM has no cell with a height (the inputs do not overlap or are
+    empty)": the inputs blamed; a coarse cell took the one fine cell under its centre.
+    """
+    (m,) = [x.msg for x in BagReader(processed).messages(topics=[contract.DSM])]
+    side = min(m.heights.width, m.heights.height) * m.cell_size
+    out = tmp_path / "f"
+    argv = ["fuse", str(processed), str(unfilled), "-o", str(out), "--cell-m", "200"]
+    code, _, err = run(argv, capsys)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith("parproj fuse: --cell-m: 200 m cells are too coarse for "), line
+    assert f"give at most {np.floor(5 * side) / 10:g} m" in line
+    assert not out.exists()
+    argv[-1] = f"{np.floor(5 * side) / 10:g}"  # the most it allows: a DSM with heights
+    code, printed, err = run(argv, capsys)
+    assert code == 0, err
+    assert re.search(
+        r"fused: \d+ x \d+ cells of [\d.]+ m, .*; [1-9][\d.]* % of its frame", printed
+    )
+
+
 @pytest.mark.parametrize(
     ("nodata", "says"),
     [(7, "its only band is all no-data (GDAL mask): nothing to import; check the file and its "

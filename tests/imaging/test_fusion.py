@@ -12,6 +12,7 @@ import pytest
 
 from parproj_ros.geometry.geodesy import LocalTangentPlane
 from parproj_ros.imaging.fusion import (
+    block_means,
     common_grid,
     frame_box,
     fuse,
@@ -218,3 +219,36 @@ def test_reframe_between_tangent_planes_is_exact() -> None:
     assert np.abs(moved[ok] - truth_b[ok]).max() < 0.005
     # copied as it is, the grid would be off by the frames' offsets: tens of metres
     assert abs(float(np.median(za)) - float(np.median(truth_b))) > 100.0
+
+
+def test_a_coarser_grid_takes_the_mean_of_its_cells() -> None:
+    """Onto a grid 20 x coarser: each cell the mean of the fine heights in it, not one sample.
+
+    A plane's mean over a block is the plane at the block's centre: exact to float32 (1e-3 m
+    here at heights ~ 100 m), where point sampling is exact too; a +-1 m checkerboard at the
+    fine cell averages to 0 (point sampling: +-1 m, whichever fine cell lies under a centre).
+    Onto a grid whose one cell covers the whole DSM, point sampling gave no height at all
+    (``parproj fuse --cell-m 200`` on a 240 x 180 m DSM: "the inputs do not overlap", which
+    the command now refuses naming --cell-m: test_cli_adversarial).
+    """
+    fine = DsmGrid(0.25, 199.75, 0.5, 400, 400)  # 200 x 200 m
+    x, y = fine.centres()
+    plane = (100.0 + 0.05 * x - 0.02 * y).astype(np.float32)
+    checker = np.where((np.indices(plane.shape).sum(axis=0) % 2) == 0, 1.0, -1.0)
+    # centres on fine cell centres: a point sample there takes one fine cell's height
+    coarse = DsmGrid(5.25, 194.75, 10.0, 19, 19)
+    cx, cy = coarse.centres()
+    got = on_grid(plane, fine, coarse)
+    inside = np.isfinite(got)
+    assert inside.mean() > 0.8
+    assert np.abs(got[inside] - (100.0 + 0.05 * cx - 0.02 * cy)[inside]).max() < 1e-3
+    noisy = (plane + checker).astype(np.float32)
+    assert np.abs(on_grid(noisy, fine, coarse)[inside] - got[inside]).max() < 1e-3
+    point = sample_bilinear(noisy, fine, cx, cy)  # what on_grid did before
+    assert np.abs(np.abs(point[inside] - got[inside]) - 1.0).max() < 1e-3
+    # a quarter of the cells with a height is enough for a block; fewer is none
+    holed = plane.copy()
+    holed[:, :390] = np.nan  # 10 of each 20-cell block row left in the last column of blocks
+    assert np.isfinite(block_means(holed, fine, 20)[0][:, -1]).all()
+    holed[:, :396] = np.nan  # 4 of 20 columns: 80 of 400 cells, under a quarter
+    assert not np.isfinite(block_means(holed, fine, 20)[0]).any()
