@@ -93,6 +93,12 @@ MIN_COMMON = 20
 DIRECTION_DH = 100.0
 
 
+def _gdal_type(dtype: Any) -> str:
+    """GDAL's name of a numpy pixel type (``uint16`` -> ``UInt16``)."""
+    names = {"uint8": "Byte", "uint16": "UInt16", "int16": "Int16", "float32": "Float32"}
+    return names.get(np.dtype(dtype).name, "Float32")
+
+
 def scene_ids_of(paths: Sequence[str | Path]) -> list[str]:
     """Unique scene ids from the file stems (repeats get ``_2``, ``_3``, ...)."""
     ids: list[str] = []
@@ -376,8 +382,18 @@ def import_scenes(
         for p, sid, r, o in zip(paths, ids, rpc_files, origins, strict=True)
     ]
     if len({img.dtype for img in images}) > 1:
+
+        def kind(img: ImportedImage) -> str:
+            own = str(img.info.dtype)
+            return f"{img.path} {own}" + ("" if own == img.dtype.name else f" (as {img.dtype})")
+
         raise SceneImportError(
-            "pixel types differ: " + ", ".join(f"{img.path} {img.dtype}" for img in images)
+            "pixel types differ: "
+            + ", ".join(kind(img) for img in images)
+            + ": one pair is matched on one radiometric scale; convert one image to the "
+            "other's type first (e.g. gdal_translate -ot "
+            + _gdal_type(images[0].dtype)
+            + " -scale ...)"
         )
     h: Heights
     if dem is None:

@@ -291,6 +291,12 @@ def load_image(
             f"{MIN_IMAGE_SIDE} x {MIN_IMAGE_SIDE} needed (one tie-point correlation window and "
             "its search); import a larger crop"
         )
+    if np.dtype(info.dtype).kind == "c":
+        raise SceneImportError(
+            f"{p}: complex pixels ({info.dtype}: a SAR or Fourier product): a pushbroom scanner's "
+            "image holds real values; give its amplitude (e.g. a VRT band with "
+            "PixelFunctionType mod)"
+        )
     notes: list[str] = []
     if band is None:
         band = 1

@@ -516,7 +516,7 @@ def test_one_line_warnings(capsys: pytest.CaptureFixture[str], tmp_path: Path) -
 @pytest.mark.ros
 @pytest.mark.parametrize(
     "case",
-    ["den", "den0", "cut", "row", "col", "png_sidecar", "jpeg_sidecar", "scale2"],
+    ["den", "den0", "cut", "row", "col", "png_sidecar", "jpeg_sidecar", "scale2", "complex"],
 )
 def test_one_line_exit_2(
     case: str, pair: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
@@ -561,6 +561,10 @@ def test_one_line_exit_2(
             d.write((pixels("left") // 16).astype(np.uint8), 1)
         rpc.write_rpb(tmp_path / "j.RPB", model)
         want = r"j\.RPB: GDAL reads no \.RPB sidecar beside a JPEG image"
+    elif case == "complex":  # before: imported as the real part, with numpy's ComplexWarning
+        path = tmp_path / "c.tif"
+        write(path, pixels("left").astype(np.complex64), model)
+        want = r"complex pixels \(complex64: a SAR or Fourier product\).*give its amplitude"
     else:
         path = tmp_path / "s2.tif"
         write(path, pixels("left"), model, transform=Affine(2.0, 0.0, 0.0, 0.0, 2.0, 0.0))
@@ -572,6 +576,39 @@ def test_one_line_exit_2(
     assert len(lines) == 1 and lines[0].startswith(f"parproj import: {path}: "), err
     assert re.search(want, lines[0]), err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("dtype", ["float64", "int8", "float32"])
+def test_pixel_types_that_differ_are_named_as_the_files_hold_them(
+    dtype: str, pair: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A uint16 left image and a float64 / int8 / float32 right one: each file's own type.
+
+    Before: "pixel types differ: left.tif uint16, f.tif float32" for a float64 or int8 file
+    (the type it would be imported as), and no advice.
+    """
+    model = crop_rpcs()[1]
+    path = tmp_path / f"{dtype}.tif"
+    write(path, (pixels("right") // 16).astype(dtype), model)
+    argv = [
+        "import",
+        str(pair[0]),
+        str(path),
+        "-o",
+        str(tmp_path / "o"),
+        "--heights",
+        "500",
+        "1500",
+    ]
+    assert exit_code(argv) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    shown = dtype if dtype == "float32" else f"{dtype} (as float32)"
+    assert line == (
+        f"parproj import: pixel types differ: {pair[0]} uint16, {path} {shown}: one pair is "
+        "matched on one radiometric scale; convert one image to the other's type first (e.g. "
+        "gdal_translate -ot UInt16 -scale ...)"
+    ), line
 
 
 # ---- advice names only options that exist ------------------------------------------------------
