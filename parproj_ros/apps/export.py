@@ -129,9 +129,15 @@ def export_dsms(
     """
     reader = BagReader(out_bag)
     if contract.DSM not in reader.topics():
+        strips = [t for t in reader.topics() if t.endswith("image_strip")]
+        why = (
+            "it is an input bag, of image strips: no outputs"
+            if strips and contract.STEREO_PAIR not in reader.topics()
+            else "processed without heights"
+        )
         raise NoHeightsError(
-            f"{out_bag}: no DSM: the bag has no dsm topic (processed without heights); make "
-            "one with: parproj process INPUT_BAG -o OUT --heights, then parproj dsm OUT"
+            f"{out_bag}: no DSM: the bag has no dsm topic ({why}); make one with: parproj "
+            "process INPUT_BAG -o OUT --heights, then parproj dsm OUT"
         )
     rec = reader.recovery
     if not rec.complete:

@@ -174,13 +174,40 @@ def test_no_dsm_topic_is_exit_1(tmp_path: Path, capsys: pytest.CaptureFixture[st
         bw.add_topic("height", "sensor_msgs/msg/Image", "reliable")
         bw.write("height", array_to_image(surface(), Image(), frame_id=FID, stamp_ns=T0), T0)
     rc, _, err = run(capsys, str(bag), "-o", str(tmp_path / "d"))
-    assert rc == 1 and "no dsm topic" in err and "--heights" in err
+    assert rc == 1 and "no dsm topic (processed without heights)" in err and "--heights" in err
     assert not (tmp_path / "d").exists()
+    # an input bag (before: "processed without heights", which it never was)
+    inputs = Path(__file__).resolve().parents[2] / "bags" / "airborne_foreaft"
+    rc, _, err = run(capsys, str(inputs), "-o", str(tmp_path / "d"))
+    assert rc == 1 and "no dsm topic (it is an input bag, of image strips: no outputs)" in err
+    assert "parproj process INPUT_BAG -o OUT --heights" in err and not (tmp_path / "d").exists()
     # a dsm topic with no message: no pair got heights
     bag = dsm_bag(tmp_path / "none", [])
     rc, _, err = run(capsys, str(bag), "-o", str(tmp_path / "d"))
     assert rc == 1 and "the dsm topic has no message" in err and "--height-range" in err
     assert not (tmp_path / "d").exists()
+
+
+def test_a_target_for_a_simulated_frame_is_said_to_be_ignored(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--target utm`` given on a DSM in ``map``: a note that it has no place on Earth.
+
+    Before: silently written in the local engineering CRS; without ``--target``, no note.
+    """
+    bag = dsm_bag(tmp_path / "one", [("left+right", surface())], frame="map")
+    real = dsm_bag(tmp_path / "real", [("left+right", surface())])
+    for extra, noted in ((["--target", "utm"], True), ([], False)):
+        out = tmp_path / f"d{len(extra)}"
+        rc, _, err = run(capsys, str(bag), "-o", str(out), *extra)
+        assert rc == 0, err
+        note = (
+            "parproj dsm: note: --target utm applies to a real pair's tangent plane; frame "
+            "'map' has no place on Earth"
+        )
+        assert (note in err) == noted, err
+    rc, _, err = run(capsys, str(real), "-o", str(tmp_path / "r"), "--target", "utm")
+    assert rc == 0 and "note" not in err, err
 
 
 def test_dsm_with_almost_no_heights_is_exit_1(

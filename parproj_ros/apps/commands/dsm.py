@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
             rows = export_dsms(
                 bag,
                 work,
-                target=args.target,
+                target=args.target or "utm",
                 truth=truth,
                 dem=dem,
                 point_cloud=args.point_cloud,
@@ -73,6 +73,18 @@ def run(args: argparse.Namespace) -> int:
     except NoHeightsError as err:
         print(f"parproj dsm: {err}", file=sys.stderr)
         return 1
+    from ...core.frames import FRAME_PREFIX
+
+    local = sorted(
+        {str(r["frame_id"]) for r in rows if not str(r["frame_id"]).startswith(FRAME_PREFIX)}
+    )
+    if args.target and local:
+        print(
+            f"parproj dsm: note: --target {args.target} applies to a real pair's tangent plane; "
+            f"frame {', '.join(map(repr, local))} has no place on Earth (a simulated bag's): "
+            "its DSMs are written in a local engineering CRS",
+            file=sys.stderr,
+        )
     empty = [r for r in rows if r["status"] == "empty"]
     for r in empty:
         print(
@@ -125,8 +137,8 @@ def add_parser(sub: Any) -> None:
     p.add_argument(
         "--target",
         choices=["utm", "local"],
-        default="utm",
-        help="CRS of a real pair's DSM: its UTM zone, or a local transverse Mercator",
+        default=None,
+        help="CRS of a real pair's DSM: its UTM zone (default), or a local transverse Mercator",
     )
     p.add_argument("--scenario", help="simulated bag: the scenario whose terrain is the truth")
     add_dem_arguments(p, "real pair: the (coarse) truth")
