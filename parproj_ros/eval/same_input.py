@@ -153,10 +153,12 @@ def bag_lines(bag: Path, want: Mapping[str, tuple[int, int]]) -> Lines:
     out: dict[str, tuple[int, Any]] = {}
     for sid, parts in kept.items():
         first = parts[0][0]
-        try:
-            out[sid] = (first, np.concatenate([p for _, p in parts], axis=0))
-        except ValueError:  # strips of unequal widths: no verdict for this scene
-            continue
+        run = [parts[0][1]]
+        for (line0, p), (prev0, prev) in zip(parts[1:], parts, strict=False):
+            if line0 != prev0 + prev.shape[0] or p.shape[1:] != run[0].shape[1:]:
+                break  # a strip left out (undecodable) or of another width: the run so far
+            run.append(p)
+        out[sid] = (first, np.concatenate(run, axis=0))
     return out, sorted(seen)
 
 
