@@ -597,6 +597,7 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
             raise  # said already (another file of the same write, e.g. the DSM's ortho-image)
         why = _disk_full(err, "".join(c_text), final.parent)
         if why is None:
+            sys.stderr.write("".join(c_text))  # another failure: what C code said stays shown
             raise
         raise OSError(errno.ENOSPC, why, str(final)) from None
     finally:
