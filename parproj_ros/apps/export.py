@@ -129,7 +129,7 @@ def export_dsms(
     """
     reader = BagReader(out_bag)
     if contract.DSM not in reader.topics():
-        strips = [t for t in reader.topics() if t.endswith("image_strip")]
+        strips = [t for t in reader.topics() if contract.view_of(t)]
         why = (
             "it is an input bag, of image strips: no outputs"
             if strips and contract.STEREO_PAIR not in reader.topics()

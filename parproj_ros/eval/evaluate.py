@@ -25,7 +25,6 @@ from numpy.typing import NDArray
 from ..core import contract
 from ..core.results import GroundPoint
 from ..geometry import AffineModel, GeometryError, SceneObservation, space_intersection
-from ..geometry.ptp import ptp_forward
 from ..imaging.matching import match_normalized
 from ..imaging.preview import anaglyph, to_uint8
 from ..ros.bag import BagError, BagReader
@@ -44,31 +43,9 @@ from .heights import (
     save_height_plots,
     scenario_terrain,
 )
+from .published import normalized_px
 
 FloatArray = NDArray[np.float64]
-
-
-def normalized_px(
-    params: Any,
-    to_norm: Any,
-    x_origin: float,
-    y_origin: float,
-    pixel: float,
-    line: FloatArray,
-    sample: FloatArray,
-) -> tuple[FloatArray, FloatArray]:
-    """Image (line, sample) -> normalized (col, row), through the published transforms.
-
-    These are a ParallelProjection message's scene frame and roll, a 2x3 normalization affine
-    (6 numbers) and the output grid.
-    """
-    x = (np.asarray(line, dtype=float) - params.line_mid) * params.x_per_line
-    y = (np.asarray(sample, dtype=float) - params.principal_point) * params.pixel_size
-    yp = ptp_forward(y, params.principal_distance, params.roll_psi)
-    h = np.asarray(to_norm, dtype=float).reshape(2, 3)
-    xn = h[0, 0] * x + h[0, 1] * yp + h[0, 2]
-    yn = h[1, 0] * x + h[1, 1] * yp + h[1, 2]
-    return (xn - x_origin) / pixel, (yn - y_origin) / pixel
 
 
 def error_stats(v: FloatArray, *, finite_only: bool = False) -> dict[str, float]:

@@ -5,7 +5,7 @@ two ORIGINAL crops and reference epipolar resampling grids (OTB, shareloc), matc
 between the original crops, and maps every match into epipolar rows
 
 (a) through the published transforms of the StereoPair (scene frame, PTP roll, 2x3
-    normalization affine, output grid: :func:`parproj_ros.eval.evaluate.normalized_px`), and
+    normalization affine, output grid: :func:`parproj_ros.eval.published.normalized_px`), and
 (b) through the inverse of each reference grid (:class:`EpipolarGrid`),
 
 then reports the y-parallax ``row_left - row_right`` of the same matches for every method: mean
@@ -58,7 +58,8 @@ from ..core import contract
 from ..imaging.matching import match_normalized
 from ..io.scene_import import MODEL_TRANSFORMATION_TAG, crop_offset, read_image
 from ..ros.bag import BagReader
-from .evaluate import error_stats, normalized_px
+from .evaluate import error_stats
+from .published import normalized_px
 
 FloatArray = NDArray[np.float64]
 

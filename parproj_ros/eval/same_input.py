@@ -3,7 +3,7 @@
 ``parproj evaluate --truth BAG`` and ``parproj dsm --scenario NAME`` compare outputs with a
 truth that names its scenes like every other simulated bag (``pan_scene_0000`` in both the
 ``ikonos_agile`` and the ``crab_foreaft`` bags, all in frame ``map``, at the same stamps): the
-frame check (:func:`parproj_ros.eval.evaluate.check_truth_frame`) passes, and the figures of
+frame check (``parproj_ros.eval.evaluate.check_truth_frame``) passes, and the figures of
 another acquisition's truth print as results (NMAD 35-84 m, exit 0).
 
 The images decide. Raw pixels of each output scene, taken from the truth source (the truth
@@ -30,6 +30,7 @@ from ..core import contract
 from ..io.files import InputError
 from ..ros.bag import BagReader
 from ..ros.conversions import ConversionError, assemble_blocks, image_to_array
+from .published import normalized_px
 
 #: Below this correlation of raw and normalized values the images are another acquisition's.
 MIN_CORRELATION = 0.5
@@ -134,7 +135,9 @@ def bag_lines(bag: Path, want: Mapping[str, tuple[int, int]]) -> Lines:
     """
     reader = BagReader(bag)
     types = reader.topics()
-    topics = [t for t, ty in types.items() if ty == "sensor_msgs/msg/Image" and "image_strip" in t]
+    topics = [
+        t for t, ty in types.items() if ty == "sensor_msgs/msg/Image" and contract.view_of(t)
+    ]
     seen: dict[str, int] = {}
     kept: dict[str, list[tuple[int, Any]]] = {}
     if topics:
@@ -171,8 +174,6 @@ def correlation(
     those landing outside the normalized image are left out. ``(nan, n)`` when fewer than
     :data:`MIN_PIXELS` are left or either side is constant.
     """
-    from .evaluate import normalized_px
-
     raw = np.asarray(raw, dtype=np.float32)
     rows = np.arange(0, raw.shape[0], STRIDE)
     cols = np.arange(0, raw.shape[1], STRIDE)

@@ -15,7 +15,7 @@ from testkit.scenes import feed, nav_events, render, strip_events
 
 from parproj_ros.apps.process import process_bag
 from parproj_ros.core.pipeline import PairResult, Pipeline
-from parproj_ros.eval.evaluate import normalized_px
+from parproj_ros.eval.published import normalized_px
 from parproj_ros.geometry.navigation import virtual_points
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.inputs import truth_from_bag

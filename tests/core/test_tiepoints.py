@@ -7,7 +7,7 @@ import pytest
 from testkit.paths import BAGS
 
 from parproj_ros.core.pipeline import GroundPoint, Outputs, Pipeline
-from parproj_ros.eval.evaluate import normalized_px
+from parproj_ros.eval.published import normalized_px
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader
 from parproj_ros.ros.inputs import config_from_bag, truth_from_bag

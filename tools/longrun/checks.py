@@ -17,7 +17,7 @@ import numpy as np
 
 from parproj_ros.core import contract
 from parproj_ros.core.results import GroundPoint
-from parproj_ros.eval.evaluate import normalized_px
+from parproj_ros.eval.published import normalized_px
 from parproj_ros.imaging.encodings import ENCODING_DTYPES
 from parproj_ros.ros import conversions as conv
 from parproj_ros.ros.bag import BagReader, get_message_class
