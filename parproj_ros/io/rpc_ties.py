@@ -418,6 +418,8 @@ class TieResult:
         rows: per pair, a summary for the import summary.
         observations: (n, V, 2) the chained tie points (:func:`tracks`), pixels, NaN where a
             view does not see one (empty unless the adjustment ran).
+        lonlat: (n, 2) longitude, latitude of each of ``heights``' points (the left image's
+            point localized at its height), degrees, NaN where that fails.
 
     """
 
@@ -430,6 +432,7 @@ class TieResult:
     seconds: float = 0.0
     rows: list[dict[str, Any]] = field(default_factory=list)
     observations: FloatArray = field(default_factory=lambda: np.zeros((0, 0, 2)))
+    lonlat: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def measure(
@@ -491,7 +494,7 @@ def measure(
                 out.adjust_note = str(err)
     if out.adjustment is not None:
         rpcs = apply_biases(rpcs, out.adjustment.biases)
-    hs = []
+    hs, lls = [], []
     for pm in out.pairs:
         if pm.ia.size == 0:
             continue
@@ -506,6 +509,10 @@ def measure(
         )  # fmt: skip
         pm.heights = h
         hs.append(h)
+        pts = feats[pm.left].points[pm.ia]
+        with np.errstate(invalid="ignore"):
+            lon, lat = left.localize(pts[:, 0], pts[:, 1], h, outside="nan")
+        lls.append(np.stack([lon, lat], axis=-1))
         lo, hi = robust_range(h, low=PERCENTILES[0], high=PERCENTILES[1])
         out.rows.append(
             {
@@ -518,6 +525,7 @@ def measure(
             }
         )
     out.heights = np.concatenate(hs) if hs else np.zeros(0)
+    out.lonlat = np.concatenate(lls) if lls else np.zeros((0, 2))
     n = int(np.isfinite(out.heights).sum())
     if n >= MIN_TIE_POINTS:
         out.measured = robust_range(out.heights, low=PERCENTILES[0], high=PERCENTILES[1])
@@ -659,7 +667,65 @@ def import_ties(
         summary["measured_p1_p99"] = [float(x) for x in res.measured]
     summary["tie_points"] = n
     log(summary["heights_note"])
+    if callable(heights):
+        offset = dem_offset(heights, res)
+        if offset is not None:
+            summary["dem_offset_m"] = {"median": offset[0], "nmad": offset[1], "points": offset[2]}
+            warning = dem_offset_warning(heights, offset)
+            if warning:
+                summary["dem_warning"] = warning
+                log(warning)
     return out_images, h, summary
+
+
+def dem_offset(dem: Callable[..., Any], res: TieResult) -> tuple[float, float, int] | None:
+    """How far the tie points' heights lie from the DEM's at the same places, metres.
+
+    The tie points' triangulated (ellipsoidal) heights less the DEM's (with its geoid) where
+    each tie point lies (:attr:`TieResult.lonlat`): (median, NMAD, points compared), or None
+    with fewer than :data:`MIN_TIE_POINTS` points where both have a height.
+    """
+    if res.lonlat.shape[0] != res.heights.size:
+        return None
+    ok = np.isfinite(res.heights) & np.isfinite(res.lonlat).all(axis=1)
+    if int(ok.sum()) < MIN_TIE_POINTS:
+        return None
+    lon, lat = res.lonlat[ok, 0], res.lonlat[ok, 1]
+    d = res.heights[ok] - np.asarray(dem(lon, lat), dtype=float)
+    d = d[np.isfinite(d)]
+    if d.size < MIN_TIE_POINTS:
+        return None
+    med = float(np.median(d))
+    return med, float(1.4826 * np.median(np.abs(d - med))), int(d.size)
+
+
+def dem_offset_warning(dem: Any, offset: tuple[float, float, int]) -> str | None:
+    """A warning when the tie points lie over :data:`DISAGREE_M` from the DEM (else None).
+
+    A median offset of tens of metres is a vertical reference other than the one given (an
+    SRTM-like DEM above the geoid imported without ``--geoid``: some +50 m in southern
+    France), or a DEM of another place or time; the virtual points then follow the DEM, not
+    the terrain the images show.
+    """
+    from ..core.terrain import DISAGREE_M
+
+    med, nmad, n = offset
+    if abs(med) <= DISAGREE_M:
+        return None
+    name = getattr(dem, "label", "the DEM")
+    ref = getattr(dem, "reference", "its vertical reference")
+    where = "above" if med > 0 else "below"
+    advice = (
+        "the DEM's heights above the geoid? give --geoid egm2008 (or --geoid-undulation N)"
+        if med > 0 and getattr(dem, "geoid", 0.0) in (None, 0.0)
+        else "check its vertical reference (--geoid, --geoid-undulation, --dem-ellipsoidal)"
+    )
+    return (
+        f"warning: the tie points lie {abs(med):.0f} m {where} the DEM {name}, read with "
+        f"{ref}, at the same places (median of {n} points, NMAD {nmad:.1f} m; more than "
+        f"{DISAGREE_M:.0f} m): "
+        f"{advice}, or the DEM is of another place or time. The virtual points follow the DEM"
+    )
 
 
 def overlapping_pairs(images: Sequence[ImportedImage]) -> list[tuple[int, int]]:
@@ -677,6 +743,8 @@ __all__ = [
     "Features",
     "PairMatches",
     "TieResult",
+    "dem_offset",
+    "dem_offset_warning",
     "features",
     "import_ties",
     "measure",

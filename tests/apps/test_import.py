@@ -332,3 +332,33 @@ def test_cli_import_and_ventoux_eval(
     swapped = ["ventoux-eval", str(out), "--left", str(VENTOUX[1]), "--right", str(VENTOUX[0])]
     with pytest.raises(ValueError, match="wrong image or order"):
         cli.main(["--debug", *swapped, "--grids", str(GRIDS)])
+
+
+@pytest.mark.ros
+def test_a_dem_above_the_geoid_imported_without_one_is_said(tmp_path: Path) -> None:
+    """The tie points measure the terrain the DEM should hold: a missing geoid is a warning.
+
+    The SRTM crop holds heights above EGM96 (about 50 m below the ellipsoid at Ventoux).
+    Imported as ellipsoidal (no --geoid), the tie points' triangulated heights lie some 50 m
+    above it at the same places; with the undulation given, within the DEM's and the RPCs'
+    errors (SRTM: some 10 m).
+    """
+    from testkit.rasters import srtm_crop_geotiff
+
+    dem = srtm_crop_geotiff(tmp_path / "srtm.tif")
+    said: list[str] = []
+    s = import_pair(*VENTOUX, tmp_path / "none", dem=dem, log=said.append)
+    off = s["tie_points"]["dem_offset_m"]
+    assert off["points"] >= 100
+    assert 40.0 < off["median"] < 70.0, off  # the geoid undulation at Ventoux: some 50 m
+    warning = [line for line in said if "lie" in line and "the DEM" in line]
+    assert len(warning) == 1, said
+    assert warning[0].startswith("warning: the tie points lie ")
+    assert "above the DEM srtm.tif" in warning[0] and "--geoid" in warning[0]
+    assert s["tie_points"]["dem_warning"] == warning[0]
+    said.clear()
+    s = import_pair(*VENTOUX, tmp_path / "n50", dem=dem, geoid_undulation=50.0, log=said.append)
+    off = s["tie_points"]["dem_offset_m"]
+    assert abs(off["median"]) < 20.0, off
+    assert "dem_warning" not in s["tie_points"]
+    assert not [line for line in said if line.startswith("warning: the tie points lie")], said
