@@ -385,6 +385,10 @@ class RasterSampler:
         self._data = np.empty((0, 0))
         r, c = (ds.height - 2) // 2, (ds.width - 2) // 2
         self._read(r, r + 2, c, c + 2)
+        # the probe is not kept: held, the next read would reach from the centre to the cells
+        # asked, and refuse the file for what lies between (a void nobody asked for)
+        self._window = None
+        self._data = np.empty((0, 0))
 
     def bounds_lonlat(self) -> tuple[float, float, float, float]:
         """(west, south, east, north) of the raster's cell centres, WGS84 degrees."""

@@ -729,3 +729,25 @@ def test_process_and_dsm_refuse_an_unreadable_dem_at_start(
     code, err = _cli(["dsm", str(out), "-o", str(tmp_path / "d"), "--dem", str(void)], capsys)
     assert code == 2 and "void.tif: holds -32768" in err and "rms" not in err, err
     assert not (tmp_path / "d").exists()
+
+
+def test_a_void_away_from_the_cells_asked_does_not_refuse_the_dem(tmp_path: Path) -> None:
+    """Only the cells asked (and the centre probed at open) are judged, not what lies between.
+
+    Before (review 2026-12-02): the centre's 2 x 2 probe stayed held, so the first read spanned
+    from the centre to the cells asked, and an undeclared void between them refused a DEM
+    whose asked cells were clean. A void among the cells asked is still refused.
+    """
+    data = np.full((1000, 1000), 500, dtype=np.int16)
+    data[300:400, 300:400] = -32768  # between the centre (499, 499) and the north-west corner
+    t = Affine(0.001, 0.0, 5.0, 0.0, -0.001, 45.0)
+    path = _write(tmp_path / "void.tif", data, t, "EPSG:4326", -32768)
+    with rasterio.open(path, "r+") as d:
+        d.nodata = None  # undeclared
+    dem = load_dem(path)
+    lon = 5.0 + 0.001 * np.array([10.5, 20.5])  # cell centres of columns 10 and 20
+    lat = 45.0 - 0.001 * np.array([10.5, 20.5])
+    assert np.array_equal(dem(lon, lat), [500.0, 500.0])
+    lon_v, lat_v = 5.0 + 0.001 * 350.5, 45.0 - 0.001 * 350.5
+    with pytest.raises(DemError, match=r"void\.tif: holds -32768 at \d+ of \d+ cells read"):
+        dem(np.array([lon_v]), np.array([lat_v]))
