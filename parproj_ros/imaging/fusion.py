@@ -146,7 +146,8 @@ def on_grid(
     the heights in it, not the one fine cell under its centre (which, with a cell larger than
     the DSM, misses it altogether).
     """
-    k = int(target.cell // grid.cell) if grid.cell > 0 else 1
+    # floor of the ratio, a ratio within 1e-9 of a whole number taken as it (0.3 // 0.1 is 2.0)
+    k = math.floor(target.cell / grid.cell + 1e-9) if grid.cell > 0 else 1
     if k >= 2:
         heights, grid = block_means(heights, grid, k)
     x, y = target.centres()

@@ -252,3 +252,18 @@ def test_a_coarser_grid_takes_the_mean_of_its_cells() -> None:
     assert np.isfinite(block_means(holed, fine, 20)[0][:, -1]).all()
     holed[:, :396] = np.nan  # 4 of 20 columns: 80 of 400 cells, under a quarter
     assert not np.isfinite(block_means(holed, fine, 20)[0]).any()
+
+
+def test_blocks_of_a_ratio_that_floats_below_a_whole_number() -> None:
+    """0.3 m cells from 0.1 m ones are blocks of 3 x 3 (``0.3 // 0.1`` is 2.0 in floats).
+
+    Columns 3 / 0 / 0 repeated: every 3 x 3 block's mean is 1; blocks of 2 x 2 (before, review
+    2026-12-02) gave 1.5 and 0 in turns.
+    """
+    fine = DsmGrid(0.05, 29.95, 0.1, 300, 300)
+    cols = np.indices((300, 300))[1]
+    heights = np.where(cols % 3 == 0, 3.0, 0.0).astype(np.float32)
+    coarse = DsmGrid(0.15, 29.85, 0.3, 100, 100)
+    got = on_grid(heights, fine, coarse)
+    assert np.isfinite(got).mean() > 0.95
+    assert np.abs(got[np.isfinite(got)] - 1.0).max() < 1e-5
