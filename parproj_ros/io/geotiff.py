@@ -42,6 +42,7 @@ lives in the normalized image's pixel grid; a tiled GeoTIFF, not a COG).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import math
 import os
 import struct
@@ -549,6 +550,10 @@ def _disk_full(err: BaseException, c_text: str, folder: Path) -> str | None:
     return f"No space left on device ({free}; GDAL: {words}): free some space or write elsewhere"
 
 
+#: How many :func:`_cog` writers are open in this context (a DSM and its ortho-image: 2).
+_OPEN_COGS: contextvars.ContextVar[int] = contextvars.ContextVar("_OPEN_COGS", default=0)
+
+
 @contextlib.contextmanager
 def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Iterator[Any]:
     """A writer for ``path`` as a Cloud Optimized GeoTIFF in ``crs``.
@@ -560,7 +565,10 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
     Raises:
         OSError: ENOSPC, naming ``path``, when the file system fills up ("No space left on
             device", the free space and GDAL's words), instead of rasterio's "Write failed.
-            See previous exception for details." and libtiff's lines on stderr.
+            See previous exception for details." and libtiff's lines on stderr. Its folder is
+            named instead when the caller's own writes in the body failed while another
+            writer is open around this one (a DSM and its ortho-image): the innermost cannot
+            tell whose write it was.
     """
     import sys
 
@@ -570,12 +578,20 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
     plain = final.with_name(f".{final.name}.tiled.partial")
     staged = final.with_name(f".{final.name}.partial")
     written = _written_crs(crs)
-    failed = False
+    failed = in_body = False
+    beside = _OPEN_COGS.get()  # writers open around this one
+    token = _OPEN_COGS.set(beside + 1)
     try:
         with _c_stderr() as c_text:
             try:
                 with _open_writer(plain, profile) as dst:
-                    yield dst
+                    try:
+                        yield dst
+                    except BaseException:
+                        # raised by the caller's writes: maybe into another file open beside
+                        # this one (a DSM's ortho-image), so this one is not the one to name
+                        in_body = True
+                        raise
                 with warnings.catch_warnings():
                     from rasterio.errors import NotGeoreferencedWarning
 
@@ -599,8 +615,12 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
         if why is None:
             sys.stderr.write("".join(c_text))  # another failure: what C code said stays shown
             raise
-        raise OSError(errno.ENOSPC, why, str(final)) from None
+        # a failure of the caller's writes with another file open beside this one names the
+        # folder both fill, not this file
+        shared = in_body and beside > 0
+        raise OSError(errno.ENOSPC, why, str(final.parent if shared else final)) from None
     finally:
+        _OPEN_COGS.reset(token)
         for leftover in (plain, staged):
             leftover.unlink(missing_ok=True)
             Path(f"{leftover}.aux.xml").unlink(missing_ok=True)

@@ -732,8 +732,58 @@ def test_a_full_disk_is_named_in_one_line(
     assert code == 2, err
     (line,) = err.strip().splitlines()
     assert re.match(
-        rf"parproj dsm: {re.escape(str(out))} \(left_right_\w+\.tif\): No space left", line
+        # the file whose own copy failed, or the output when the writes in the body did
+        rf"parproj dsm: {re.escape(str(out))}( \(left_right_\w+\.tif\))?: No space left",
+        line,
     )
     assert "GDAL: TIFF" in line and line.endswith("free some space or write elsewhere"), line
     assert "See previous exception" not in line
     assert not out.exists() and not list(tmp_path.iterdir())  # no staging folder left either
+
+
+def test_a_full_disk_in_the_dsm_write_does_not_blame_the_ortho_image(
+    processed: Path, tmp_path: Path, capfd: pytest.CaptureFixture[str], monkeypatch: Any
+) -> None:
+    """The DSM's own write fails (ENOSPC) while the ortho-image's file is open beside it.
+
+    Both files are open at once; the innermost (the ortho-image's) sees the DSM's failure
+    first. Before (review 2026-12-02) it named itself: "OUT (left_right_ortho.tif): No space
+    left". It cannot tell whose write it was, so the folder both fill is named: "OUT: No space".
+    """
+    import errno
+
+    from parproj_ros.io import geotiff
+
+    real = geotiff._open_writer
+
+    class FullOnWrite:
+        """The DSM's writer: every write fails as on a full disk."""
+
+        def __init__(self, inner: Any) -> None:
+            self._inner = inner
+
+        def __enter__(self) -> FullOnWrite:
+            self._inner.__enter__()
+            return self
+
+        def __exit__(self, *exc: Any) -> Any:
+            return self._inner.__exit__(*exc)
+
+        def write(self, *args: Any, **kwargs: Any) -> None:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self._inner, name)
+
+    def writer(tmp: Path, profile: dict[str, Any]) -> Any:
+        w = real(tmp, profile)
+        return FullOnWrite(w) if "_dsm" in Path(tmp).name else w
+
+    monkeypatch.setattr(geotiff, "_open_writer", writer)
+    out = tmp_path / "d"
+    code, _, err = run(["dsm", str(processed), "-o", str(out)], capfd)
+    assert code == 2, err
+    (line,) = err.strip().splitlines()
+    assert line.startswith(f"parproj dsm: {out}: No space left on device ("), line
+    assert "ortho" not in line and line.endswith("free some space or write elsewhere"), line
+    assert not out.exists() and not list(tmp_path.iterdir())
