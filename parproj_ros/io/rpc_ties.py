@@ -708,22 +708,28 @@ def dem_offset_warning(dem: Any, offset: tuple[float, float, int]) -> str | None
     the terrain the images show.
     """
     from ..core.terrain import DISAGREE_M
+    from .dem import DemHeights
 
     med, nmad, n = offset
     if abs(med) <= DISAGREE_M:
         return None
-    name = getattr(dem, "label", "the DEM")
-    ref = getattr(dem, "reference", "its vertical reference")
     where = "above" if med > 0 else "below"
+    if not isinstance(dem, DemHeights):  # a height function of the API: no file, no options
+        return (
+            f"warning: the tie points lie {abs(med):.0f} m {where} the DEM's heights at the "
+            f"same places (median of {n} points, NMAD {nmad:.1f} m; more than "
+            f"{DISAGREE_M:.0f} m): check that they are ellipsoidal (WGS84), or the DEM is of "
+            "another place or time. The virtual points follow the DEM"
+        )
     advice = (
         "the DEM's heights above the geoid? give --geoid egm2008 (or --geoid-undulation N)"
-        if med > 0 and getattr(dem, "geoid", 0.0) in (None, 0.0)
+        if med > 0 and dem.geoid in (None, 0.0)
         else "check its vertical reference (--geoid, --geoid-undulation, --dem-ellipsoidal)"
     )
     return (
-        f"warning: the tie points lie {abs(med):.0f} m {where} the DEM {name}, read with "
-        f"{ref}, at the same places (median of {n} points, NMAD {nmad:.1f} m; more than "
-        f"{DISAGREE_M:.0f} m): "
+        f"warning: the tie points lie {abs(med):.0f} m {where} the DEM {dem.label}, read with "
+        f"{dem.reference}, at the same places (median of {n} points, NMAD {nmad:.1f} m; more "
+        f"than {DISAGREE_M:.0f} m): "
         f"{advice}, or the DEM is of another place or time. The virtual points follow the DEM"
     )
 

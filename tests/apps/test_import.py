@@ -362,3 +362,15 @@ def test_a_dem_above_the_geoid_imported_without_one_is_said(tmp_path: Path) -> N
     assert abs(off["median"]) < 20.0, off
     assert "dem_warning" not in s["tie_points"]
     assert not [line for line in said if line.startswith("warning: the tie points lie")], said
+
+
+def test_the_dem_warning_of_a_height_function_names_no_file_nor_option() -> None:
+    """An API caller's height function has no file and took no CLI option: none is named."""
+    from parproj_ros.io.rpc_ties import dem_offset_warning
+
+    text = dem_offset_warning(lambda lon, lat: np.zeros_like(lon), (56.0, 9.3, 486))
+    assert text is not None and text.startswith("warning: the tie points lie 56 m above")
+    assert "the DEM the DEM" not in text and "--" not in text, text
+    assert dem_offset_warning(lambda lon, lat: lon, (-12.0, 3.0, 100)) is None
+    below = dem_offset_warning(lambda lon, lat: lon, (-45.0, 3.0, 100))
+    assert below is not None and "45 m below" in below
