@@ -581,6 +581,7 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
     failed = in_body = False
     beside = _OPEN_COGS.get()  # writers open around this one
     token = _OPEN_COGS.set(beside + 1)
+    c_text: list[str] = []
     try:
         with _c_stderr() as c_text:
             try:
@@ -619,6 +620,9 @@ def _cog(path: str | os.PathLike[str], profile: dict[str, Any], crs: CRS) -> Ite
         # folder both fill, not this file
         shared = in_body and beside > 0
         raise OSError(errno.ENOSPC, why, str(final.parent if shared else final)) from None
+    except BaseException:  # KeyboardInterrupt, SystemExit: what C code said stays shown
+        sys.stderr.write("".join(c_text))
+        raise
     finally:
         _OPEN_COGS.reset(token)
         for leftover in (plain, staged):

@@ -414,3 +414,26 @@ def test_layer_written_like_a_dsm(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["count.tif", "dsm.tif"]
     with pytest.raises(ValueError, match="integer or float array like"):
         write_like(tmp_path / "x.tif", tmp_path / "dsm.tif", count[:-1])
+
+
+def test_an_interrupted_write_gives_back_what_c_code_said(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """fd 2 is captured while a GeoTIFF is written; a KeyboardInterrupt does not lose it.
+
+    Before (review 2026-12-02) only an ``Exception`` gave the captured text back: what C code
+    had written to fd 2 before a Ctrl-C was dropped with the capture. Nothing is left behind.
+    """
+    import os
+
+    from parproj_ros.io import geotiff
+    from parproj_ros.imaging.heights import DsmGrid
+
+    grid = DsmGrid(0.25, 9.75, 0.5, 20, 20)
+    crs = geotiff.crs_for_frame("map")
+    profile = geotiff._profile(grid, np.dtype(np.float32), crs, -9999.0)
+    with pytest.raises(KeyboardInterrupt), geotiff._cog(tmp_path / "x.tif", profile, crs):
+        os.write(2, b"ERROR 1: a C library's own line\n")
+        raise KeyboardInterrupt
+    assert "a C library's own line" in capfd.readouterr().err
+    assert not list(tmp_path.iterdir())
