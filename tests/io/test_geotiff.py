@@ -426,8 +426,8 @@ def test_an_interrupted_write_gives_back_what_c_code_said(
     """
     import os
 
-    from parproj_ros.io import geotiff
     from parproj_ros.imaging.heights import DsmGrid
+    from parproj_ros.io import geotiff
 
     grid = DsmGrid(0.25, 9.75, 0.5, 20, 20)
     crs = geotiff.crs_for_frame("map")
