@@ -31,7 +31,7 @@ from ..eval.heights import (
     enu_dem_surface,
     save_height_plots,
 )
-from ..io.files import InputError
+from ..io.files import InputError, file_stem
 from ..io.geotiff import (
     Geoid,
     Ortho,
@@ -146,10 +146,17 @@ def export_dsms(
         )
     disparities = disparities_by_stamp(reader)
     rows: list[dict[str, Any]] = []
+    used: set[str] = set()
     for item in reader.messages(topics=[contract.DSM]):
         m = item.msg
         heights, grid, ortho = elevation_grid_from_msg(m)
-        name = m.pair_id.replace("+", "_") or f"pair_{len(rows)}"
+        # the pair id as the bag gives it, made a safe file stem (never outside the folder),
+        # distinct from the stems already written
+        name = file_stem(m.pair_id) if m.pair_id else f"pair_{len(rows)}"
+        base, k = name, 2
+        while name in used:
+            name, k = f"{base}_{k}", k + 1
+        used.add(name)
         frame = m.header.frame_id
         try:
             plane = frame_of(frame)

@@ -99,11 +99,42 @@ def _gdal_type(dtype: Any) -> str:
     return names.get(np.dtype(dtype).name, "Float32")
 
 
+#: Characters a scene id may not hold: ``+`` joins a pair's ids, ``:`` and ``,`` separate
+#: ``--pairs``, a path separator would take the files named after it out of their folder.
+SCENE_ID_FORBIDDEN = "+:,/\\"
+
+#: Longest scene id, characters (the files ``parproj dsm`` names after a pair hold two).
+SCENE_ID_MAX = 64
+
+
+def scene_id_problem(sid: str) -> str | None:
+    """Why ``sid`` cannot be a scene id, or None (:data:`SCENE_ID_FORBIDDEN`, ...)."""
+    if not sid or not sid.strip():
+        return "is empty"
+    bad = sorted({ch for ch in sid if ch in SCENE_ID_FORBIDDEN or not ch.isprintable()})
+    if bad:
+        shown = ", ".join(repr(ch) for ch in bad)
+        return f"holds {shown} (not allowed: + : , / \\ and control characters)"
+    if sid.startswith("."):
+        return "starts with '.' (files named after it would be hidden, or lead out of a folder)"
+    if len(sid) > SCENE_ID_MAX:
+        return f"has {len(sid)} characters (at most {SCENE_ID_MAX})"
+    return None
+
+
 def scene_ids_of(paths: Sequence[str | Path]) -> list[str]:
-    """Unique scene ids from the file stems (repeats get ``_2``, ``_3``, ...)."""
+    """Unique scene ids from the file stems (repeats get ``_2``, ``_3``, ...).
+
+    A character a scene id may not hold becomes ``_``, a leading ``.`` too, and a stem is cut to
+    :data:`SCENE_ID_MAX` characters less room for the repeat's suffix.
+    """
     ids: list[str] = []
     for p in paths:
-        stem = Path(p).stem or "scene"
+        raw = Path(p).stem or "scene"
+        stem = "".join(
+            "_" if ch in SCENE_ID_FORBIDDEN or not ch.isprintable() else ch for ch in raw
+        )
+        stem = ("_" + stem[1:] if stem.startswith(".") else stem)[: SCENE_ID_MAX - 4]
         sid, k = stem, 2
         while sid in ids:
             sid, k = f"{stem}_{k}", k + 1
@@ -367,6 +398,10 @@ def import_scenes(
     ids = list(scene_ids) if scene_ids is not None else scene_ids_of(paths)
     if len(ids) != n or len(set(ids)) != n or not all(ids):
         raise SceneImportError(f"one distinct, non-empty scene id per image needed, got {ids}")
+    for sid in ids:
+        why = scene_id_problem(sid)
+        if why is not None:
+            raise SceneImportError(f"scene id {sid!r} {why}")
     rpc_files = list(rpcs) if rpcs is not None else [None] * n
     origins = list(offsets) if offsets is not None else [None] * n
     if len(rpc_files) != n or len(origins) != n:

@@ -73,6 +73,21 @@ def cell_problem(cell_m: float, gsd_m: float) -> str | None:
     )
 
 
+def coarse_cell_problem(dsm: Dsm, cell_m: float) -> str | None:
+    """Why ``dsm`` is no DSM: fewer than 2 cells each way (a cell as large as the pair).
+
+    None when it has at least 2 x 2 cells. ``cell_m``: the ``heights_cell_m`` asked, metres.
+    """
+    g = dsm.grid
+    if g.width >= 2 and g.height >= 2:
+        return None
+    return (
+        f"heights_cell_m {cell_m:g} m gives a DSM of {g.width} x {g.height} cells: a cell as "
+        "large as the pair's ground leaves no relief to map (the disparity and height images "
+        "are kept); set heights_cell_m to 0 (the ground sample distance) or a smaller cell"
+    )
+
+
 @dataclass(frozen=True)
 class HeightsOptions:
     """How heights are made (node parameters ``heights_*``).
@@ -262,7 +277,11 @@ def measure_heights(
             max_fill_cells=opt.max_fill_cells,
             reducer=opt.reducer,
         )
-        ortho = orthoimage(left, dsm, mapping, nodata=opt.nodata)
+        problem = coarse_cell_problem(dsm, opt.cell_m)
+        if problem is None:
+            ortho = orthoimage(left, dsm, mapping, nodata=opt.nodata)
+        else:
+            dsm = None
     out = HeightsResult(
         pair.pair_id,
         pair.stamp_ns,

@@ -27,6 +27,7 @@ from ..core.results import GroundPoint
 from ..geometry import AffineModel, GeometryError, SceneObservation, space_intersection
 from ..imaging.matching import match_normalized
 from ..imaging.preview import anaglyph, to_uint8
+from ..io.files import file_stem
 from ..ros.bag import BagError, BagReader
 from ..ros.conversions import (
     ConversionError,
@@ -245,7 +246,7 @@ def _evaluate_heights(
         if plots is not None:
             files = save_height_plots(
                 plots,
-                m.pair_id.replace("+", "_"),
+                file_stem(m.pair_id),
                 heights,
                 grid,
                 disparity=disparities.get(stamp_to_ns(m.header.stamp)),
@@ -438,7 +439,7 @@ def _evaluate_pair(
             out["matching"] = match_y_parallax(left, right)
         if plots:
             plots.mkdir(parents=True, exist_ok=True)
-            tag = sp.pair_id.replace("/", "_").replace("+", "__")
+            tag = file_stem(sp.pair_id, plus="__")
             cv2.imwrite(str(plots / f"{tag}_left.png"), to_uint8(left))
             cv2.imwrite(str(plots / f"{tag}_right.png"), to_uint8(right))
             cv2.imwrite(
@@ -457,7 +458,7 @@ def _plot_geometry(
     import matplotlib.pyplot as plt
 
     plots.mkdir(parents=True, exist_ok=True)
-    tag = pair_id.replace("/", "_").replace("+", "__")
+    tag = file_stem(pair_id, plus="__")
     fig, ax = plt.subplots(1, 2, figsize=(11, 4))
     ax[0].plot(z, disp, ".", ms=3)
     zz = np.linspace(z.min(), z.max(), 2)

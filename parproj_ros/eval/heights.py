@@ -143,12 +143,15 @@ def hillshade(
 ) -> NDArray[np.uint8]:
     """Shaded relief of a north-up DSM (sun from ``azimuth_deg``, clockwise from north), 0-255.
 
-    Holes are 0 (black).
+    Holes are 0 (black). Along an axis of a single cell the slope is taken as 0 (a DSM of one
+    row or column has no gradient across it).
     """
     z = np.asarray(heights, dtype=float)
     valid = np.isfinite(z)
     zf = np.where(valid, z, np.nanmean(z) if valid.any() else 0.0)
-    dzdy, dzdx = np.gradient(zf, cell)  # rows go south: dZ/dnorth = -dzdy
+    # rows go south: dZ/dnorth = -dzdy
+    dzdy = np.gradient(zf, cell, axis=0) if zf.shape[0] > 1 else np.zeros_like(zf)
+    dzdx = np.gradient(zf, cell, axis=1) if zf.shape[1] > 1 else np.zeros_like(zf)
     slope = np.arctan(np.hypot(dzdx, dzdy))
     aspect = np.arctan2(-dzdx, dzdy)
     az = math.radians(360.0 - azimuth_deg + 90.0)

@@ -6,6 +6,8 @@
   Inf and out-of-range values are refused before any work starts.
 - :func:`input_path`, :func:`read_bounded`: inputs that exist and are of the right kind (a FIFO
   or a device is refused before it is opened, so nothing blocks), read up to a size limit.
+- :func:`file_stem`: a name read from a bag (a pair or scene id) made safe as part of a file
+  name: it never leaves the output folder, hides the file or exceeds a file name's length.
 - :func:`check_output`, :func:`staged_output`: an output is never the input, inside it or
   around it; an existing output is only replaced with ``--force`` (and then only when it is a
   bag, or a folder parproj wrote); it is written under a temporary name beside the target and
@@ -30,6 +32,7 @@ __all__ = [
     "MARKER",
     "InputError",
     "check_output",
+    "file_stem",
     "input_path",
     "integer",
     "number",
@@ -326,3 +329,33 @@ def staged_output(
             os.replace(work, out)
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+
+
+#: Longest :func:`file_stem`, characters (file names end with a suffix such as ``_dsm.tif``; a
+#: file name has at most 255 bytes).
+FILE_STEM_CHARS = 80
+
+
+def file_stem(name: str, *, plus: str = "_") -> str:
+    """``name`` (a pair or scene id, as a bag gives it) as the stem of a file name in a folder.
+
+    ``+`` (between a pair's scene ids) becomes ``plus``; a path separator (a slash or a
+    backslash), a NUL or other control character becomes ``_``, and so does a leading ``.``
+    (no hidden file, no ``..``): the file stays in its folder whatever the bag holds. A stem
+    longer than :data:`FILE_STEM_CHARS` keeps its start and ends with 8 hex digits of its hash
+    (distinct long names stay distinct). Empty: ``pair``.
+    """
+    import hashlib
+
+    out = "".join(
+        plus if ch == "+" else "_" if ch in "/\\" or not ch.isprintable() else ch for ch in name
+    )
+    if out.startswith("."):
+        out = "_" + out[1:]
+    if len(out) > FILE_STEM_CHARS or len(out.encode()) > 2 * FILE_STEM_CHARS:
+        digest = hashlib.sha1(name.encode()).hexdigest()[:8]
+        keep = out[: FILE_STEM_CHARS - 9]
+        while len(keep.encode()) > 2 * FILE_STEM_CHARS - 9:
+            keep = keep[:-1]
+        out = f"{keep}_{digest}"
+    return out or "pair"

@@ -787,3 +787,79 @@ def test_a_full_disk_in_the_dsm_write_does_not_blame_the_ortho_image(
     assert line.startswith(f"parproj dsm: {out}: No space left on device ("), line
     assert "ortho" not in line and line.endswith("free some space or write elsewhere"), line
     assert not out.exists() and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("ids", "said"),
+    [
+        (["../../ESC", "c"], r"scene id '\.\./\.\./ESC' holds '/'"),
+        (["a+b", "c"], r"scene id 'a\+b' holds '\+'"),
+        (["..", "c"], r"scene id '\.\.' starts with '\.'"),
+        (["x" * 65, "c"], r"has 65 characters \(at most 64\)"),
+    ],
+)
+def test_scene_ids_that_would_name_files_elsewhere_are_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], ids: list[str], said: str
+) -> None:
+    """Scene ids name the files ``dsm`` writes (a pair's id joins two with '+').
+
+    Before (adversarial review 2026-12-02): ``--ids ../../ESC c`` imported with exit 0, and
+    ``dsm`` then wrote ``ESC_c_dsm.tif`` and the rest two folders up, over a user's file of the
+    same name, with exit 0.
+    """
+    v = DATA
+    argv = ["import", str(v / "left_image.tif"), str(v / "right_image.tif")]
+    code, _, err = run([*argv, "-o", str(tmp_path / "b"), "--ids", *ids], capsys)
+    assert code == 2 and re.search(said, err), err
+    assert not (tmp_path / "b").exists()
+
+
+def test_dsm_names_its_files_inside_its_folder_whatever_the_pair_id(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: Any
+) -> None:
+    """A bag from elsewhere whose pair id holds '../..': every product stays in ``-o``.
+
+    The bag is made as such a bag would be (the import's id check switched off); before, the
+    products landed two folders above the output and overwrote a file there.
+    """
+    from parproj_ros.apps import importer
+
+    monkeypatch.setattr(importer, "scene_id_problem", lambda sid: None)
+    work = tmp_path / "a" / "b"
+    work.mkdir(parents=True)
+    v = DATA
+    argv = ["import", str(v / "left_image.tif"), str(v / "right_image.tif")]
+    assert run([*argv, "-o", str(work / "in"), "--ids", "../../ESC", "c"], capsys)[0] == 0
+    assert (
+        run(["process", str(work / "in"), "-o", str(work / "out"), "-q", "--heights"], capsys)[0]
+        == 0
+    )
+    precious = tmp_path / "ESC_c_ortho.png"
+    precious.write_text("PRECIOUS")
+    code, _, err = run(["dsm", str(work / "out"), "-o", str(work / "d")], capsys)
+    assert code == 0, err
+    assert precious.read_text() == "PRECIOUS"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ESC_c_ortho.png", "a"]
+    made = sorted(p.name for p in (work / "d").iterdir())
+    assert "_._.._ESC_c_dsm.tif" in made and "_._.._ESC_c_ortho.png" in made, made
+    assert sorted(p.name for p in work.iterdir()) == ["d", "in", "out"]
+
+
+def test_a_dsm_of_one_cell_is_no_dsm_and_plots_do_not_crash(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--heights-cell-m`` as large as the pair: a WARN and exit 1, not a 1 x 1 "DSM".
+
+    Before (adversarial review 2026-12-02): "[ok] ... DSM 1 x 1 cells of 1e+04 m" with exit 0,
+    then ``dsm`` and ``evaluate --plots`` crashed (exit 3) in the hillshade's np.gradient.
+    """
+    from parproj_ros.eval.heights import hillshade
+
+    out = tmp_path / "out"
+    argv = ["process", str(BAG), "-o", str(out), "--heights", "--heights-cell-m", "10000"]
+    code, _, err = run(argv, capsys)
+    assert code == 1, err
+    assert "no DSM: heights_cell_m 10000 m gives a DSM of 1 x 1 cells" in err, err
+    for shape in ((1, 1), (1, 5), (4, 1)):
+        shade = hillshade(np.full(shape, 100.0), 1.0)
+        assert shade.shape == shape and (shade == shade.flat[0]).all()
