@@ -89,6 +89,9 @@ FloatArray = NDArray[np.float64]
 BH_RANGE = (0.1, 1.0)
 #: Virtual points both images of a pair must see for it to count as overlapping.
 MIN_COMMON = 20
+#: Below this B/H two images hold no stereo (the same image twice, or one RPC for both): a
+#: pair asked for (by order or by id) is refused, one of ``all`` not selected.
+MIN_STEREO_BH = 0.01
 #: Height step along a ray for its viewing direction, metres.
 DIRECTION_DH = 100.0
 
@@ -282,7 +285,16 @@ def select_pairs(
                 viewing_direction(by_id[b], centre, frame),
             )
         row["base_to_height"], row["convergence_deg"] = bh, conv
-        overlap = len(t.ids) >= MIN_COMMON
+        flat = bool(bh < MIN_STEREO_BH)  # False for NaN (no common point)
+        if flat and not isinstance(pairs, str):
+            ia, ib = by_id[a], by_id[b]
+            raise SceneImportError(
+                f"pair {a}:{b}: B/H {bh:.3f}, convergence {conv:.2f} deg: both images look at "
+                f"the ground from the same direction, so no heights can come from them (the "
+                f"same image twice, or one RPC for both? {ia.path.name} with {ia.rpc_source}, "
+                f"{ib.path.name} with {ib.rpc_source})"
+            )
+        overlap = len(t.ids) >= MIN_COMMON and not flat
         in_window = bool(bh_range[0] <= bh <= bh_range[1])
         if pairs is None:
             row["selected"], row["why"] = True, "by order"
@@ -292,7 +304,9 @@ def select_pairs(
         else:
             row["selected"] = overlap and (in_window or pairs == "all")
             row["why"] = (
-                "no overlap"
+                "no stereo base (B/H under 0.01)"
+                if flat
+                else "no overlap"
                 if not overlap
                 else ("B/H in window" if in_window else "B/H outside window")
             )

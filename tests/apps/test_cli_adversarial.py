@@ -863,3 +863,27 @@ def test_a_dsm_of_one_cell_is_no_dsm_and_plots_do_not_crash(
     for shape in ((1, 1), (1, 5), (4, 1)):
         shade = hillshade(np.full(shape, 100.0), 1.0)
         assert shade.shape == shape and (shade == shade.flat[0]).all()
+
+
+@pytest.mark.parametrize("how", ["copy", "same_rpc"])
+def test_the_same_view_twice_is_refused_at_import(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], how: str
+) -> None:
+    """A byte copy of an image (or a hard link: not the same path, so not caught as a symlink
+    is), or one RPC for both images: B/H 0, refused at import naming why.
+
+    Before (adversarial review 2026-12-02): "selected (by order)", exit 0; ``process`` then
+    exited 1 ("no usable stereo base"), and with a DEM the import blamed its vertical reference.
+    """
+    left, right = DATA / "left_image.tif", DATA / "right_image.tif"
+    argv = ["import", str(left)]
+    if how == "copy":
+        for f in ("left_image.tif", "left_image.geom"):
+            shutil.copy(DATA / f, tmp_path / f)
+        argv += [str(tmp_path / "left_image.tif")]
+    else:
+        argv += [str(right), "--rpc-right", str(DATA / "left_image.geom")]
+    code, _, err = run([*argv, "-o", str(tmp_path / "b")], capsys)
+    assert code == 2, err
+    assert "B/H 0.000" in err and "the same image twice, or one RPC for both?" in err, err
+    assert not (tmp_path / "b").exists()

@@ -213,15 +213,23 @@ def test_late_selection_cannot_use_released_scenes(all_bag: dict[str, Any]) -> N
 
 
 @pytest.mark.ros
-def test_pair_without_base(tifs: dict[str, Path], tmp_path: Path) -> None:
-    """The same image twice (B/H 0): normalization is degenerate; the pair is skipped."""
-    s = import_scenes(
-        [tifs["a"], tifs["a"], tifs["c"]],
-        tmp_path / "bag",
-        pairs=[("a", "a_2"), ("a", "c")],
-        heights=(FLAT_H - 100.0, FLAT_H + 100.0),
-        log=lambda _: None,
-    )
+def test_pair_without_base(
+    tifs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The same image twice (B/H 0): refused at import; in a bag made elsewhere, normalization
+    is degenerate and the pair is skipped."""
+    from parproj_ros.apps import importer
+
+    args = ([tifs["a"], tifs["a"], tifs["c"]], tmp_path / "bag")
+    opts: dict[str, Any] = {
+        "pairs": [("a", "a_2"), ("a", "c")],
+        "heights": (FLAT_H - 100.0, FLAT_H + 100.0),
+        "log": lambda _: None,
+    }
+    with pytest.raises(SceneImportError, match=r"pair a:a_2: B/H 0\.000.*the same image twice"):
+        import_scenes(*args, **opts)
+    monkeypatch.setattr(importer, "MIN_STEREO_BH", -1.0)  # such a bag, as made elsewhere
+    s = import_scenes(*args, **opts)
     assert s["candidates"][0]["base_to_height"] < 1e-6
     summary = process_bag(tmp_path / "bag", tmp_path / "out", progress=False, overrides=GCP_ONLY)
     assert summary.pairs == 1, summary.issues
