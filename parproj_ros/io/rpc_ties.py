@@ -546,6 +546,13 @@ def _pairs_text(images: Sequence[ImportedImage], pairs: Sequence[PairMatches]) -
     return f"of {len(used)} pairs ({names})"
 
 
+#: Matches after the ratio test from which a pair's share agreeing with the RPCs is judged,
+#: and the share under which the import warns (real Pléiades pairs: 96-99 %; the Ventoux pair
+#: with its RPCs swapped: 13 of 506).
+FEW_CONSISTENT_MIN = 100
+FEW_CONSISTENT_SHARE = 0.25
+
+
 def import_ties(
     images: Sequence[ImportedImage],
     heights: Any,
@@ -600,6 +607,14 @@ def import_ties(
             f"{row['consistent']} consistent with the RPCs (y-parallax {row['y_parallax_px']:+.2f}"
             f" px); heights (percentiles 1-99) {lo:.0f}..{hi:.0f} m"
         )
+        cand, cons = int(row["candidates"]), int(row["consistent"])
+        if cand >= FEW_CONSISTENT_MIN and cons < FEW_CONSISTENT_SHARE * cand:
+            log(
+                f"warning: only {cons} of the {cand} matches between {row['left']} and "
+                f"{row['right']} agree with their RPCs (y-parallax {row['y_parallax_px']:+.2f} "
+                "px; real pairs: over 90 %): the RPCs may not belong to these images (swapped "
+                "--rpc-left / --rpc-right, or of another scene or crop?)"
+            )
     a = res.adjustment
     if a is not None:
         views: dict[str, Any] = {}

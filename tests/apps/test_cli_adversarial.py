@@ -887,3 +887,24 @@ def test_the_same_view_twice_is_refused_at_import(
     assert code == 2, err
     assert "B/H 0.000" in err and "the same image twice, or one RPC for both?" in err, err
     assert not (tmp_path / "b").exists()
+
+
+def test_rpcs_swapped_between_the_images_are_said_at_import(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Each image with the other's RPC: few matches agree with the RPCs, and the import says so.
+
+    Before (adversarial review 2026-12-02): "506 matched, 13 consistent with the RPCs" and
+    exit 0 with no word; ``process`` later blamed the height range and advised --dem.
+    """
+    argv = ["import", str(DATA / "left_image.tif"), str(DATA / "right_image.tif")]
+    argv += ["--rpc-left", str(DATA / "right_image.geom")]
+    argv += ["--rpc-right", str(DATA / "left_image.geom"), "-o", str(tmp_path / "b")]
+    code, out, err = run(argv, capsys)
+    said = [line for line in (out + err).splitlines() if "agree with their RPCs" in line]
+    assert len(said) == 1, out + err
+    assert said[0].startswith("warning: only ") and "swapped --rpc-left / --rpc-right" in said[0]
+    # the right RPCs: nothing said
+    argv = ["import", str(DATA / "left_image.tif"), str(DATA / "right_image.tif")]
+    code, out, err = run([*argv, "-o", str(tmp_path / "ok")], capsys)
+    assert code == 0 and "agree with their RPCs" not in out + err, out + err
