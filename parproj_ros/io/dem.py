@@ -266,6 +266,13 @@ _COMMON_NODATA = (-32768.0, -32767.0, 32767.0, 65535.0, -99999.0, 99999.0)
 def _implausible(kind: str, data: FloatArray) -> str | None:
     """Why ``data`` cannot be values of a ``kind`` raster (one clause), or None if it can."""
     lo, hi, what = PLAUSIBLE[kind]
+    inf = np.isinf(data)
+    if inf.any():  # no height at all (NaN is no data; an infinity is a broken value)
+        return (
+            f"holds infinite values at {int(inf.sum())} of {data.size} cells read: no "
+            f"{'heights' if kind == 'DEM' else 'undulations'}; declare them no data (or fix the "
+            "file that made them)"
+        )
     with np.errstate(invalid="ignore"):
         bad = np.isfinite(data) & ((data < lo) | (data > hi))
     if not bad.any():

@@ -231,6 +231,11 @@ def _replaceable(target: Path, kind: OutputKind) -> str | None:
         return "exists and is not a bag (only metadata.yaml and .mcap files): not replaced"
     if (target / MARKER).is_file() or not any(target.iterdir()):
         return None
+    if _is_bag(target):  # a bag (parproj import's, or process's) where a folder goes
+        return (
+            "is a bag, and this command writes a folder of files (not a bag): not replaced, "
+            "even with --force; give another -o (or remove the bag first)"
+        )
     return f"exists and was not written by parproj (no {MARKER}): not replaced, remove it first"
 
 

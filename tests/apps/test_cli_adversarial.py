@@ -908,3 +908,20 @@ def test_rpcs_swapped_between_the_images_are_said_at_import(
     argv = ["import", str(DATA / "left_image.tif"), str(DATA / "right_image.tif")]
     code, out, err = run([*argv, "-o", str(tmp_path / "ok")], capsys)
     assert code == 0 and "agree with their RPCs" not in out + err, out + err
+
+
+def test_force_onto_a_bag_where_a_folder_goes_says_so(
+    processed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``fuse -o BAG --force`` (or ``dsm``): a bag is not replaced by a folder of files.
+
+    Before (adversarial review 2026-12-02): "exists and was not written by parproj", false for a
+    bag ``parproj import`` wrote.
+    """
+    bag = tmp_path / "bag"
+    shutil.copytree(BAG, bag)
+    for cmd in (["fuse", str(processed), str(processed)], ["dsm", str(processed)]):
+        code, _, err = run([*cmd, "-o", str(bag), "--force"], capsys)
+        assert code == 2, err
+        assert "is a bag, and this command writes a folder of files" in err, err
+        assert "not written by parproj" not in err

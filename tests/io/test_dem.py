@@ -751,3 +751,23 @@ def test_a_void_away_from_the_cells_asked_does_not_refuse_the_dem(tmp_path: Path
     lon_v, lat_v = 5.0 + 0.001 * 350.5, 45.0 - 0.001 * 350.5
     with pytest.raises(DemError, match=r"void\.tif: holds -32768 at \d+ of \d+ cells read"):
         dem(np.array([lon_v]), np.array([lat_v]))
+
+
+def test_infinite_values_are_named_as_such(tmp_path: Path) -> None:
+    """A float DEM holding +-inf (no nodata declared): refused as infinite values.
+
+    Before (adversarial review 2026-12-02): numpy's "invalid value encountered in subtract"
+    twice as notes, then the DEM "has nodata there", which it had not declared.
+    """
+    data = np.full((100, 100), 500.0, dtype=np.float32)
+    data[10:20, 10:20] = np.inf
+    data[10:20, 20:30] = -np.inf
+    t = Affine(0.001, 0.0, 5.0, 0.0, -0.001, 45.0)
+    path = _write(tmp_path / "inf.tif", data, t, "EPSG:4326", -9999.0)
+    dem = load_dem(path)  # the centre is clean
+    lon = 5.0 + 0.001 * np.array([15.5, 25.5])
+    lat = 45.0 - 0.001 * np.array([15.5, 15.5])
+    with pytest.raises(
+        DemError, match=r"inf\.tif: holds infinite values at \d+ of \d+ cells read: no heights"
+    ):
+        dem(lon, lat)

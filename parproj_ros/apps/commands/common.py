@@ -10,7 +10,10 @@ from typing import Any
 
 from ...io.files import InputError
 
-FORCE_HELP = "replace an existing output (a bag, or a folder parproj wrote)"
+FORCE_HELP = (
+    "replace an existing output of the same kind (a bag where a bag is written, or a folder "
+    "parproj wrote)"
+)
 
 
 def report(as_json: bool, result: dict[str, Any], show: Callable[[dict[str, Any]], None]) -> None:
