@@ -265,6 +265,6 @@ def export_dsms(
         raise NoHeightsError(
             f"{out_bag}: no DSM: the dsm topic has no message (no pair got heights: the WARN "
             "lines of parproj process say why); try parproj process with --z-avg and "
-            "--height-range around the ground, or import with --dem"
+            "--height-range around the ground, or, if no DEM was given, import with --dem"
         )
     return rows

@@ -637,7 +637,12 @@ class Pipeline:
                     f"with data in both (< {100 * MIN_SHARED_SHARE:g} %): the scenes see "
                     f"different ground at the heights used ({terrain.describe()}), nothing to "
                     "match. Check that the scenes overlap (crop origins, RPCs, the pair "
-                    "selection), or give a DEM at import (parproj import --dem)",
+                    "selection)"
+                    + (
+                        ", and the DEM's heights (its vertical reference)"
+                        if terrain.source in (TerrainSource.DEM, TerrainSource.DEM_TIE_POINTS)
+                        else ", or give a DEM (parproj import --dem, or process --dem)"
+                    ),
                 )
             )
         out.pairs.append(pair)

@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
             f"parproj dsm: {r['pair_id']}: the DSM has a height in {100 * r['valid_fraction']:.2f}"
             f" % of its cells (< {100 * MIN_VALID_FRACTION:.0f} %): not exported; the pair "
             "matched almost nothing (see the heights line of parproj process); try parproj "
-            "process with --z-avg and --height-range around the ground, or import with --dem",
+            "process with --z-avg and --height-range around the ground, or, if no DEM was given, "
+            "import with --dem",
             file=sys.stderr,
         )
 

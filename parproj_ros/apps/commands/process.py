@@ -127,7 +127,8 @@ def verdict(summary: ProcessSummary, *, heights: bool) -> int:
     if summary.unusable:
         problems.append(
             f"pair {', '.join(summary.unusable)}: the normalized images share almost no ground "
-            "(ERROR above); check that the scenes overlap, or import with --dem"
+            "(ERROR above); check that the scenes overlap, or, if no DEM was given, import with "
+            "--dem"
         )
     missing = [p for p, ok in summary.heights if not ok]
     tiled = {p for p, ok in summary.tiles if ok}  # quick-look tiles only: they are the heights
