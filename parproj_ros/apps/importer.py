@@ -110,11 +110,16 @@ SCENE_ID_FORBIDDEN = "+:,/\\"
 SCENE_ID_MAX = 64
 
 
+def _not_in_id(ch: str) -> bool:
+    """Whether ``ch`` may not be part of a scene id (:data:`SCENE_ID_FORBIDDEN`, control)."""
+    return ch in SCENE_ID_FORBIDDEN or not ch.isprintable()
+
+
 def scene_id_problem(sid: str) -> str | None:
     """Why ``sid`` cannot be a scene id, or None (:data:`SCENE_ID_FORBIDDEN`, ...)."""
     if not sid or not sid.strip():
         return "is empty"
-    bad = sorted({ch for ch in sid if ch in SCENE_ID_FORBIDDEN or not ch.isprintable()})
+    bad = sorted({ch for ch in sid if _not_in_id(ch)})
     if bad:
         shown = ", ".join(repr(ch) for ch in bad)
         return f"holds {shown} (not allowed: + : , / \\ and control characters)"
@@ -134,9 +139,7 @@ def scene_ids_of(paths: Sequence[str | Path]) -> list[str]:
     ids: list[str] = []
     for p in paths:
         raw = Path(p).stem or "scene"
-        stem = "".join(
-            "_" if ch in SCENE_ID_FORBIDDEN or not ch.isprintable() else ch for ch in raw
-        )
+        stem = "".join("_" if _not_in_id(ch) else ch for ch in raw)
         stem = ("_" + stem[1:] if stem.startswith(".") else stem)[: SCENE_ID_MAX - 4]
         sid, k = stem, 2
         while sid in ids:
